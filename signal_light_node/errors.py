@@ -1,0 +1,21 @@
+"""Exception types of signal_light_node; every error the package raises on purpose is one of these."""
+
+
+class SignalLightError(Exception):
+    """Base class of all signal_light_node errors."""
+
+
+class BagIOError(SignalLightError):
+    """A bag or a message in it cannot be read, converted or written."""
+
+
+class CropError(SignalLightError):
+    """A box cannot be turned into a model crop (zero size, outside the image, not finite)."""
+
+
+class CheckpointError(SignalLightError):
+    """A model checkpoint is missing, unreadable or incompatible with this code."""
+
+
+class ConfigError(SignalLightError):
+    """A parameter or option has a value that cannot be used; the message says why."""
