@@ -1,4 +1,4 @@
-"""Build script of signal_light_node (ament_python); metadata lives in setup.cfg."""
+"""Build script of signal_light_node (ament_python); setup.cfg places the executables for ros2 run."""
 
 from glob import glob
 
@@ -16,5 +16,14 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
     ],
+    install_requires=["setuptools"],
     zip_safe=False,
+    description="Online vehicle light-state perception node for ROS 2 Jazzy",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            "detector = signal_light_node.node.detector_node:main",
+            "signal-light = signal_light_node.cli:main",
+        ],
+    },
 )
