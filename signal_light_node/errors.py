@@ -19,3 +19,7 @@ class CheckpointError(SignalLightError):
 
 class ConfigError(SignalLightError):
     """A parameter or option has a value that cannot be used; the message says why."""
+
+
+class ImageConversionError(BagIOError):
+    """An image message cannot be turned into a BGR array (or back); the message names topic and stamp."""
