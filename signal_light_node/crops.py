@@ -1,0 +1,203 @@
+"""Turn a tracked box into the model's square input crop.
+
+This is the only crop code of the package: the training stream, the split writer and
+the online engine all call it, so the model sees the same crops in training and on
+the road. A crop is the box grown by a margin on each side, made square around its
+centre, cut from the image (zeros where it reaches past the border) and resized.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import List, Optional, Sequence, Tuple
+
+import cv2
+import numpy as np
+
+from signal_light_node.boxes import TrackBox
+from signal_light_node.errors import ConfigError, CropError
+
+MIN_SIZE = 16
+MAX_SIZE = 512
+
+
+@dataclass(frozen=True)
+class CropConfig:
+    """How boxes become crops.
+
+    Attributes:
+        size: Side of the square crop in pixels (16..512).
+        margin: Fraction of the box's width (height) added on the left and right (top and
+            bottom) before squaring, 0..1.
+    """
+
+    size: int = 64
+    margin: float = 0.15
+
+    def __post_init__(self) -> None:
+        if isinstance(self.size, bool) or not isinstance(self.size, (int, np.integer)):
+            raise ConfigError(f"crop size must be an integer, got {self.size!r}")
+        if not MIN_SIZE <= int(self.size) <= MAX_SIZE:
+            raise ConfigError(f"crop size must be in {MIN_SIZE}..{MAX_SIZE}, got {self.size}")
+        try:
+            margin = float(self.margin)
+        except (TypeError, ValueError):
+            raise ConfigError(f"crop margin must be a number, got {self.margin!r}") from None
+        if not (math.isfinite(margin) and 0.0 <= margin <= 1.0):
+            raise ConfigError(f"crop margin must be in 0..1, got {self.margin}")
+        # Normalise types so that equal configs compare and hash equal.
+        object.__setattr__(self, "size", int(self.size))
+        object.__setattr__(self, "margin", margin)
+
+
+def _check_image(image: np.ndarray) -> None:
+    if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim != 3 \
+            or image.shape[2] != 3:
+        shape = getattr(image, "shape", None)
+        dtype = getattr(image, "dtype", type(image).__name__)
+        raise CropError(f"image must be an HxWx3 uint8 array, got shape {shape} dtype {dtype}")
+    if image.shape[0] == 0 or image.shape[1] == 0:
+        raise CropError(f"image is empty ({image.shape[1]}x{image.shape[0]})")
+
+
+def _square_region(box: TrackBox, width: int, height: int, margin: float,
+                   size: int) -> Tuple[int, int, int]:
+    """Integer square ``(x0, y0, side)`` to cut for ``box``; raises CropError if none."""
+    if not box.is_finite:
+        raise CropError(f"track {box.track_id!r}: box has non-finite coordinates "
+                        f"({box.x0}, {box.y0}, {box.x1}, {box.y1})")
+    w, h = box.width, box.height
+    if not (w > 0 and h > 0):
+        raise CropError(f"track {box.track_id!r}: box has zero or negative size ({w:g}x{h:g})")
+    if box.x1 <= 0 or box.y1 <= 0 or box.x0 >= width or box.y0 >= height:
+        raise CropError(f"track {box.track_id!r}: box ({box.x0:g}, {box.y0:g}, {box.x1:g}, "
+                        f"{box.y1:g}) lies entirely outside the {width}x{height} image")
+    side = max(w, h) * (1.0 + 2.0 * margin)
+    if side > 64 * max(width, height):
+        # A box this large is a broken detection; cutting it would allocate gigabytes.
+        raise CropError(f"track {box.track_id!r}: box of {w:g}x{h:g} is far larger than "
+                        f"the {width}x{height} image")
+    side_px = max(1, int(round(side)))
+    if side_px >= 2 * size:
+        # Round the side up to a multiple of 2**j, where 2**j <= side / size, so that
+        # _resize_square can halve it j times exactly (the change is < 1/size of the side).
+        step = 1 << ((side_px // size).bit_length() - 1)
+        side_px = step * -(-side_px // step)
+    cx = 0.5 * (box.x0 + box.x1)
+    cy = 0.5 * (box.y0 + box.y1)
+    x0 = int(math.floor(cx - 0.5 * side_px + 0.5))
+    y0 = int(math.floor(cy - 0.5 * side_px + 0.5))
+    return x0, y0, side_px
+
+
+def _cut(image: np.ndarray, x0: int, y0: int, side: int, size: int) -> np.ndarray:
+    height, width = image.shape[:2]
+    cx0, cy0 = max(x0, 0), max(y0, 0)
+    cx1, cy1 = min(x0 + side, width), min(y0 + side, height)
+    patch = image[cy0:cy1, cx0:cx1]
+    if cx0 != x0 or cy0 != y0 or cx1 != x0 + side or cy1 != y0 + side:
+        # Pad only when the square reaches past the border (the common case is a view).
+        patch = cv2.copyMakeBorder(patch, cy0 - y0, y0 + side - cy1, cx0 - x0,
+                                   x0 + side - cx1, cv2.BORDER_CONSTANT, value=(0, 0, 0))
+    return _resize_square(patch, size)
+
+
+def _resize_square(patch: np.ndarray, size: int) -> np.ndarray:
+    """Resize a square patch to ``size``: area averaging when shrinking, bilinear when enlarging.
+
+    OpenCV's area resize is fast only when halving (its general path costs ~10x more),
+    so shrinking halves the patch with ``INTER_AREA`` until its side is below
+    ``2 size`` and then finishes with a bilinear resize to ``2 size`` and one last
+    halving. On fine texture the result differs from one ``INTER_AREA`` call by a few
+    grey levels; the model only ever sees crops made this way.
+    """
+    side = patch.shape[0]
+    if side == size:
+        return np.ascontiguousarray(patch)
+    if side < size:
+        return cv2.resize(patch, (size, size), interpolation=cv2.INTER_LINEAR)
+    while side >= 2 * size:  # _square_region made the side divisible by these halvings
+        side //= 2
+        patch = cv2.resize(patch, (side, side), interpolation=cv2.INTER_AREA)
+    if side == size:
+        return patch
+    patch = cv2.resize(patch, (2 * size, 2 * size), interpolation=cv2.INTER_LINEAR)
+    return cv2.resize(patch, (size, size), interpolation=cv2.INTER_AREA)
+
+
+def crop_vehicle(image: np.ndarray, box: TrackBox, config: CropConfig = CropConfig()) -> np.ndarray:
+    """Cut the model crop of one box.
+
+    Args:
+        image: The camera frame, HxWx3 uint8 (BGR).
+        box: The tracked box in pixels.
+        config: Crop size and margin.
+
+    Returns:
+        A new ``(size, size, 3)`` uint8 array.
+
+    Raises:
+        CropError: The image is not HxWx3 uint8, or the box is not finite, has zero or
+            negative size, or lies entirely outside the image.
+    """
+    _check_image(image)
+    height, width = image.shape[:2]
+    x0, y0, side = _square_region(box, width, height, config.margin, config.size)
+    return _cut(image, x0, y0, side, config.size)
+
+
+def crop_vehicles(image: np.ndarray, boxes: Sequence[TrackBox],
+                  config: CropConfig = CropConfig()) -> Tuple[np.ndarray, List[Optional[str]]]:
+    """Cut the crops of every box of one frame; a bad box never stops the others.
+
+    Args:
+        image: The camera frame, HxWx3 uint8 (BGR).
+        boxes: The tracked boxes.
+        config: Crop size and margin.
+
+    Returns:
+        ``(crops, reasons)``: crops ``[N, size, size, 3]`` uint8 in the order of ``boxes``,
+        and per box ``None`` or the reason why its crop is all zeros.
+
+    Raises:
+        CropError: Only when the image itself is unusable.
+    """
+    _check_image(image)
+    height, width = image.shape[:2]
+    size = config.size
+    crops = np.zeros((len(boxes), size, size, 3), dtype=np.uint8)
+    reasons: List[Optional[str]] = [None] * len(boxes)
+    for i, box in enumerate(boxes):
+        try:
+            x0, y0, side = _square_region(box, width, height, config.margin, config.size)
+        except CropError as exc:
+            reasons[i] = str(exc)
+            continue
+        crops[i] = _cut(image, x0, y0, side, size)
+    return crops, reasons
+
+
+def clip_roi(box: TrackBox, width: int, height: int) -> Tuple[int, int, int, int]:
+    """The box clipped to the image as a ``sensor_msgs/RegionOfInterest``.
+
+    Edges are rounded outwards to whole pixels; a non-finite box or one outside the
+    image gives a zero-size ROI.
+
+    Args:
+        box: The tracked box in pixels.
+        width: Image width.
+        height: Image height.
+
+    Returns:
+        ``(x_offset, y_offset, width, height)`` as non-negative ints.
+    """
+    if not box.is_finite:
+        return 0, 0, 0, 0
+    x0 = min(max(int(math.floor(box.x0)), 0), width)
+    y0 = min(max(int(math.floor(box.y0)), 0), height)
+    x1 = min(max(int(math.ceil(box.x1)), 0), width)
+    y1 = min(max(int(math.ceil(box.y1)), 0), height)
+    if x1 <= x0 or y1 <= y0:
+        return 0, 0, 0, 0
+    return x0, y0, x1 - x0, y1 - y0
