@@ -1,0 +1,255 @@
+"""The per-track light-state network: attention FCN, CNN, stacked ConvLSTM, task heads.
+
+One step maps a batch of crops and the tracks' recurrent states to per-task logits
+and new states::
+
+    crop [N,3,S,S] in [0,1] BGR
+      -> normalise (config mean/std)
+      -> attention FCN (3x3 convs, dilations 1,2,2,1, last layer 1 channel + sigmoid)
+         mask [N,1,S,S], multiplied with the normalised crop       (skipped if disabled)
+      -> backbone: per stage a stride-2 3x3 conv and a 3x3 conv, norm + ReLU
+         -> [N,C,S/8,S/8] for three stages
+      -> ConvLSTM layer 1 -> ConvLSTM layer 2  (explicit (h, c) per layer)
+      -> heads on the last h: 1x1 conv pooled to a small grid (keeps where a lamp is:
+         the vehicle's left/right side) + global max of h (is any lamp lit), a shared
+         dense layer with dropout, one linear layer per task.
+
+The per-frame part (normalisation, attention, backbone) has no state, so
+``forward_sequence`` runs it on all frames at once and only unrolls the recurrence;
+in eval mode this is the same computation as stepping frame by frame.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Dict, List, Optional, Tuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from signal_light_node.errors import ConfigError, CropError
+from signal_light_node.labels import TASKS
+from signal_light_node.model.interface import State, state_batch_size
+
+if TYPE_CHECKING:  # pragma: no cover - typing only
+    from signal_light_node.model.checkpoint import ModelConfig
+
+#: Dilations of the attention FCN's four 3x3 layers (as in the research design).
+ATTENTION_DILATIONS: Tuple[int, ...] = (1, 2, 2, 1)
+
+
+def _norm(kind: str, channels: int) -> nn.Module:
+    if kind == "batch":
+        return nn.BatchNorm2d(channels)
+    # Largest group count <= 8 that divides the channels.
+    groups = next(g for g in (8, 4, 2, 1) if channels % g == 0)
+    return nn.GroupNorm(groups, channels)
+
+
+def _conv_block(c_in: int, c_out: int, stride: int, norm: str) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Conv2d(c_in, c_out, 3, stride=stride, padding=1, bias=False),
+        _norm(norm, c_out),
+        nn.ReLU(inplace=True),
+    )
+
+
+class AttentionFCN(nn.Module):
+    """Fully convolutional net giving one attention value in [0, 1] per pixel."""
+
+    def __init__(self, channels: Tuple[int, ...]) -> None:
+        super().__init__()
+        widths = tuple(channels) + (1,)
+        if len(widths) != len(ATTENTION_DILATIONS):
+            raise ConfigError(f"attention FCN has {len(ATTENTION_DILATIONS)} layers, so "
+                              f"attention_channels needs {len(ATTENTION_DILATIONS) - 1} widths, "
+                              f"got {tuple(channels)}")
+        layers: List[nn.Module] = []
+        c_in = 3
+        for i, (c_out, dilation) in enumerate(zip(widths, ATTENTION_DILATIONS)):
+            layers.append(nn.Conv2d(c_in, c_out, 3, padding=dilation, dilation=dilation))
+            if i < len(widths) - 1:
+                layers.append(nn.ReLU(inplace=True))
+            c_in = c_out
+        self.body = nn.Sequential(*layers)
+        # Start mostly open (sigmoid(1) ~ 0.73) so the backbone sees the crop from step one.
+        nn.init.constant_(self.body[-1].bias, 1.0)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return torch.sigmoid(self.body(x))
+
+
+class ConvLSTMCell(nn.Module):
+    """Convolutional LSTM cell: all four gates from one conv over ``[x, h]``."""
+
+    def __init__(self, c_in: int, hidden: int, kernel: int) -> None:
+        super().__init__()
+        self.hidden = hidden
+        self.gates = nn.Conv2d(c_in + hidden, 4 * hidden, kernel, padding=kernel // 2)
+        with torch.no_grad():
+            # Forget-gate bias 1: remember by default early in training.
+            self.gates.bias.zero_()
+            self.gates.bias[hidden:2 * hidden].fill_(1.0)
+
+    def forward(self, x: Tensor, h: Tensor, c: Tensor) -> Tuple[Tensor, Tensor]:
+        i, f, o, g = self.gates(torch.cat((x, h), 1)).chunk(4, 1)
+        c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
+        h = torch.sigmoid(o) * torch.tanh(c)
+        return h, c
+
+
+class LightStateNet(nn.Module):
+    """Attention + CNN + two ConvLSTM layers + multi-task heads (see module doc).
+
+    Implements :class:`signal_light_node.model.interface.LightStateModel`.
+    """
+
+    def __init__(self, config: "ModelConfig") -> None:
+        super().__init__()
+        self.config = config
+        self.input_size = config.input_size
+        mean = torch.tensor(config.mean, dtype=torch.float32).view(1, 3, 1, 1)
+        std = torch.tensor(config.std, dtype=torch.float32).view(1, 3, 1, 1)
+        # Buffers, not persistent: the config is the source of truth for normalisation.
+        self.register_buffer("_mean", mean, persistent=False)
+        self.register_buffer("_inv_std", 1.0 / std, persistent=False)
+
+        self.attention_net: Optional[AttentionFCN] = (
+            AttentionFCN(config.attention_channels) if config.use_attention else None)
+
+        stages: List[nn.Module] = []
+        c_in = 3
+        for width in config.backbone_channels:
+            stages.append(_conv_block(c_in, width, 2, config.norm))
+            stages.append(_conv_block(width, width, 1, config.norm))
+            c_in = width
+        self.backbone = nn.Sequential(*stages)
+
+        cells = []
+        for hidden in config.lstm_hidden:
+            cells.append(ConvLSTMCell(c_in, hidden, config.lstm_kernel))
+            c_in = hidden
+        self.cells = nn.ModuleList(cells)
+        self.lstm_dropout = nn.Dropout(config.lstm_dropout)
+
+        last = config.lstm_hidden[-1]
+        self.head_conv = nn.Conv2d(last, config.head_channels, 1)
+        grid = config.head_grid
+        self.fc = nn.Sequential(
+            nn.Linear(config.head_channels * grid * grid + last, config.fc_hidden),
+            nn.ReLU(inplace=True),
+            nn.Dropout(config.dropout),
+        )
+        self.heads = nn.ModuleDict({t: nn.Linear(config.fc_hidden, config.num_classes[t])
+                                    for t in TASKS})
+
+    # ------------------------------------------------------------------ per-frame part
+
+    def _normalise(self, crops: Tensor) -> Tensor:
+        return (crops - self._mean) * self._inv_std
+
+    def _check_crops(self, crops: Tensor, ndim: int) -> None:
+        size = self.input_size
+        if crops.dim() != ndim or crops.shape[-3] != 3 or crops.shape[-1] != size \
+                or crops.shape[-2] != size:
+            want = "[N, 3, S, S]" if ndim == 4 else "[N, T, 3, S, S]"
+            raise CropError(f"model input must be {want} with S={size}, got {tuple(crops.shape)}")
+
+    def attention(self, crops: Tensor) -> Tensor:
+        """Attention mask ``[N, 1, S, S]`` in [0, 1] of ``[N, 3, S, S]`` crops in [0, 1].
+
+        All ones when the model was built with ``use_attention=False``.
+        """
+        self._check_crops(crops, 4)
+        if self.attention_net is None:
+            return crops.new_ones((crops.shape[0], 1) + tuple(crops.shape[2:]))
+        return self.attention_net(self._normalise(crops))
+
+    def encode(self, crops: Tensor) -> Tensor:
+        """Per-frame features ``[N, C, F, F]`` (no recurrence) of ``[N, 3, S, S]`` crops."""
+        x = self._normalise(crops)
+        if self.attention_net is not None:
+            x = x * self.attention_net(x)
+        return self.backbone(x)
+
+    # ------------------------------------------------------------------ recurrent part
+
+    def initial_state(self, n: int) -> State:
+        """Zero state for ``n`` new tracks, on the model's device."""
+        ref = self._mean
+        side = self.config.feature_size
+        return tuple((ref.new_zeros((n, cell.hidden, side, side)),
+                      ref.new_zeros((n, cell.hidden, side, side))) for cell in self.cells)
+
+    def _check_state(self, state: State, n: int) -> None:
+        if len(state) != len(self.cells):
+            raise ConfigError(f"state has {len(state)} layers but the model has {len(self.cells)}")
+        if state_batch_size(state) != n:
+            raise ConfigError(f"state holds {state_batch_size(state)} tracks but {n} crops were given")
+
+    def _recur(self, features: Tensor, state: State) -> Tuple[Tensor, State]:
+        x = features
+        new_state = []
+        for cell, (h, c) in zip(self.cells, state):
+            h, c = cell(x, h, c)
+            new_state.append((h, c))
+            x = self.lstm_dropout(h)  # dropout on the output only, never on the carried state
+        return x, tuple(new_state)
+
+    def _heads(self, hidden: Tensor) -> Dict[str, Tensor]:
+        grid = F.adaptive_avg_pool2d(F.relu(self.head_conv(hidden)), self.config.head_grid)
+        pooled = torch.cat((grid.flatten(1), hidden.amax(dim=(2, 3))), 1)
+        z = self.fc(pooled)
+        return {t: head(z) for t, head in self.heads.items()}
+
+    # ---------------------------------------------------------------------- public API
+
+    def step_logits(self, crops: Tensor, state: State) -> Tuple[Dict[str, Tensor], State]:
+        """One frame for ``N`` tracks: logits ``[N, K]`` per task and the new state.
+
+        Args:
+            crops: float32 ``[N, 3, S, S]`` in [0, 1], BGR.
+            state: The tracks' states (batch ``N``), e.g. from :meth:`initial_state`.
+        """
+        self._check_crops(crops, 4)
+        self._check_state(state, crops.shape[0])
+        hidden, state = self._recur(self.encode(crops), state)
+        return self._heads(hidden), state
+
+    def step(self, crops: Tensor, state: State) -> Tuple[Dict[str, Tensor], State]:
+        """Like :meth:`step_logits` but with probabilities (softmax over classes)."""
+        logits, state = self.step_logits(crops, state)
+        return {t: torch.softmax(v, dim=1) for t, v in logits.items()}, state
+
+    def forward_sequence(self, crops: Tensor,
+                         state: Optional[State] = None) -> Tuple[Dict[str, Tensor], State]:
+        """Run ``T`` frames of ``N`` tracks; equals calling :meth:`step_logits` T times.
+
+        Args:
+            crops: float32 ``[N, T, 3, S, S]`` in [0, 1], BGR.
+            state: Initial state (batch ``N``); zeros when None.
+
+        Returns:
+            Logits ``[N, T, K]`` per task and the state after the last frame.
+        """
+        self._check_crops(crops, 5)
+        n, t = crops.shape[:2]
+        if t == 0:
+            raise CropError("forward_sequence needs at least one frame, got T=0")
+        if state is None:
+            state = self.initial_state(n)
+        self._check_state(state, n)
+        features = self.encode(crops.flatten(0, 1))
+        features = features.reshape((n, t) + tuple(features.shape[1:]))
+        hidden = []
+        for i in range(t):
+            h, state = self._recur(features[:, i], state)
+            hidden.append(h)
+        # Heads have no state either: run them once on every frame.
+        logits = self._heads(torch.stack(hidden, 1).flatten(0, 1))
+        return {k: v.reshape(n, t, -1) for k, v in logits.items()}, state
+
+    def forward(self, crops: Tensor, state: Optional[State] = None
+                ) -> Tuple[Dict[str, Tensor], State]:
+        """Alias of :meth:`forward_sequence` (so DistributedDataParallel can wrap the model)."""
+        return self.forward_sequence(crops, state)
