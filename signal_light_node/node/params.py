@@ -1,0 +1,290 @@
+"""Every parameter of the ``signal_light_detector`` node, declared and validated in one place.
+
+:class:`DetectorParams` holds the values and their defaults (the only copy of the defaults;
+``config/detector.yaml`` is tested against it), :data:`PARAM_SPECS` describes each one
+(description, range or choices, whether it may change at run time), and
+:func:`validate_params` checks a set of values with a reason a user can act on. Only
+:func:`declare_parameters` and :func:`read_parameters` touch rclpy, and they import it
+lazily, so the rest is usable and testable without ROS.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any, Dict, Mapping, Optional, Tuple, Union
+
+from signal_light_node.errors import ConfigError
+
+#: The node's name; also the top-level key of ``config/detector.yaml``.
+NODE_NAME = "signal_light_detector"
+
+Number = Union[int, float]
+
+
+@dataclass(frozen=True)
+class DetectorParams:
+    """Parameter values of the detector node (defaults = the shipped configuration).
+
+    Attributes:
+        model_path: Checkpoint file; "" means the shipped weights.
+        device: ``cpu`` or ``cuda``.
+        image_transport: ``raw`` (``~/input/image``) or ``compressed``
+            (``~/input/image/compressed``).
+        reliability: QoS reliability of the input subscriptions.
+        sync_slop_s: 0 pairs image and detections only on identical stamps; > 0 pairs the
+            nearest stamps at most this far apart.
+        sync_timeout_s: An unpaired message is dropped after waiting this long.
+        image_queue_size: Images waiting for their detections (and the subscription depth).
+        detection_queue_size: Detection arrays waiting for their image (and subscription depth).
+        work_queue_size: Paired frames waiting for inference; the oldest is dropped when full.
+        threshold_brake: ON probability from which brake (code 100) is reported.
+        threshold_left_blinker: Same for the left blinker (code 101).
+        threshold_right_blinker: Same for the right blinker (code 102).
+        track_timeout_s: A track unseen this long loses its recurrent state.
+        max_tracks: At most this many track states; the longest unseen is evicted.
+        max_gap_s: A forward stamp jump larger than this resets every track.
+        crop_margin: Context added around each box before cropping, as a fraction of its size.
+        publish_debug_image: Publish the annotated frame on ``~/output/debug/image``.
+        diagnostics_period_s: Period of the ``/diagnostics`` status.
+        num_threads: torch intra-op threads; 0 keeps torch's default.
+    """
+
+    model_path: str = ""
+    device: str = "cpu"
+    image_transport: str = "raw"
+    reliability: str = "best_effort"
+    sync_slop_s: float = 0.0
+    sync_timeout_s: float = 1.0
+    image_queue_size: int = 10
+    detection_queue_size: int = 10
+    work_queue_size: int = 2
+    threshold_brake: float = 0.5
+    threshold_left_blinker: float = 0.5
+    threshold_right_blinker: float = 0.5
+    track_timeout_s: float = 2.0
+    max_tracks: int = 256
+    max_gap_s: float = 2.0
+    crop_margin: float = 0.15
+    publish_debug_image: bool = False
+    diagnostics_period_s: float = 1.0
+    num_threads: int = 0
+
+    @property
+    def thresholds(self) -> Dict[int, float]:
+        """Per-code ON thresholds, keyed by the ``LightClassification`` codes."""
+        return {100: self.threshold_brake, 101: self.threshold_left_blinker,
+                102: self.threshold_right_blinker}
+
+    def as_dict(self) -> Dict[str, Any]:
+        """Name -> value, in declaration order."""
+        return dataclasses.asdict(self)
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """How one parameter is declared and checked.
+
+    Attributes:
+        description: Shown by ``ros2 param describe``.
+        low: Smallest allowed value (numbers only).
+        high: Largest allowed value (numbers only).
+        choices: Allowed values (strings only); empty = any.
+        read_only: True when changing it on a running node makes no sense.
+    """
+
+    description: str
+    low: Optional[Number] = None
+    high: Optional[Number] = None
+    choices: Tuple[str, ...] = ()
+    read_only: bool = True
+
+
+#: One entry per field of :class:`DetectorParams`, same order.
+PARAM_SPECS: Dict[str, ParamSpec] = {
+    "model_path": ParamSpec("Model checkpoint (.pt); empty = the weights shipped with the package."),
+    "device": ParamSpec("Torch device for inference.", choices=("cpu", "cuda")),
+    "image_transport": ParamSpec(
+        "raw: subscribe ~/input/image (sensor_msgs/Image); compressed: subscribe "
+        "~/input/image/compressed (sensor_msgs/CompressedImage).", choices=("raw", "compressed")),
+    "reliability": ParamSpec("QoS reliability of the input subscriptions (sensor-data profile "
+                             "otherwise).", choices=("best_effort", "reliable")),
+    "sync_slop_s": ParamSpec("0 = pair image and detections on identical header stamps only; "
+                             "> 0 = pair the nearest stamps at most this many seconds apart.",
+                             low=0.0, high=1.0, read_only=False),
+    "sync_timeout_s": ParamSpec("Seconds an image or detection array waits for its partner "
+                                "before it is dropped (counted).", low=0.01, high=30.0,
+                                read_only=False),
+    "image_queue_size": ParamSpec("Images buffered while waiting for detections; also the "
+                                  "subscription depth.", low=1, high=1000),
+    "detection_queue_size": ParamSpec("Detection arrays buffered while waiting for their image; "
+                                      "also the subscription depth.", low=1, high=1000),
+    "work_queue_size": ParamSpec("Paired frames waiting for inference; when full the oldest is "
+                                 "dropped (counted).", low=1, high=100),
+    "threshold_brake": ParamSpec("ON probability from which the brake light (code 100) is "
+                                 "reported in classification.", low=0.0, high=1.0, read_only=False),
+    "threshold_left_blinker": ParamSpec("ON probability from which the left blinker (code 101) "
+                                        "is reported.", low=0.0, high=1.0, read_only=False),
+    "threshold_right_blinker": ParamSpec("ON probability from which the right blinker (code 102) "
+                                         "is reported.", low=0.0, high=1.0, read_only=False),
+    "track_timeout_s": ParamSpec("A track not seen for this many seconds (stamp time) starts "
+                                 "fresh when it returns.", low=0.01, high=3600.0),
+    "max_tracks": ParamSpec("Most track states kept; the longest unseen is evicted first.",
+                            low=1, high=100000),
+    "max_gap_s": ParamSpec("A forward stamp jump larger than this many seconds resets all "
+                           "tracks (backward jumps always do).", low=0.01, high=3600.0),
+    "crop_margin": ParamSpec("Context added around each box before cropping, as a fraction of "
+                             "the box size.", low=0.0, high=1.0),
+    "publish_debug_image": ParamSpec("Publish the annotated frame on ~/output/debug/image "
+                                     "(costs CPU)."),
+    "diagnostics_period_s": ParamSpec("Period of the status published on /diagnostics.",
+                                      low=0.1, high=60.0),
+    "num_threads": ParamSpec("Torch intra-op threads; 0 keeps torch's default.", low=0, high=256),
+}
+
+
+def _field_types() -> Dict[str, type]:
+    return {f.name: type(f.default) for f in dataclasses.fields(DetectorParams)}
+
+
+def _check_one(name: str, value: Any, kind: type, spec: ParamSpec) -> Tuple[Any, Optional[str]]:
+    """Coerce ``value`` to the parameter's type and check it; returns (value, problem)."""
+    # bool is an int subclass; a YAML `true` must not pass as a number or vice versa.
+    if kind is bool:
+        if not isinstance(value, bool):
+            return value, f"{name} must be true or false, got {value!r}"
+    elif kind is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            return value, f"{name} must be an integer, got {value!r}"
+    elif kind is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return value, f"{name} must be a number, got {value!r}"
+        value = float(value)
+        if value != value:  # NaN passes every range comparison
+            return value, f"{name} must be a number, got NaN"
+    elif kind is str:
+        if not isinstance(value, str):
+            return value, f"{name} must be a string, got {value!r}"
+        if spec.choices and value not in spec.choices:
+            return value, f"{name} must be one of {', '.join(spec.choices)}, got {value!r}"
+    if spec.low is not None and value < spec.low:
+        return value, f"{name} must be >= {spec.low}, got {value}"
+    if spec.high is not None and value > spec.high:
+        return value, f"{name} must be <= {spec.high}, got {value}"
+    return value, None
+
+
+def validate_params(values: Union[DetectorParams, Mapping[str, Any]]) -> DetectorParams:
+    """Check a complete or partial set of parameter values.
+
+    Args:
+        values: A :class:`DetectorParams` or a mapping name -> value; missing names take
+            their defaults.
+
+    Returns:
+        The validated parameters (integers given for float parameters become floats).
+
+    Raises:
+        ConfigError: Naming every unknown parameter and every bad value with the reason.
+    """
+    given = values.as_dict() if isinstance(values, DetectorParams) else dict(values)
+    kinds = _field_types()
+    problems = [f"unknown parameter {name!r}" for name in given if name not in kinds]
+    clean: Dict[str, Any] = {}
+    for name, value in given.items():
+        if name in kinds:
+            clean[name], problem = _check_one(name, value, kinds[name], PARAM_SPECS[name])
+            if problem:
+                problems.append(problem)
+    if not problems:
+        params = DetectorParams(**clean)
+        if params.sync_slop_s > 0 and params.sync_timeout_s <= params.sync_slop_s:
+            problems.append(f"sync_timeout_s ({params.sync_timeout_s}) must exceed sync_slop_s "
+                            f"({params.sync_slop_s}): a message must be able to wait for a "
+                            "partner that is up to sync_slop_s away")
+    if problems:
+        raise ConfigError("invalid parameters: " + "; ".join(problems))
+    return params
+
+
+def updated(params: DetectorParams, changes: Mapping[str, Any]) -> DetectorParams:
+    """``params`` with ``changes`` applied, validated; read-only names are refused.
+
+    Raises:
+        ConfigError: If a change names a read-only or unknown parameter or a bad value.
+    """
+    frozen = [n for n in changes if n in PARAM_SPECS and PARAM_SPECS[n].read_only]
+    if frozen:
+        raise ConfigError(f"{', '.join(frozen)} cannot change while the node runs "
+                          "(read-only; restart the node)")
+    merged = params.as_dict()
+    merged.update(changes)
+    return validate_params(merged)
+
+
+def _descriptor(name: str, kind: type, spec: ParamSpec) -> Any:
+    from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                    ParameterType)
+
+    types = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
+             float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
+    desc = ParameterDescriptor(name=name, type=types[kind], description=spec.description,
+                               read_only=spec.read_only)
+    if spec.choices:
+        desc.additional_constraints = "one of: " + ", ".join(spec.choices)
+    if kind is float and spec.low is not None:
+        desc.floating_point_range = [FloatingPointRange(
+            from_value=float(spec.low), to_value=float(spec.high), step=0.0)]
+    elif kind is int and spec.low is not None:
+        desc.integer_range = [IntegerRange(from_value=int(spec.low), to_value=int(spec.high),
+                                           step=1)]
+    return desc
+
+
+def declare_parameters(node: Any) -> None:
+    """Declare every parameter on an rclpy node with its default and descriptor.
+
+    Values given on the command line or in a params file override the defaults here.
+
+    Raises:
+        ConfigError: If a given value has the wrong type or lies outside its range.
+    """
+    from rclpy.exceptions import (InvalidParameterTypeException,
+                                  InvalidParameterValueException)
+
+    defaults = DetectorParams()
+    kinds = _field_types()
+    for name, spec in PARAM_SPECS.items():
+        try:
+            node.declare_parameter(name, getattr(defaults, name),
+                                   _descriptor(name, kinds[name], spec))
+        except InvalidParameterTypeException as exc:
+            raise ConfigError(f"invalid parameters: {name} must be of type "
+                              f"{kinds[name].__name__} ({exc})") from None
+        except InvalidParameterValueException:
+            given = _override(node, name)
+            _, problem = _check_one(name, given, kinds[name], spec)
+            raise ConfigError("invalid parameters: "
+                              + (problem or f"{name}={given!r} is refused")) from None
+
+
+def _override(node: Any, name: str) -> Any:
+    param = getattr(node, "_parameter_overrides", {}).get(name)
+    return None if param is None else param.value
+
+
+def read_parameters(node: Any) -> DetectorParams:
+    """Declare the parameters on ``node`` and return their validated values.
+
+    Raises:
+        ConfigError: If any value is unusable; the message says which and why.
+    """
+    declare_parameters(node)
+    # rclpy keeps the command-line / params-file values it was given; names nobody declared
+    # (qos_overrides.* are declared later by rclpy itself) are almost always typos.
+    extra = sorted(n for n in getattr(node, "_parameter_overrides", {})
+                   if not node.has_parameter(n) and not n.startswith("qos_overrides."))
+    if extra:
+        raise ConfigError(f"invalid parameters: unknown parameter(s) {', '.join(extra)} "
+                          f"(known: {', '.join(PARAM_SPECS)})")
+    return validate_params({name: node.get_parameter(name).value for name in PARAM_SPECS})

@@ -1,0 +1,136 @@
+"""Parameters of the detector node: defaults, the YAML file, validation, descriptors."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+import yaml
+
+from signal_light_node.errors import ConfigError
+from signal_light_node.node.params import (NODE_NAME, PARAM_SPECS, DetectorParams, updated,
+                                           validate_params)
+
+YAML = Path(__file__).resolve().parent.parent / "config" / "detector.yaml"
+
+
+def _yaml_params() -> dict:
+    return yaml.safe_load(YAML.read_text())[NODE_NAME]["ros__parameters"]
+
+
+def test_every_field_has_a_spec_in_order():
+    assert [f.name for f in dataclasses.fields(DetectorParams)] == list(PARAM_SPECS)
+
+
+def test_yaml_holds_exactly_the_declared_defaults():
+    from_yaml = _yaml_params()
+    defaults = DetectorParams().as_dict()
+    assert list(from_yaml) == list(defaults)
+    for name, value in defaults.items():
+        # Same value and same YAML type (1 vs 1.0 decides int vs double in ROS).
+        assert from_yaml[name] == value and type(from_yaml[name]) is type(value), name
+    assert validate_params(from_yaml) == DetectorParams()
+
+
+def test_defaults_are_valid_and_thresholds_keyed_by_code():
+    params = validate_params({})
+    assert params == DetectorParams()
+    assert params.thresholds == {100: 0.5, 101: 0.5, 102: 0.5}
+
+
+def test_int_for_float_is_accepted_and_converted():
+    params = validate_params({"sync_timeout_s": 2})
+    assert params.sync_timeout_s == 2.0 and isinstance(params.sync_timeout_s, float)
+
+
+@pytest.mark.parametrize("changes, words", [
+    ({"device": "tpu"}, ["device", "cpu, cuda", "'tpu'"]),
+    ({"image_transport": "theora"}, ["image_transport", "raw, compressed"]),
+    ({"reliability": "sometimes"}, ["reliability"]),
+    ({"threshold_brake": 1.5}, ["threshold_brake", "<= 1.0"]),
+    ({"threshold_left_blinker": float("nan")}, ["threshold_left_blinker", "NaN"]),
+    ({"work_queue_size": 0}, ["work_queue_size", ">= 1"]),
+    ({"max_tracks": 2.5}, ["max_tracks", "integer"]),
+    ({"max_tracks": True}, ["max_tracks", "integer"]),
+    ({"publish_debug_image": 1}, ["publish_debug_image", "true or false"]),
+    ({"sync_slop_s": -0.1}, ["sync_slop_s", ">= 0.0"]),
+    ({"sync_slop_s": 0.5, "sync_timeout_s": 0.2}, ["sync_timeout_s", "exceed sync_slop_s"]),
+    ({"model_path": 3}, ["model_path", "string"]),
+    ({"thresold_brake": 0.3}, ["unknown parameter 'thresold_brake'"]),
+])
+def test_bad_values_are_refused_with_a_reason(changes, words):
+    with pytest.raises(ConfigError) as info:
+        validate_params(changes)
+    for word in words:
+        assert word in str(info.value)
+
+
+def test_every_problem_is_named_at_once():
+    with pytest.raises(ConfigError) as info:
+        validate_params({"device": "tpu", "max_tracks": 0})
+    assert "device" in str(info.value) and "max_tracks" in str(info.value)
+
+
+def test_runtime_updates_only_for_dynamic_parameters():
+    params = DetectorParams()
+    assert updated(params, {"threshold_brake": 0.7}).threshold_brake == 0.7
+    assert updated(params, {"sync_slop_s": 0.02}).sync_slop_s == 0.02
+    with pytest.raises(ConfigError, match="read-only"):
+        updated(params, {"model_path": "/tmp/other.pt"})
+    with pytest.raises(ConfigError, match="<= 1.0"):
+        updated(params, {"threshold_brake": 2.0})
+
+
+def test_descriptors_on_a_real_node():
+    rclpy = pytest.importorskip("rclpy")
+    from rcl_interfaces.msg import ParameterType
+    from rclpy.parameter import Parameter
+
+    from signal_light_node.node.params import read_parameters
+
+    context = rclpy.Context()
+    rclpy.init(context=context, args=["--ros-args", "-p", "threshold_brake:=0.25"])
+    try:
+        node = rclpy.create_node("params_probe", context=context)
+        try:
+            params = read_parameters(node)
+            assert params.threshold_brake == 0.25 and params.device == "cpu"
+            (desc,) = node.describe_parameters(["threshold_brake"])
+            assert desc.type == ParameterType.PARAMETER_DOUBLE and not desc.read_only
+            assert desc.floating_point_range[0].to_value == 1.0
+            (desc,) = node.describe_parameters(["model_path"])
+            assert desc.read_only and "shipped" in desc.description
+            (desc,) = node.describe_parameters(["max_tracks"])
+            assert desc.integer_range[0].from_value == 1
+            # rclpy itself enforces the declared range at run time.
+            result = node.set_parameters([Parameter("threshold_brake", value=3.0)])[0]
+            assert not result.successful
+        finally:
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+@pytest.mark.parametrize("args, words", [
+    (["-p", "threshold_brake:=7.0"], ["threshold_brake", "<= 1.0"]),
+    (["-p", "max_tracks:=2.5"], ["max_tracks"]),
+    (["-p", "treshold_brake:=0.2"], ["unknown parameter", "treshold_brake"]),
+])
+def test_bad_values_on_a_real_node_become_config_errors(args, words):
+    rclpy = pytest.importorskip("rclpy")
+    from signal_light_node.node.params import read_parameters
+
+    context = rclpy.Context()
+    rclpy.init(context=context, args=["--ros-args", *args])
+    try:
+        node = rclpy.create_node("params_probe", context=context)
+        try:
+            with pytest.raises(ConfigError) as info:
+                read_parameters(node)
+            for word in words:
+                assert word in str(info.value)
+        finally:
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
