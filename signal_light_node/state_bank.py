@@ -1,0 +1,298 @@
+"""Per-track recurrent state of the light-state model, kept outside the model.
+
+The model is stateless between calls: the engine gathers the ConvLSTM ``(h, c)`` pairs
+of the tracks of a frame from this bank, runs one batched step and stores the new
+pairs back. All layers of one track are kept flattened in one row of a single tensor,
+so gathering or storing a whole frame costs one ``index_select`` / ``index_copy_``
+however many layers and tracks there are.
+
+Tracks unseen for longer than a timeout are dropped, the number of tracks is capped
+(least recently seen evicted), and the whole bank resets when the frame stamps jump
+backwards (a bag that loops) or forwards by more than a gap (a pause or a new bag).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Dict, List, Optional, Protocol, Sequence, Tuple
+
+import numpy as np
+import torch
+
+from signal_light_node.errors import ConfigError
+
+LOG = logging.getLogger(__name__)
+
+#: ``((h, c), ...)``, one pair per ConvLSTM layer, batch first (as in ``model.interface``).
+State = Tuple[Tuple[torch.Tensor, torch.Tensor], ...]
+
+#: Reasons of a full reset, as counted in ``StateBank.reset_reasons``.
+RESET_BACKWARDS = "stamp_backwards"
+RESET_GAP = "stamp_gap"
+RESET_MANUAL = "manual"
+
+
+class _HasInitialState(Protocol):
+    def initial_state(self, n: int) -> State: ...
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """Shapes of the per-track state tensors (without the batch axis) and their widths."""
+
+    shapes: Tuple[torch.Size, ...]
+    widths: Tuple[int, ...]
+
+    @property
+    def total(self) -> int:
+        return sum(self.widths)
+
+
+def _flatten(state: State, n: int) -> torch.Tensor:
+    """``[n, total]`` rows holding every layer's h and c of each track."""
+    parts = [t.reshape(n, -1) for pair in state for t in pair]
+    return torch.cat(parts, dim=1) if len(parts) > 1 else parts[0]
+
+
+class StateBank:
+    """ConvLSTM states of the tracked vehicles, keyed by track ID.
+
+    Call ``gather`` then ``store`` once per frame, in stamp order. ``gather`` also
+    checks the stamp (backward or large forward jumps reset everything) and expires
+    tracks unseen for longer than ``track_timeout_s``, so a track that comes back after
+    the timeout starts from the initial state.
+
+    Args:
+        model: Anything with ``initial_state(n) -> State``; called once, for the layout.
+        track_timeout_s: Seconds a track may stay unseen before its state is dropped.
+        max_tracks: Most tracks kept; the least recently seen one is evicted for a new one.
+        max_gap_s: A forward stamp jump larger than this resets the bank.
+        device: Where the states live (the model's device).
+
+    Raises:
+        ConfigError: A limit is not a positive finite number.
+    """
+
+    def __init__(self, model: _HasInitialState, track_timeout_s: float = 1.0,
+                 max_tracks: int = 128, max_gap_s: float = 2.0,
+                 device: str | torch.device = "cpu") -> None:
+        for name, value in (("track_timeout_s", track_timeout_s), ("max_gap_s", max_gap_s)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                    or not math.isfinite(value) or value <= 0:
+                raise ConfigError(f"{name} must be a positive number of seconds, got {value!r}")
+        if isinstance(max_tracks, bool) or not isinstance(max_tracks, (int, np.integer)) \
+                or max_tracks < 1:
+            raise ConfigError(f"max_tracks must be a positive integer, got {max_tracks!r}")
+        self.track_timeout_ns = int(round(track_timeout_s * 1e9))
+        self.max_gap_ns = int(round(max_gap_s * 1e9))
+        self.capacity = int(max_tracks)
+        self.device = torch.device(device)
+
+        with torch.inference_mode():
+            initial = model.initial_state(1)
+        self._layout = _Layout(tuple(t.shape[1:] for pair in initial for t in pair),
+                               tuple(t[0].numel() for pair in initial for t in pair))
+        # A clone made outside inference mode can be written into and read anywhere.
+        self._initial = _flatten(initial, 1).to(self.device).clone()
+        # Row `capacity` is a scratch row that always holds the initial state: tracks that
+        # find no free row (more tracks in one frame than max_tracks) read it and are not stored.
+        self._rows = self._initial.repeat(self.capacity + 1, 1)
+        self._slot: Dict[str, int] = {}
+        self._free: List[int] = list(range(self.capacity - 1, -1, -1))
+        self._last_seen = np.zeros(self.capacity, dtype=np.int64)
+        self._frames = np.zeros(self.capacity, dtype=np.int64)
+        self._pending: Optional[Tuple[Tuple[str, ...], np.ndarray, int]] = None
+        self.last_stamp_ns: Optional[int] = None
+        self.counters: Dict[str, int] = {"created": 0, "expired": 0, "evictions": 0,
+                                         "overflow": 0, "resets": 0}
+        self.reset_reasons: Dict[str, int] = {}
+
+    # ------------------------------------------------------------------ queries
+    def __len__(self) -> int:
+        return len(self._slot)
+
+    def __contains__(self, track_id: str) -> bool:
+        return track_id in self._slot
+
+    @property
+    def track_ids(self) -> List[str]:
+        """IDs of the tracks that currently hold a state."""
+        return list(self._slot)
+
+    def frames_observed(self, track_id: str) -> int:
+        """Frames stored for a track since it (re)started; 0 for an unknown track."""
+        slot = self._slot.get(track_id)
+        return 0 if slot is None else int(self._frames[slot])
+
+    def last_seen_ns(self, track_id: str) -> Optional[int]:
+        """Stamp of the track's last stored frame, None for an unknown track."""
+        slot = self._slot.get(track_id)
+        return None if slot is None else int(self._last_seen[slot])
+
+    def initial_state(self, n: int) -> State:
+        """The state a new track starts from, for ``n`` tracks."""
+        return self._unflatten(self._initial.expand(n, -1))
+
+    # ---------------------------------------------------------------- lifecycle
+    def reset(self, reason: str = RESET_MANUAL) -> None:
+        """Forget every track (and the last stamp); counted under ``reason``."""
+        if self._slot:
+            self._rows[: self.capacity] = self._initial
+        self._slot.clear()
+        self._free = list(range(self.capacity - 1, -1, -1))
+        self._last_seen[:] = 0
+        self._frames[:] = 0
+        self._pending = None
+        self.last_stamp_ns = None
+        self.counters["resets"] += 1
+        self.reset_reasons[reason] = self.reset_reasons.get(reason, 0) + 1
+
+    def check_stamp(self, stamp_ns: int) -> Optional[str]:
+        """Reset the bank if ``stamp_ns`` jumps back or too far forward.
+
+        Args:
+            stamp_ns: Stamp of the frame about to be processed.
+
+        Returns:
+            The reset reason, or None when the stamp continues the sequence.
+        """
+        stamp_ns = int(stamp_ns)
+        reason = None
+        if self.last_stamp_ns is not None:
+            if stamp_ns < self.last_stamp_ns:
+                reason = RESET_BACKWARDS
+            elif stamp_ns - self.last_stamp_ns > self.max_gap_ns:
+                reason = RESET_GAP
+        if reason is not None:
+            LOG.info("resetting %d track states: %s (%d ns -> %d ns)", len(self._slot),
+                     reason, self.last_stamp_ns, stamp_ns)
+            self.reset(reason)
+        self.last_stamp_ns = stamp_ns
+        return reason
+
+    def expire(self, stamp_ns: int) -> List[str]:
+        """Drop tracks unseen for longer than the timeout at ``stamp_ns``.
+
+        Returns:
+            The dropped track IDs.
+        """
+        if not self._slot:
+            return []
+        limit = int(stamp_ns) - self.track_timeout_ns
+        gone = [tid for tid, slot in self._slot.items() if self._last_seen[slot] < limit]
+        for tid in gone:
+            self._release(tid)
+        self.counters["expired"] += len(gone)
+        return gone
+
+    # ------------------------------------------------------------ gather/store
+    def gather(self, track_ids: Sequence[str], stamp_ns: int) -> State:
+        """States of the given tracks for the frame at ``stamp_ns``.
+
+        Checks the stamp (see ``check_stamp``) and expires old tracks first; a track
+        without a state gets the initial one (and a row, evicting the least recently
+        seen other track when the bank is full).
+
+        Args:
+            track_ids: Distinct track IDs of the frame, in batch order.
+            stamp_ns: The frame's stamp.
+
+        Returns:
+            The batched state, ``len(track_ids)`` first.
+
+        Raises:
+            ValueError: ``track_ids`` holds a duplicate (the engine removes them first).
+        """
+        ids = tuple(track_ids)
+        if len(set(ids)) != len(ids):
+            raise ValueError("gather needs distinct track IDs; remove duplicates first")
+        self.check_stamp(stamp_ns)
+        self.expire(stamp_ns)
+        slots = np.empty(len(ids), dtype=np.int64)
+        new_slots: List[int] = []
+        in_frame = set(ids)
+        for i, tid in enumerate(ids):
+            slot = self._slot.get(tid)
+            if slot is None:
+                slot = self._allocate(tid, in_frame)
+                if slot < self.capacity:
+                    new_slots.append(slot)
+            slots[i] = slot
+        if new_slots:
+            self._rows[torch.as_tensor(new_slots, device=self.device)] = self._initial
+        self._pending = (ids, slots, int(stamp_ns))
+        if not ids:
+            return self.initial_state(0)
+        index = torch.from_numpy(slots).to(self.device)
+        return self._unflatten(self._rows.index_select(0, index))
+
+    def store(self, track_ids: Sequence[str], new_state: State, stamp_ns: int) -> np.ndarray:
+        """Keep the states the model returned for the tracks of the last ``gather``.
+
+        Args:
+            track_ids: The same IDs, in the same order, as passed to ``gather``.
+            new_state: The model's new batched state.
+            stamp_ns: The frame's stamp (the tracks' new last-seen stamp).
+
+        Returns:
+            Frames observed per track, this frame included (1 for a track that ran
+            without a row because the bank was full).
+
+        Raises:
+            ValueError: The IDs differ from the last ``gather``'s.
+        """
+        ids = tuple(track_ids)
+        if self._pending is None or self._pending[0] != ids:
+            raise ValueError("store must follow gather with the same track IDs")
+        _, slots, _ = self._pending
+        self._pending = None
+        if not ids:
+            return np.zeros(0, dtype=np.int64)
+        kept = slots < self.capacity
+        if kept.all():
+            rows = _flatten(new_state, len(ids))
+            self._rows.index_copy_(0, torch.from_numpy(slots).to(self.device),
+                                   rows.to(self._rows.dtype))
+        elif kept.any():
+            rows = _flatten(new_state, len(ids))[torch.from_numpy(kept).to(self.device)]
+            self._rows.index_copy_(0, torch.from_numpy(slots[kept]).to(self.device),
+                                   rows.to(self._rows.dtype))
+        held = slots[kept]
+        self._last_seen[held] = int(stamp_ns)
+        self._frames[held] += 1
+        frames = np.ones(len(ids), dtype=np.int64)
+        frames[kept] = self._frames[held]
+        return frames
+
+    # ---------------------------------------------------------------- internals
+    def _unflatten(self, rows: torch.Tensor) -> State:
+        n = rows.shape[0]
+        parts = torch.split(rows, self._layout.widths, dim=1)
+        tensors = [p.reshape(n, *shape) for p, shape in zip(parts, self._layout.shapes)]
+        return tuple((tensors[i], tensors[i + 1]) for i in range(0, len(tensors), 2))
+
+    def _release(self, track_id: str) -> None:
+        slot = self._slot.pop(track_id)
+        self._frames[slot] = 0
+        self._free.append(slot)
+
+    def _allocate(self, track_id: str, in_frame: set) -> int:
+        if not self._free:
+            victims = [(self._last_seen[s], tid) for tid, s in self._slot.items()
+                       if tid not in in_frame]
+            if not victims:
+                # Every row belongs to a track of this very frame: run this one statelessly.
+                self.counters["overflow"] += 1
+                return self.capacity
+            _, victim = min(victims)
+            LOG.debug("evicting track %r to make room for %r", victim, track_id)
+            self._release(victim)
+            self.counters["evictions"] += 1
+        slot = self._free.pop()
+        self._slot[track_id] = slot
+        self._frames[slot] = 0
+        self._last_seen[slot] = 0
+        self.counters["created"] += 1
+        return slot
