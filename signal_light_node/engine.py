@@ -1,0 +1,392 @@
+"""The runtime engine: one camera frame and its tracked boxes in, one result per box out.
+
+The engine is what the ROS node and ``signal-light replay`` share. Per frame it crops
+every box with the shared crop code, gathers the tracks' recurrent states from the
+:class:`~signal_light_node.state_bank.StateBank`, runs ONE batched model step for all
+boxes that could be cropped, stores the new states and turns the probabilities into
+:class:`~signal_light_node.results.VehicleResult`\\ s. It never imports rclpy.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
+
+import cv2
+import numpy as np
+import torch
+
+from signal_light_node.boxes import TrackBox
+from signal_light_node.crops import CropConfig, _square_region, clip_roi, crop_vehicles
+from signal_light_node.errors import ConfigError
+from signal_light_node.labels import LIGHT_CODES, LIGHT_TASKS, TASKS, Intent, LightStatus, View
+from signal_light_node.model.interface import to_input
+from signal_light_node.results import LightEstimate, VehicleResult
+from signal_light_node.state_bank import StateBank
+
+LOG = logging.getLogger(__name__)
+
+#: ON-probability threshold per ``LightClassification`` code (brake, left, right).
+DEFAULT_THRESHOLDS: Dict[int, float] = {code: 0.5 for code in LIGHT_CODES.values()}
+
+_CODE_OF_NAME = dict(LIGHT_CODES)
+_NAME_OF_CODE = {code: name for name, code in LIGHT_CODES.items()}
+
+
+def _positive(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ConfigError(f"{name} must be a number, got {value!r}")
+    if not (math.isfinite(value) and value > 0):
+        raise ConfigError(f"{name} must be a positive finite number, got {value!r}")
+    return float(value)
+
+
+def normalize_thresholds(thresholds: Mapping[Any, Any]) -> Dict[int, float]:
+    """Per-code thresholds with every light code present.
+
+    Args:
+        thresholds: Keys are codes (100, "101") or light names ("brake"); missing codes
+            keep 0.5.
+
+    Returns:
+        ``{100: t, 101: t, 102: t}``.
+
+    Raises:
+        ConfigError: A key is not a light code or name, or a value is not in [0, 1].
+    """
+    if not isinstance(thresholds, Mapping):
+        raise ConfigError(f"thresholds must be a mapping code -> probability, got {thresholds!r}")
+    out = dict(DEFAULT_THRESHOLDS)
+    for key, value in thresholds.items():
+        code: Optional[int] = _CODE_OF_NAME.get(key) if isinstance(key, str) else None
+        if code is None:
+            try:
+                code = int(key)
+            except (TypeError, ValueError):
+                code = None
+        if code not in _NAME_OF_CODE:
+            raise ConfigError(f"threshold key {key!r} is not a light code "
+                              f"{sorted(_NAME_OF_CODE)} or name {sorted(_CODE_OF_NAME)}")
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+                or not (math.isfinite(value) and 0.0 <= value <= 1.0):
+            raise ConfigError(f"threshold of code {code} ({_NAME_OF_CODE[code]}) must be a "
+                              f"probability in [0, 1], got {value!r}")
+        out[code] = float(value)
+    return out
+
+
+@dataclass(frozen=True)
+class EngineConfig:
+    """Settings of a :class:`LightStateEngine`.
+
+    Attributes:
+        crop: Crop size and margin; None takes both from the model's config (the size
+            must always equal the model's input size).
+        thresholds: ON-probability from which a light goes into ``classification``, per
+            code (100 brake, 101 left, 102 right); light names are accepted as keys.
+        track_timeout_s: A track unseen this long starts over from the initial state.
+        max_tracks: Most track states kept; the least recently seen one is evicted.
+        max_gap_s: A forward stamp jump larger than this resets every track.
+        device: Torch device of the model and the states ("cpu", "cuda", "cuda:1").
+    """
+
+    crop: Optional[CropConfig] = None
+    thresholds: Mapping[int, float] = field(default_factory=lambda: dict(DEFAULT_THRESHOLDS))
+    track_timeout_s: float = 1.0
+    max_tracks: int = 128
+    max_gap_s: float = 2.0
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        if self.crop is not None and not isinstance(self.crop, CropConfig):
+            raise ConfigError(f"crop must be a CropConfig or None, got {self.crop!r}")
+        object.__setattr__(self, "thresholds", normalize_thresholds(self.thresholds))
+        object.__setattr__(self, "track_timeout_s",
+                           _positive("track_timeout_s", self.track_timeout_s))
+        object.__setattr__(self, "max_gap_s", _positive("max_gap_s", self.max_gap_s))
+        if isinstance(self.max_tracks, bool) or not isinstance(self.max_tracks, (int, np.integer)) \
+                or self.max_tracks < 1:
+            raise ConfigError(f"max_tracks must be a positive integer, got {self.max_tracks!r}")
+        object.__setattr__(self, "max_tracks", int(self.max_tracks))
+        try:
+            device = torch.device(self.device)
+        except (RuntimeError, TypeError) as exc:
+            raise ConfigError(f"device {self.device!r} is not a torch device: {exc}") from None
+        if device.type not in ("cpu", "cuda"):
+            raise ConfigError(f"device must be 'cpu' or 'cuda[:N]', got {self.device!r}")
+        object.__setattr__(self, "device", str(device))
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """What the engine made of one frame.
+
+    Attributes:
+        stamp_ns: The frame's stamp.
+        results: One result per input box, in input order.
+        warnings: Why boxes were not judged, duplicates, state resets (also counted).
+        latency_s: Wall time of ``process``.
+        n_judged: Boxes that went through the model.
+    """
+
+    stamp_ns: int
+    results: List[VehicleResult]
+    warnings: List[str]
+    latency_s: float
+    n_judged: int
+
+
+def unjudged_result(box: TrackBox, width: int, height: int,
+                    frames_observed: int = 0) -> VehicleResult:
+    """The result of a box that could not be judged: every light UNKNOWN with P(ON) = 0."""
+    return VehicleResult(
+        track_id=box.track_id, roi=clip_roi(box, width, height),
+        brake=LightEstimate.unjudged(), left=LightEstimate.unjudged(),
+        right=LightEstimate.unjudged(), intent=Intent.UNKNOWN, intent_probability=0.0,
+        view=View.BEHIND, view_probability=0.0, classification=(),
+        frames_observed=frames_observed, judged=False)
+
+
+class LightStateEngine:
+    """Per-frame light-state inference over tracked vehicles.
+
+    Not thread-safe: call ``process`` from one thread, frames in stamp order (a stamp
+    that jumps back resets every track, as when a bag loops).
+
+    Args:
+        model: A ``LightStateModel`` (``initial_state``, ``step``, ``config``); put in
+            eval mode and moved to ``config.device`` here.
+        config: Engine settings.
+
+    Raises:
+        ConfigError: The crop size differs from the model's input size, or the device
+            is CUDA while CUDA is unavailable.
+    """
+
+    def __init__(self, model: Any, config: Optional[EngineConfig] = None) -> None:
+        config = config or EngineConfig()
+        model_config = model.config
+        input_size = int(getattr(model, "input_size", model_config.input_size))
+        crop = config.crop or model_config.crop_config()
+        if crop.size != input_size:
+            raise ConfigError(f"crop size {crop.size} differs from the model's input size "
+                              f"{input_size}")
+        trained_margin = getattr(model_config, "crop_margin", None)
+        if trained_margin is not None and abs(crop.margin - trained_margin) > 1e-9:
+            LOG.warning("crop margin %.3f differs from the %.3f the model was trained with",
+                        crop.margin, trained_margin)
+        device = torch.device(config.device)
+        if device.type == "cuda" and not torch.cuda.is_available():
+            raise ConfigError(f"device {config.device!r} requested but CUDA is not available")
+        if hasattr(model, "to"):
+            model = model.to(device)
+        if hasattr(model, "eval"):
+            model.eval()
+        self.model = model
+        self.config = config
+        self.crop = crop
+        self.device = device
+        codes = dict(getattr(model_config, "light_codes", LIGHT_CODES))
+        if codes != LIGHT_CODES:
+            raise ConfigError(f"model light codes {codes} differ from {LIGHT_CODES}")
+        self._thresholds = [(task, LIGHT_CODES[task], config.thresholds[LIGHT_CODES[task]])
+                            for task in LIGHT_TASKS]
+        self.bank = StateBank(model, track_timeout_s=config.track_timeout_s,
+                              max_tracks=config.max_tracks, max_gap_s=config.max_gap_s,
+                              device=device)
+        self._counts = {"frames": 0, "boxes": 0, "judged": 0, "unjudged": 0,
+                        "duplicates": 0, "model_steps": 0}
+
+    # -------------------------------------------------------------- diagnostics
+    @property
+    def counters(self) -> Dict[str, int]:
+        """Running totals: frames, boxes, judged, unjudged, duplicates, model_steps,
+        resets, evictions, expired, overflow and the current active_tracks."""
+        out = dict(self._counts)
+        for key in ("resets", "evictions", "expired", "overflow"):
+            out[key] = int(self.bank.counters[key])
+        out["active_tracks"] = len(self.bank)
+        return out
+
+    @property
+    def reset_reasons(self) -> Dict[str, int]:
+        """How often the state bank was reset, per reason."""
+        return dict(self.bank.reset_reasons)
+
+    def reset(self) -> None:
+        """Forget every track's state (counted as a manual reset)."""
+        self.bank.reset()
+
+    # --------------------------------------------------------------- the step
+    def process(self, image: np.ndarray, stamp_ns: int,
+                boxes: Sequence[TrackBox]) -> FrameResult:
+        """Judge the lights of every tracked vehicle of one frame.
+
+        Args:
+            image: The camera frame, HxWx3 uint8 BGR.
+            stamp_ns: The frame's stamp (header stamp) in nanoseconds.
+            boxes: Tracked boxes; ``track_id`` keys the recurrent state.
+
+        Returns:
+            One result per box, in order. A box that cannot be cropped, and every later
+            box repeating an earlier box's track ID, gets an unjudged result and a
+            warning; their track state is not advanced.
+
+        Raises:
+            CropError: The image itself is not an HxWx3 uint8 array.
+        """
+        start = time.perf_counter()
+        stamp_ns = int(stamp_ns)
+        height, width = image.shape[:2] if isinstance(image, np.ndarray) and image.ndim == 3 \
+            else (0, 0)
+        warnings: List[str] = []
+        first_index: Dict[str, int] = {}
+        unique: List[int] = []
+        for i, box in enumerate(boxes):
+            if box.track_id in first_index:
+                continue
+            first_index[box.track_id] = i
+            unique.append(i)
+        crops, reasons = crop_vehicles(image, [boxes[i] for i in unique], self.crop)
+        valid = [k for k, reason in enumerate(reasons) if reason is None]
+        ids = [boxes[unique[k]].track_id for k in valid]
+
+        reset_reason = self.bank.check_stamp(stamp_ns)
+        if reset_reason is not None:
+            warnings.append(f"all track states reset at stamp {stamp_ns}: "
+                            f"{_RESET_TEXT.get(reset_reason, reset_reason)}")
+        with torch.inference_mode():
+            state = self.bank.gather(ids, stamp_ns)
+            if ids:
+                batch = crops if len(valid) == len(crops) else crops[valid]
+                x = to_input(batch).to(self.device)
+                probs, new_state = self.model.step(x, state)
+                self._counts["model_steps"] += 1
+                frames = self.bank.store(ids, new_state, stamp_ns)
+                probs_np = {t: probs[t].detach().float().cpu().numpy() for t in TASKS}
+            else:
+                frames = self.bank.store(ids, state, stamp_ns)
+                probs_np = {}
+        row_of = {unique[k]: j for j, k in enumerate(valid)}
+        reason_of = {i: reasons[k] for k, i in enumerate(unique)}
+        results: List[VehicleResult] = []
+        n_dup = n_bad = 0
+        for i, box in enumerate(boxes):
+            j = row_of.get(i)
+            if j is not None:
+                results.append(self._judged(box, width, height, probs_np, j, int(frames[j])))
+                continue
+            if first_index[box.track_id] != i:
+                n_dup += 1
+                warnings.append(f"duplicate track ID {box.track_id!r} at box {i} (first at box "
+                                f"{first_index[box.track_id]}); reported unjudged")
+            else:
+                n_bad += 1
+                warnings.append(f"box {i} not judged: {reason_of[i]}")
+            results.append(unjudged_result(box, width, height,
+                                           self.bank.frames_observed(box.track_id)))
+
+        self._counts["frames"] += 1
+        self._counts["boxes"] += len(boxes)
+        self._counts["judged"] += len(ids)
+        self._counts["unjudged"] += n_bad + n_dup
+        self._counts["duplicates"] += n_dup
+        for text in warnings:
+            LOG.debug("%s", text)
+        return FrameResult(stamp_ns, results, warnings, time.perf_counter() - start, len(ids))
+
+    def _judged(self, box: TrackBox, width: int, height: int, probs: Mapping[str, np.ndarray],
+                j: int, frames_observed: int) -> VehicleResult:
+        lights = {}
+        classification: List[Tuple[int, float]] = []
+        for task, code, threshold in self._thresholds:
+            off, on, unknown = (float(v) for v in probs[task][j, :3])
+            lights[task] = LightEstimate(LightStatus(int(np.argmax(probs[task][j]))),
+                                         off, on, unknown)
+            if on >= threshold:
+                classification.append((code, on))
+        intent = int(np.argmax(probs["intent"][j]))
+        view = int(np.argmax(probs["view"][j]))
+        return VehicleResult(
+            track_id=box.track_id, roi=clip_roi(box, width, height),
+            brake=lights["brake"], left=lights["left"], right=lights["right"],
+            intent=Intent(intent), intent_probability=float(probs["intent"][j, intent]),
+            view=View(view), view_probability=float(probs["view"][j, view]),
+            classification=tuple(classification), frames_observed=frames_observed, judged=True)
+
+    # ------------------------------------------------------------ debug overlay
+    def attention_masks(self, image: np.ndarray, boxes: Sequence[TrackBox]) -> np.ndarray:
+        """The model's attention masks pasted back into the image, for debug overlays.
+
+        Does not touch any track state.
+
+        Args:
+            image: The camera frame, HxWx3 uint8 BGR.
+            boxes: Tracked boxes.
+
+        Returns:
+            float32 ``[H, W]`` in [0, 1]: per pixel the largest mask value of the boxes
+            whose crop covers it (0 elsewhere, or when the model has no ``attention``).
+        """
+        height, width = image.shape[:2]
+        heat = np.zeros((height, width), dtype=np.float32)
+        attention = getattr(self.model, "attention", None)
+        if attention is None or not boxes:
+            return heat
+        crops, reasons = crop_vehicles(image, boxes, self.crop)
+        valid = [k for k, reason in enumerate(reasons) if reason is None]
+        if not valid:
+            return heat
+        with torch.inference_mode():
+            masks = attention(to_input(crops[valid]).to(self.device))
+        masks = masks.detach().float().cpu().numpy().reshape(len(valid), *masks.shape[-2:])
+        masks = np.ascontiguousarray(masks, dtype=np.float32)
+        for mask, k in zip(masks, valid):
+            # The crop's own square (private in crops.py) so the mask lands where it was cut.
+            x0, y0, side = _square_region(boxes[k], width, height, self.crop.margin,
+                                          self.crop.size)
+            resized = cv2.resize(mask, (side, side), interpolation=cv2.INTER_LINEAR)
+            cx0, cy0 = max(x0, 0), max(y0, 0)
+            cx1, cy1 = min(x0 + side, width), min(y0 + side, height)
+            if cx1 <= cx0 or cy1 <= cy0:
+                continue
+            patch = resized[cy0 - y0:cy1 - y0, cx0 - x0:cx1 - x0]
+            np.maximum(heat[cy0:cy1, cx0:cx1], patch, out=heat[cy0:cy1, cx0:cx1])
+        return np.clip(heat, 0.0, 1.0)
+
+
+_RESET_TEXT = {"stamp_backwards": "the stamp jumped backwards (bag looped?)",
+               "stamp_gap": "the stamp jumped forward by more than max_gap_s"}
+
+
+def engine_from_checkpoint(path: Optional[str] = None, device: str = "cpu",
+                           **overrides: Any) -> LightStateEngine:
+    """Load a checkpoint (the shipped weights when ``path`` is None) into an engine.
+
+    Args:
+        path: Checkpoint file, or None for ``model.checkpoint.DEFAULT_WEIGHTS``.
+        device: Torch device.
+        **overrides: Other ``EngineConfig`` fields (thresholds, track_timeout_s, ...); a
+            ``crop_margin`` key overrides only the margin of the model's crop config.
+
+    Returns:
+        The engine.
+
+    Raises:
+        CheckpointError: The file is missing, unreadable or incompatible.
+        ConfigError: An override is invalid.
+    """
+    from signal_light_node.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint
+
+    loaded = load_checkpoint(DEFAULT_WEIGHTS if path is None else path, map_location=device)
+    margin = overrides.pop("crop_margin", None)
+    if margin is not None and overrides.get("crop") is None:
+        overrides["crop"] = CropConfig(size=loaded.config.input_size, margin=margin)
+    try:
+        config = EngineConfig(device=device, **overrides)
+    except TypeError as exc:
+        raise ConfigError(f"unknown engine option: {exc}") from None
+    return LightStateEngine(loaded.model, config)
