@@ -17,6 +17,7 @@ import functools
 import logging
 import os
 import shutil
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, Iterable, Iterator, List, NamedTuple, Optional, Tuple
@@ -181,7 +182,9 @@ def _reader_errors() -> Tuple[type, ...]:
     from rosbags.serde import SerdeError
     from rosbags.typesys import TypesysError
 
-    return (ReaderError, SerdeError, TypesysError, OSError, KeyError, ValueError, AssertionError)
+    # rosbags lets struct/assert errors escape from damaged files.
+    return (ReaderError, SerdeError, TypesysError, OSError, KeyError, ValueError, AssertionError,
+            struct.error)
 
 
 class BagReader:
@@ -332,12 +335,94 @@ class BagReader:
             self._reader.close()
 
 
+class _RecoveredMcap:
+    """Sequential reader for an MCAP file without summary or end magic.
+
+    A recorder that is killed leaves such a file; ``rosbags`` refuses it, the ``mcap``
+    stream reader reads every complete record up to the cut. It mimics the part of
+    ``rosbags.rosbag2.Reader`` that :class:`BagReader` uses. Messages come in file order,
+    which is arrival order for a recorder.
+    """
+
+    def __init__(self, path: Path) -> None:
+        from rosbags.interfaces import (Connection, ConnectionExtRosbag2, MessageDefinition,
+                                        MessageDefinitionFormat)
+
+        self.path = path
+        self.storage = self
+        self.is_open = True
+        schemas: Dict[int, Any] = {}
+        channels: Dict[int, Any] = {}
+        counts: Dict[int, int] = {}
+        first, last, ordered = None, None, True
+        for record in self._records():
+            kind = type(record).__name__
+            if kind == "Schema":
+                schemas[record.id] = record
+            elif kind == "Channel":
+                channels[record.id] = record
+            elif kind == "Message":
+                counts[record.channel_id] = counts.get(record.channel_id, 0) + 1
+                ordered = ordered and (last is None or record.log_time >= last)
+                first = record.log_time if first is None else min(first, record.log_time)
+                last = record.log_time if last is None else max(last, record.log_time)
+        if not channels:
+            raise BagIOError(f"{path}: no readable channel in the MCAP data")
+        if not ordered:
+            LOG.warning("%s: messages of the recovered MCAP are not in time order", path)
+        formats = {"ros2msg": MessageDefinitionFormat.MSG, "ros2idl": MessageDefinitionFormat.IDL}
+        self.connections = []
+        for cid, chan in sorted(channels.items()):
+            schema = schemas.get(chan.schema_id)
+            fmt = formats.get(schema.encoding) if schema is not None else None
+            self.connections.append(Connection(
+                id=cid, topic=chan.topic, msgtype=schema.name if schema else "",
+                msgdef=MessageDefinition(fmt or MessageDefinitionFormat.NONE,
+                                         schema.data.decode() if fmt else ""),
+                digest="", msgcount=counts.get(cid, 0),
+                ext=ConnectionExtRosbag2(chan.message_encoding, []), owner=self))
+        self.message_count = sum(counts.values())
+        self.start_time = first if first is not None else 2**63 - 1
+        # rosbags' convention: end_time is one past the last message.
+        self.end_time = last + 1 if last is not None else 0
+
+    def _records(self) -> Iterator[Any]:
+        from mcap.exceptions import McapError
+        from mcap.stream_reader import StreamReader
+
+        with open(self.path, "rb") as stream:
+            records = StreamReader(stream, skip_magic=False).records
+            while True:
+                try:
+                    record = next(records)
+                except StopIteration:
+                    return
+                except (McapError, EOFError, ValueError, OSError, struct.error) as exc:
+                    # The cut: everything before it has been read.
+                    LOG.debug("%s: stream ends: %s", self.path, exc)
+                    return
+                yield record
+
+    def messages(self, connections: Iterable[Any], start: Optional[int] = None,
+                 stop: Optional[int] = None) -> Iterator[Tuple[Any, int, bytes]]:
+        wanted = {c.id: c for c in connections}
+        for record in self._records():
+            if type(record).__name__ != "Message" or record.channel_id not in wanted:
+                continue
+            if (start is None or record.log_time >= start) and (
+                    stop is None or record.log_time < stop):
+                yield wanted[record.channel_id], record.log_time, record.data
+
+    def close(self) -> None:
+        self.is_open = False
+
+
 def _open_rosbags_reader(path: Path) -> Any:
     from rosbags.rosbag2 import Reader
 
     target = path
     if path.is_dir() and not (path / "metadata.yaml").exists():
-        # A recording that died before writing metadata.yaml still has a readable MCAP.
+        # A recording that died before writing metadata.yaml still has readable MCAP data.
         files = sorted(path.glob("*.mcap"))
         if len(files) != 1:
             raise BagIOError(f"{path} is a directory without metadata.yaml and "
@@ -347,7 +432,18 @@ def _open_rosbags_reader(path: Path) -> Any:
     if target.is_file() and target.suffix not in (".mcap", ".db3"):
         raise BagIOError(f"{path} is neither a rosbag2 directory nor an .mcap/.db3 file")
     reader = Reader(target)
-    reader.open()
+    try:
+        reader.open()
+    except _reader_errors() as exc:
+        if target.suffix != ".mcap" or target.stat().st_size == 0:
+            raise
+        try:
+            recovered = _RecoveredMcap(target)
+        except BagIOError:
+            raise exc from None
+        LOG.warning("%s is incomplete (%s); recovered %d messages up to where it ends",
+                    target, exc, recovered.message_count)
+        return recovered
     return reader
 
 
