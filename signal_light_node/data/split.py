@@ -1,0 +1,254 @@
+"""Fixed validation/test splits: the stream's sequences written to disk and read back.
+
+A split is a directory with ``manifest.json`` and ``shard_NNN.npz`` files. Each shard
+stores its sequences ragged (only the real observations, with each sequence's length), so
+long evaluation tracks padded to ``seq_len`` cost no disk or memory for the padding.
+``SequenceSplit`` gives back exactly the items that
+``SyntheticSequenceStream(seed, seq_len, crop, mirror_prob=0, jitter=False, ...)`` yields,
+in the same order.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from collections import OrderedDict
+from itertools import islice
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Tuple
+
+import numpy as np
+from torch.utils.data import Dataset
+from tqdm import tqdm
+
+from signal_light_node import __version__
+from signal_light_node.crops import CropConfig
+from signal_light_node.data.stream import PAD_LABEL, Item, SyntheticSequenceStream
+from signal_light_node.errors import ConfigError, SignalLightError
+from signal_light_node.labels import CLASS_NAMES, TASKS
+
+LOG = logging.getLogger(__name__)
+
+MANIFEST = "manifest.json"
+FORMAT_VERSION = 1
+_STRING_META = ("lighting", "track_id", "kind", "lamp_design")
+_PER_FRAME_META = ("box_size", "occlusion", "frame_index")
+
+
+def _json_ready(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {str(k): _json_ready(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_ready(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def _write_shard(path: Path, items: List[Item]) -> None:
+    lengths = np.array([int(item["mask"].sum()) for item in items], dtype=np.int64)
+    for item, n in zip(items, lengths):
+        if not item["mask"][:n].all():
+            raise SignalLightError("split items must have their padding at the end only")
+
+    def ragged(get) -> np.ndarray:
+        return np.concatenate([get(item)[:n] for item, n in zip(items, lengths)])
+
+    arrays = {
+        "lengths": lengths,
+        "crops": ragged(lambda it: it["crops"]),
+        "labels": ragged(lambda it: it["labels"]),
+        "fps": np.array([item["meta"]["fps"] for item in items], dtype=np.float64),
+        "seed": np.array([item["meta"]["seed"] for item in items], dtype=np.int64),
+    }
+    for key in _PER_FRAME_META:
+        arrays[key] = ragged(lambda it, k=key: it["meta"][k])
+    for key in _STRING_META:
+        arrays[key] = np.array([str(item["meta"][key]) for item in items])
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    os.replace(tmp, path)
+
+
+def write_split(out_dir: "str | os.PathLike[str]", seed: int, n_sequences: int, seq_len: int,
+                crop: CropConfig = CropConfig(), *, full_tracks: bool = False,
+                shard_size: int = 256, overwrite: bool = False, progress: bool = True,
+                **stream_kwargs: Any) -> Path:
+    """Render a fixed split (no mirroring, no jitter) and write it to ``out_dir``.
+
+    Args:
+        out_dir: Directory to create (or reuse when empty or ``overwrite``).
+        seed: Stream seed; use seeds never used for training.
+        n_sequences: Number of items (windows, or whole tracks with ``full_tracks``).
+        seq_len: Items' length T; with ``full_tracks`` the scene length in frames.
+        crop: Crop configuration (must match the model's).
+        full_tracks: Keep each track's whole observation list (padded to ``seq_len``).
+        shard_size: Items per ``.npz`` shard.
+        overwrite: Replace an existing split.
+        progress: Show a tqdm progress bar.
+        **stream_kwargs: Further ``SyntheticSequenceStream`` options (sizes, vehicles, fps,
+            lighting, night_fraction, scene_frames, min_observations, renderer_overrides).
+
+    Returns:
+        The manifest's path.
+
+    Raises:
+        ConfigError: Bad counts, augmentation options, or an existing split without
+            ``overwrite``.
+    """
+    if n_sequences < 1 or shard_size < 1:
+        raise ConfigError(f"n_sequences and shard_size must be positive, got {n_sequences}, "
+                          f"{shard_size}")
+    for key in ("mirror_prob", "jitter", "rank"):
+        if stream_kwargs.pop(key, None):
+            raise ConfigError(f"a fixed split is written without augmentation; drop {key!r}")
+    out = Path(out_dir)
+    if out.exists() and any(out.iterdir()):
+        if not overwrite:
+            raise ConfigError(f"{out} is not empty; choose another directory or overwrite")
+        for old in list(out.glob("shard_*.npz")) + [out / MANIFEST]:
+            old.unlink(missing_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
+    stream = SyntheticSequenceStream(seed, seq_len, crop, mirror_prob=0.0, jitter=False,
+                                     full_tracks=full_tracks, rank=0, **stream_kwargs)
+    histogram = {task: np.zeros(len(CLASS_NAMES[task]), dtype=np.int64) for task in TASKS}
+    lighting: Dict[str, int] = {}
+    shards: List[Dict[str, Any]] = []
+    n_observations = 0
+    batch: List[Item] = []
+
+    def flush() -> None:
+        name = f"shard_{len(shards):03d}.npz"
+        _write_shard(out / name, batch)
+        shards.append({"file": name, "count": len(batch)})
+        batch.clear()
+
+    items = islice(stream.sequences(worker_id=0), n_sequences)
+    for item in tqdm(items, total=n_sequences, desc=f"split {out.name}", unit="seq",
+                     disable=not progress):
+        valid = item["labels"][item["mask"]]
+        n_observations += len(valid)
+        for column, task in enumerate(TASKS):
+            histogram[task] += np.bincount(valid[:, column], minlength=len(CLASS_NAMES[task]))
+        lighting[item["meta"]["lighting"]] = lighting.get(item["meta"]["lighting"], 0) + 1
+        batch.append(item)
+        if len(batch) == shard_size:
+            flush()
+    if batch:
+        flush()
+    manifest = {
+        "format": FORMAT_VERSION,
+        "created_by": f"signal_light_node {__version__}",
+        "seed": int(seed),
+        "seq_len": int(seq_len),
+        "full_tracks": bool(full_tracks),
+        "n_sequences": int(n_sequences),
+        "n_observations": int(n_observations),
+        "crop": {"size": crop.size, "margin": crop.margin},
+        "stream": _json_ready({k: v for k, v in stream_kwargs.items()}),
+        "tasks": list(TASKS),
+        "label_histogram": {task: {name: int(histogram[task][i])
+                                   for i, name in enumerate(CLASS_NAMES[task])}
+                            for task in TASKS},
+        "lighting": lighting,
+        "shards": shards,
+    }
+    path = out / MANIFEST
+    path.write_text(json.dumps(manifest, indent=2) + "\n")
+    LOG.info("wrote %d sequences (%d observations) to %s", n_sequences, n_observations, out)
+    return path
+
+
+class SequenceSplit(Dataset):
+    """A split written by :func:`write_split`, as a map-style dataset of sequence items.
+
+    Shards are loaded whole on first use and the two most recent kept in memory, so
+    reading in order (as evaluation does) decompresses each shard once.
+
+    Args:
+        out_dir: The split's directory.
+        cache_shards: How many decoded shards to keep.
+
+    Raises:
+        SignalLightError: If the manifest is missing, of another format, or inconsistent.
+    """
+
+    def __init__(self, out_dir: "str | os.PathLike[str]", cache_shards: int = 2) -> None:
+        self.root = Path(out_dir)
+        path = self.root / MANIFEST
+        try:
+            manifest = json.loads(path.read_text())
+        except (OSError, ValueError) as exc:
+            raise SignalLightError(f"{self.root} is not a sequence split: cannot read "
+                                   f"{path.name}: {exc}") from exc
+        if manifest.get("format") != FORMAT_VERSION:
+            raise SignalLightError(f"{path}: split format {manifest.get('format')!r} is not "
+                                   f"the supported {FORMAT_VERSION}")
+        if list(manifest.get("tasks", [])) != list(TASKS):
+            raise SignalLightError(f"{path}: tasks {manifest.get('tasks')} differ from {list(TASKS)}")
+        self.manifest = manifest
+        self.seq_len = int(manifest["seq_len"])
+        self.crop = CropConfig(**manifest["crop"])
+        self._starts: List[Tuple[int, str, int]] = []  # (first index, file, count)
+        total = 0
+        for shard in manifest["shards"]:
+            self._starts.append((total, shard["file"], int(shard["count"])))
+            total += int(shard["count"])
+        if total != int(manifest["n_sequences"]):
+            raise SignalLightError(f"{path}: shards hold {total} sequences, manifest says "
+                                   f"{manifest['n_sequences']}")
+        self._length = total
+        self._cache: "OrderedDict[str, Dict[str, np.ndarray]]" = OrderedDict()
+        self._cache_shards = max(1, int(cache_shards))
+
+    def __len__(self) -> int:
+        return self._length
+
+    def _shard(self, name: str) -> Dict[str, np.ndarray]:
+        shard = self._cache.get(name)
+        if shard is not None:
+            self._cache.move_to_end(name)
+            return shard
+        try:
+            with np.load(self.root / name, allow_pickle=False) as data:
+                shard = {key: data[key] for key in data.files}
+        except (OSError, ValueError, KeyError) as exc:
+            raise SignalLightError(f"cannot read shard {self.root / name}: {exc}") from exc
+        shard["offsets"] = np.concatenate([[0], np.cumsum(shard["lengths"])])
+        self._cache[name] = shard
+        while len(self._cache) > self._cache_shards:
+            self._cache.popitem(last=False)
+        return shard
+
+    def __getitem__(self, index: int) -> Item:
+        if index < 0:
+            index += self._length
+        if not 0 <= index < self._length:
+            raise IndexError(f"index {index} out of range for a split of {self._length}")
+        first, name, count = next(s for s in reversed(self._starts) if s[0] <= index)
+        shard = self._shard(name)
+        i = index - first
+        a, b = int(shard["offsets"][i]), int(shard["offsets"][i + 1])
+        n, t, s = b - a, self.seq_len, self.crop.size
+        crops = np.zeros((t, s, s, 3), dtype=np.uint8)
+        crops[:n] = shard["crops"][a:b]
+        labels = np.full((t, len(TASKS)), PAD_LABEL, dtype=np.int64)
+        labels[:n] = shard["labels"][a:b]
+        mask = np.zeros(t, dtype=bool)
+        mask[:n] = True
+        meta: Dict[str, Any] = {"fps": float(shard["fps"][i]), "seed": int(shard["seed"][i]),
+                                "mirrored": False}
+        for key in _STRING_META:
+            meta[key] = str(shard[key][i])
+        for key in _PER_FRAME_META:
+            column = shard[key]
+            values = np.full(t, -1 if key == "frame_index" else 0, dtype=column.dtype)
+            values[:n] = column[a:b]
+            meta[key] = values
+        return {"crops": crops, "labels": labels, "mask": mask, "meta": meta}
+
+    def summary(self) -> Dict[str, Any]:
+        """The manifest's counts and label histogram."""
+        return {k: self.manifest[k] for k in ("seed", "seq_len", "full_tracks", "n_sequences",
+                                               "n_observations", "label_histogram", "lighting")}
