@@ -257,13 +257,15 @@ class LoadedModel(NamedTuple):
     meta: Dict[str, Any]
 
 
-_PLAIN_SCALARS = (str, int, float, bool, type(None))
-
-
 def _plain(value: Any, where: str) -> Any:
     """Copy of ``value`` made of plain types only, so ``weights_only`` loading accepts it."""
-    if isinstance(value, _PLAIN_SCALARS):
-        return value
+    # Exact builtin types: subclasses (torch's TorchVersion, numpy.float64) would be pickled
+    # by class name and then refused by the safe loader.
+    for kind in (bool, int, float, str):
+        if isinstance(value, kind):
+            return kind(value)
+    if value is None:
+        return None
     if isinstance(value, torch.Tensor):
         return value.detach().cpu().clone()
     if isinstance(value, Mapping):
@@ -306,7 +308,7 @@ def save_checkpoint(path: PathLike, model: nn.Module, config: ModelConfig,
     info = _plain(dict(meta or {}), "meta")
     info.setdefault("package_version", __version__)
     info.setdefault("created", time.strftime("%Y-%m-%dT%H:%M:%S%z"))
-    info.setdefault("torch_version", torch.__version__)
+    info.setdefault("torch_version", str(torch.__version__))
     state = {k: v.detach().to("cpu", copy=True).contiguous() for k, v in model.state_dict().items()}
     payload = {"format_version": FORMAT_VERSION, "config": config.to_dict(),
                "state_dict": state, "meta": info}
@@ -392,9 +394,10 @@ def load_checkpoint(path: PathLike = DEFAULT_WEIGHTS,
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:  # torch raises many types for a bad file; all mean "unreadable"
-        raise CheckpointError(f"checkpoint {path} cannot be read as a checkpoint "
-                              f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
-                              ) from exc
+        # torch's own message suggests weights_only=False, which we never want: say what it is.
+        raise CheckpointError(f"checkpoint {path} cannot be read as a checkpoint: it is not a "
+                              f"torch.save file of plain values and tensors "
+                              f"({type(exc).__name__})") from exc
     if not isinstance(payload, dict) or "format_version" not in payload:
         raise CheckpointError(f"checkpoint {path} is not a signal_light_node checkpoint "
                               f"(no format_version)")

@@ -31,6 +31,10 @@ from signal_light_node.errors import ConfigError, CropError
 from signal_light_node.labels import TASKS
 from signal_light_node.model.interface import State, state_batch_size
 
+#: Memory layout of activations, weights and states: on CPU (oneDNN) channels-last
+#: convolutions run about 1.5x faster than NCHW ones for these small maps.
+MEMORY_FORMAT = torch.channels_last
+
 if TYPE_CHECKING:  # pragma: no cover - typing only
     from signal_light_node.model.checkpoint import ModelConfig
 
@@ -142,11 +146,26 @@ class LightStateNet(nn.Module):
         )
         self.heads = nn.ModuleDict({t: nn.Linear(config.fc_hidden, config.num_classes[t])
                                     for t in TASKS})
+        self._init_weights()
+        self.to(memory_format=MEMORY_FORMAT)
+
+    def _init_weights(self) -> None:
+        # He init keeps activations at unit scale through the ReLU stack (PyTorch's default
+        # shrinks them ~2.5x per layer, which starves an untrained eval-mode net of signal).
+        convs = list(self.backbone.modules())
+        if self.attention_net is not None:
+            convs += list(self.attention_net.body)[:-1]
+        for module in convs:
+            if isinstance(module, nn.Conv2d):
+                nn.init.kaiming_normal_(module.weight, mode="fan_in", nonlinearity="relu")
+                if module.bias is not None:
+                    nn.init.zeros_(module.bias)
 
     # ------------------------------------------------------------------ per-frame part
 
     def _normalise(self, crops: Tensor) -> Tensor:
-        return (crops - self._mean) * self._inv_std
+        x = crops.contiguous(memory_format=MEMORY_FORMAT)  # no copy for to_input's tensors
+        return (x - self._mean) * self._inv_std
 
     def _check_crops(self, crops: Tensor, ndim: int) -> None:
         size = self.input_size
@@ -178,8 +197,10 @@ class LightStateNet(nn.Module):
         """Zero state for ``n`` new tracks, on the model's device."""
         ref = self._mean
         side = self.config.feature_size
-        return tuple((ref.new_zeros((n, cell.hidden, side, side)),
-                      ref.new_zeros((n, cell.hidden, side, side))) for cell in self.cells)
+        def zeros(channels: int) -> Tensor:
+            return ref.new_zeros((n, channels, side, side)).contiguous(memory_format=MEMORY_FORMAT)
+
+        return tuple((zeros(cell.hidden), zeros(cell.hidden)) for cell in self.cells)
 
     def _check_state(self, state: State, n: int) -> None:
         if len(state) != len(self.cells):
