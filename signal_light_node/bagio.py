@@ -247,7 +247,7 @@ class BagReader:
             typs = {k: v for k, v in ours.fielddefs.items() if k not in foreign}
             typs.update(foreign)
             local.register(typs)
-            decoders = {cid: (store or local) for cid, store in decoders.items()}
+            decoders = {cid: local if store is None else store for cid, store in decoders.items()}
             LOG.debug("%s: decoding %s with the bag's own definitions", self.path,
                       sorted(foreign))
         return decoders

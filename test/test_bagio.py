@@ -207,6 +207,25 @@ def test_foreign_type_decodes_from_the_bags_own_definition(tmp_path: Path) -> No
     assert "other_msgs/msg/Thing" not in bagio.typestore().fielddefs  # ours stays clean
 
 
+def test_type_with_another_definition_decodes_with_the_bags_own(tmp_path: Path) -> None:
+    # Same name, different fields (hash mismatch): trusting our schema would garble it.
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    other = get_typestore(Stores.ROS2_JAZZY)
+    other.register(get_types_from_msg("float32 x\nfloat32 y\nstring label",
+                                      "vision_msgs/msg/Point2D"))
+    cls = other.types["vision_msgs/msg/Point2D"]
+    path = tmp_path / "older"
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conn = writer.add_connection("/p", "vision_msgs/msg/Point2D", typestore=other)
+        writer.write(conn, 5, other.serialize_cdr(cls(x=1.5, y=-2.5, label="old"),
+                                                  "vision_msgs/msg/Point2D"))
+    with bagio.open_bag(path) as bag:
+        (item,) = list(bag.messages())
+    assert (item.msg.x, item.msg.y, item.msg.label) == (1.5, -2.5, "old")
+
+
 def test_writer_refuses_to_overwrite(tmp_path: Path) -> None:
     path = tmp_path / "bag"
     with bagio.BagWriter(path) as writer:
