@@ -272,3 +272,62 @@ def test_attention_masks_land_inside_the_crops_and_leave_state_alone():
     assert ys.min() >= 50 - margin and ys.max() <= 90 + margin
     assert heat.max() == pytest.approx(1.0)
     assert len(engine.bank) == 0 and engine.model.calls == 0
+
+
+# ------------------------------------------------------------- with the real network
+TINY = dict(input_size=24, attention_channels=(4, 4, 4), backbone_channels=(6, 8, 8),
+            lstm_hidden=(6, 5), head_channels=4, head_grid=2, fc_hidden=16)
+
+
+def _tiny_net(seed: int = 0):
+    from signal_light_node.model import ModelConfig, build_model
+
+    torch.manual_seed(seed)
+    return build_model(ModelConfig(**TINY))
+
+
+def test_batched_tracks_match_tracks_run_alone_with_the_real_network():
+    rng = np.random.default_rng(5)
+    images = [rng.integers(0, 256, size=(H, W, 3), dtype=np.uint8) for _ in range(4)]
+    boxes = [_box("a", 10, 20), _box("b", 120, 40, 60), _box("c", 250, 100, 30)]
+    together = LightStateEngine(_tiny_net())
+    alone = {b.track_id: LightStateEngine(_tiny_net()) for b in boxes}
+    for t, image in enumerate(images):
+        joint = together.process(image, t * 100 * MS, boxes).results
+        for box, res in zip(boxes, joint):
+            single = alone[box.track_id].process(image, t * 100 * MS, [box]).results[0]
+            assert res.frames_observed == single.frames_observed == t + 1
+            for name in ("brake", "left", "right"):
+                a, b = getattr(res, name), getattr(single, name)
+                assert (a.off, a.on, a.unknown) == pytest.approx((b.off, b.on, b.unknown),
+                                                                 abs=1e-5)
+            assert res.intent_probability == pytest.approx(single.intent_probability, abs=1e-5)
+
+
+def test_real_network_state_is_explicit_and_resets_to_initial():
+    engine = LightStateEngine(_tiny_net(), EngineConfig(track_timeout_s=0.3))
+    rng = np.random.default_rng(9)
+    image = rng.integers(0, 256, size=(H, W, 3), dtype=np.uint8)
+    first = engine.process(image, 0, [_box("a")]).results[0]
+    second = engine.process(image, 100 * MS, [_box("a")]).results[0]
+    assert second.brake != first.brake  # the recurrent state changed the output
+    back = engine.process(image, 600 * MS, [_box("a")]).results[0]  # after the timeout
+    assert back == first
+
+
+def test_engine_from_checkpoint_loads_config_and_overrides(tmp_path):
+    from signal_light_node.model import save_checkpoint
+
+    net = _tiny_net()
+    path = save_checkpoint(tmp_path / "tiny.pt", net, net.config)
+    engine = engine_from_checkpoint(path, thresholds={"brake": 0.8}, crop_margin=0.25,
+                                    max_tracks=7)
+    assert engine.crop == CropConfig(size=24, margin=0.25)
+    assert engine.config.thresholds[100] == 0.8 and engine.bank.capacity == 7
+    image = np.full((H, W, 3), 90, dtype=np.uint8)
+    got = engine.process(image, 0, [_box("a")]).results[0]
+    want = LightStateEngine(net, EngineConfig(crop=CropConfig(24, 0.25))).process(
+        image, 0, [_box("a")]).results[0]
+    assert got.brake.on == pytest.approx(want.brake.on, abs=1e-6)
+    with pytest.raises(ConfigError, match="unknown engine option"):
+        engine_from_checkpoint(path, colour="red")
