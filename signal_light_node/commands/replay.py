@@ -1,0 +1,86 @@
+"""``signal-light replay BAG -o OUT``: the detector engine over a bag, without ROS."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+from typing import Dict
+
+from signal_light_node.errors import ConfigError
+
+LOG = logging.getLogger(__name__)
+
+
+def _threshold(text: str) -> tuple:
+    """``brake=0.6`` / ``100=0.6`` -> ("brake", 0.6)."""
+    key, sep, value = text.partition("=")
+    if not sep:
+        raise argparse.ArgumentTypeError(f"expected CODE=P or LIGHT=P (e.g. brake=0.6), got "
+                                         f"{text!r}")
+    try:
+        return key.strip(), float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"threshold {value!r} is not a number") from None
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``signal-light replay``."""
+    parser.add_argument("bag", type=Path, help="input bag (rosbag2 directory or .mcap)")
+    parser.add_argument("-o", "--output", type=Path, required=True,
+                        help="output MCAP rosbag2 directory")
+    parser.add_argument("--checkpoint", type=Path, default=None,
+                        help="model checkpoint (default: the shipped weights)")
+    parser.add_argument("--image-topic", default=None,
+                        help="image topic (default: the first CompressedImage, else Image topic)")
+    parser.add_argument("--detections-topic", default=None,
+                        help="Detection2DArray topic (default: the first one)")
+    parser.add_argument("--with-inputs", action="store_true",
+                        help="also write the image, detection and ground-truth topics")
+    parser.add_argument("--video", type=Path, default=None,
+                        help="write an annotated .mp4 or .gif of the frames")
+    parser.add_argument("--attention", action="store_true",
+                        help="overlay the attention masks in the video")
+    parser.add_argument("--threshold", type=_threshold, action="append", default=[],
+                        metavar="LIGHT=P",
+                        help="ON-probability threshold of a light for the classification "
+                             "codes, e.g. brake=0.6 or 101=0.4 (repeatable; default 0.5)")
+    parser.add_argument("--track-timeout", type=float, default=1.0, metavar="S",
+                        help="seconds a track may stay unseen before its state is dropped")
+    parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch CPU threads (default: torch's choice)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Replay the bag, print the summary and, with ground truth, the metrics."""
+    import torch
+
+    from signal_light_node.engine import engine_from_checkpoint
+    from signal_light_node.replay import replay_bag, score_summary
+
+    if args.video is not None and args.video.suffix.lower() not in (".mp4", ".gif"):
+        raise ConfigError(f"--video must end in .mp4 or .gif, got {args.video.name!r}")
+    if args.threads is not None:
+        if args.threads < 1:
+            raise ConfigError(f"--threads must be >= 1, got {args.threads}")
+        torch.set_num_threads(args.threads)
+    thresholds: Dict[str, float] = dict(args.threshold)
+    engine = engine_from_checkpoint(args.checkpoint, device=args.device, thresholds=thresholds,
+                                    track_timeout_s=args.track_timeout)
+    summary = replay_bag(args.bag, args.output, engine, image_topic=args.image_topic,
+                         detections_topic=args.detections_topic, with_inputs=args.with_inputs,
+                         video=args.video, video_attention=args.attention,
+                         overwrite=args.overwrite, progress=not args.no_progress)
+    print(summary.text())
+    if summary.has_ground_truth:
+        report = score_summary(summary)
+        if report is None:
+            print("ground truth present, but no judged detection matched it")
+        else:
+            from signal_light_node.metrics import markdown_report
+
+            print(markdown_report(report, title=f"Agreement with the ground truth of {args.bag}"))
+    return 0

@@ -1,0 +1,358 @@
+"""Run the engine over a recorded bag without ROS and write its output to an MCAP bag.
+
+This is ``signal-light replay``: the same :class:`~signal_light_node.engine.LightStateEngine`
+as the live node, fed from a bag as fast as the CPU allows. Images and detections are
+paired by exact header stamp. Every image gets one ``VehicleLightStateArray`` on
+:data:`OUTPUT_TOPIC` (header = the image's header, logged at the image's log time), with
+one entry per detection of its stamp, or none when it has no detections.
+
+The bag is read twice: a first pass collects the (small) detection and ground-truth
+messages by stamp, so that the order in which the recorder logged an image and its
+detections does not matter; the second pass decodes the images one by one.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
+
+import numpy as np
+
+from signal_light_node.bagio import BagWriter, TopicInfo, make, open_bag
+from signal_light_node.boxes import TrackBox
+from signal_light_node.conversions import detections_to_boxes, stamp_to_ns, vehicle_light_array
+from signal_light_node.engine import FrameResult, LightStateEngine, unjudged_result
+from signal_light_node.errors import BagIOError, ImageConversionError
+from signal_light_node.image_codec import msg_to_bgr
+from signal_light_node.labels import TASKS
+from signal_light_node.results import VehicleResult
+
+LOG = logging.getLogger(__name__)
+
+#: Topic of the engine's output, as the node publishes it.
+OUTPUT_TOPIC = "/signal_light_detector/output/vehicle_lights"
+OUTPUT_TYPE = "signal_light_msgs/msg/VehicleLightStateArray"
+GROUND_TRUTH_TOPIC = "/ground_truth/vehicle_lights"
+IMAGE_TYPES = ("sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/Image")
+DETECTION_TYPE = "vision_msgs/msg/Detection2DArray"
+
+
+def find_topic(topics: Mapping[str, TopicInfo], types: Sequence[str], wanted: Optional[str],
+               what: str, path: Path) -> str:
+    """The topic to read: ``wanted`` if given, else the first topic of the first type found.
+
+    Raises:
+        BagIOError: ``wanted`` is not in the bag or has another type, or no topic has
+            one of ``types``.
+    """
+    if wanted:
+        info = topics.get(wanted)
+        if info is None:
+            raise BagIOError(f"bag {path} has no topic {wanted!r} ({what}); it has "
+                             f"{sorted(topics)}")
+        if info.msgtype not in types:
+            raise BagIOError(f"topic {wanted} of bag {path} has type {info.msgtype}, not "
+                             f"{' or '.join(types)} ({what})")
+        return wanted
+    for msgtype in types:
+        matches = sorted(t for t, info in topics.items() if info.msgtype == msgtype)
+        if matches:
+            if len(matches) > 1:
+                LOG.warning("bag %s has several %s topics %s; using %s (choose with an option)",
+                            path, what, matches, matches[0])
+            return matches[0]
+    raise BagIOError(f"bag {path} has no {what} topic (of type {' or '.join(types)}); it has "
+                     f"{ {t: i.msgtype for t, i in topics.items()} }")
+
+
+def result_row(result: VehicleResult) -> np.ndarray:
+    """The result's classes in ``labels.TASKS`` order (as ground-truth rows are)."""
+    row = {"intent": int(result.intent), "brake": int(result.brake.state),
+           "left": int(result.left.state), "right": int(result.right.state),
+           "view": int(result.view)}
+    return np.array([row[t] for t in TASKS], dtype=np.int64)
+
+
+def truth_row(vehicle: Any) -> np.ndarray:
+    """A ground-truth ``VehicleLightState``'s classes in ``labels.TASKS`` order."""
+    row = {"intent": int(vehicle.intent), "brake": int(vehicle.brake.state),
+           "left": int(vehicle.left_blinker.state), "right": int(vehicle.right_blinker.state),
+           "view": int(vehicle.view)}
+    return np.array([row[t] for t in TASKS], dtype=np.int64)
+
+
+@dataclass
+class TrackRecord:
+    """One track's judged frames that have ground truth, for scoring.
+
+    Attributes:
+        stamps_ns: Frame stamps.
+        truth: ``[T, 5]`` ground-truth classes (``TASKS`` order).
+        pred: ``[T, 5]`` predicted classes.
+        frames_observed: The engine's ``frames_observed`` per frame (1 = state just started).
+    """
+
+    stamps_ns: List[int] = field(default_factory=list)
+    truth: List[np.ndarray] = field(default_factory=list)
+    pred: List[np.ndarray] = field(default_factory=list)
+    frames_observed: List[int] = field(default_factory=list)
+
+
+@dataclass
+class ReplaySummary:
+    """What a replay did.
+
+    Attributes:
+        output: The bag written.
+        image_topic: Image topic read.
+        detections_topic: Detection topic read.
+        images: Image messages read.
+        outputs: Output messages written (one per image).
+        detections: Boxes given to the engine.
+        entries: Vehicle entries written (one per box).
+        images_without_detections: Images with no detection message of their stamp.
+        detections_without_image: Detection messages whose stamp has no image.
+        bad_images: Images that could not be decoded (their boxes are written unjudged).
+        elapsed_s: Wall time of the second pass (decode, engine, write).
+        engine_s: Time spent in ``engine.process``.
+        latencies_s: ``latency_s`` of every processed frame.
+        counters: The engine's counters at the end.
+        tracks: Per track (by ID), the frames with ground truth; empty without it.
+        has_ground_truth: Whether the bag has the ground-truth topic.
+        video: The annotated video written, if any.
+    """
+
+    output: Path
+    image_topic: str = ""
+    detections_topic: str = ""
+    images: int = 0
+    outputs: int = 0
+    detections: int = 0
+    entries: int = 0
+    images_without_detections: int = 0
+    detections_without_image: int = 0
+    bad_images: int = 0
+    elapsed_s: float = 0.0
+    engine_s: float = 0.0
+    latencies_s: List[float] = field(default_factory=list)
+    counters: Dict[str, int] = field(default_factory=dict)
+    tracks: Dict[str, TrackRecord] = field(default_factory=dict)
+    has_ground_truth: bool = False
+    video: Optional[Path] = None
+
+    @property
+    def frames_per_s(self) -> float:
+        """Images processed per second of wall time (decode, engine and writing included)."""
+        return self.images / self.elapsed_s if self.elapsed_s > 0 else math.nan
+
+    @property
+    def track_steps_per_s(self) -> float:
+        """Judged boxes per second of wall time."""
+        judged = self.counters.get("judged", 0)
+        return judged / self.elapsed_s if self.elapsed_s > 0 else math.nan
+
+    def latency_ms(self) -> Tuple[float, float]:
+        """Mean and 95th percentile of the engine's per-frame latency, in ms."""
+        if not self.latencies_s:
+            return math.nan, math.nan
+        lat = np.asarray(self.latencies_s) * 1e3
+        return float(lat.mean()), float(np.percentile(lat, 95))
+
+    def text(self) -> str:
+        """A few lines for the terminal."""
+        mean, p95 = self.latency_ms()
+        c = self.counters
+        lines = [
+            f"output: {self.output} ({self.outputs} messages on {OUTPUT_TOPIC})",
+            f"images: {self.images} from {self.image_topic}, detections from "
+            f"{self.detections_topic}: {self.detections} boxes -> {self.entries} entries",
+            f"frames without detections: {self.images_without_detections}; detection messages "
+            f"without an image: {self.detections_without_image}; undecodable images: "
+            f"{self.bad_images}",
+            f"unjudged boxes: {c.get('unjudged', 0)} (duplicates {c.get('duplicates', 0)}); "
+            f"state resets: {c.get('resets', 0)}; evictions: {c.get('evictions', 0)}",
+            f"throughput: {self.frames_per_s:.1f} frames/s, {self.track_steps_per_s:.1f} "
+            f"track-steps/s; engine latency mean {mean:.1f} ms, p95 {p95:.1f} ms",
+        ]
+        if self.video is not None:
+            lines.append(f"video: {self.video}")
+        return "\n".join(lines)
+
+
+def _collect(bag: Any, topic: Optional[str], key: Callable[[Any], Any]) -> Dict[int, Any]:
+    """``stamp -> key(msg)`` of every message on ``topic`` (the first one of a stamp)."""
+    out: Dict[int, Any] = {}
+    if topic is None:
+        return out
+    duplicates = 0
+    for m in bag.messages([topic]):
+        stamp = stamp_to_ns(m.msg.header.stamp)
+        if stamp in out:
+            duplicates += 1
+            continue
+        out[stamp] = key(m.msg)
+    if duplicates:
+        LOG.warning("%s: %d messages repeat an earlier header stamp; the first one is used",
+                    topic, duplicates)
+    return out
+
+
+def _bad_image_results(msg: Any, boxes: Sequence[TrackBox],
+                       engine: LightStateEngine) -> List[VehicleResult]:
+    width, height = int(getattr(msg, "width", 0) or 0), int(getattr(msg, "height", 0) or 0)
+    return [unjudged_result(box, width, height, engine.bank.frames_observed(box.track_id))
+            for box in boxes]
+
+
+def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateEngine,
+               image_topic: Optional[str] = None, detections_topic: Optional[str] = None,
+               with_inputs: bool = False, video: "str | Path | None" = None,
+               video_attention: bool = False, overwrite: bool = False,
+               progress: bool = True,
+               on_frame: Optional[Callable[[Any, List[TrackBox], FrameResult], None]] = None
+               ) -> ReplaySummary:
+    """Replay a bag through the engine and write the output bag.
+
+    Args:
+        bag_path: The input bag (rosbag2 directory or ``.mcap``).
+        output: The MCAP rosbag2 directory to write.
+        engine: The engine (its track states carry over from earlier calls).
+        image_topic: Image topic; by default the first CompressedImage topic, else the
+            first Image topic.
+        detections_topic: Detection topic; by default the first Detection2DArray topic.
+        with_inputs: Also write the image, detection and ground-truth topics.
+        video: Optional ``.mp4`` or ``.gif`` for the annotated frames.
+        video_attention: Overlay the attention masks in the video (one more model pass).
+        overwrite: Replace an existing output bag.
+        progress: Show a tqdm progress bar.
+        on_frame: Called as ``on_frame(image_bgr_or_None, boxes, frame_result)`` per image.
+
+    Returns:
+        The summary, with per-track records for scoring when the bag has ground truth.
+
+    Raises:
+        BagIOError: The bag cannot be read, lacks the topics, or the output cannot be written.
+        ConfigError: The video path has an unsupported suffix.
+    """
+    from signal_light_node.visualize import VideoSink, draw_results
+
+    bag_path, output = Path(bag_path), Path(output)
+    summary = ReplaySummary(output=output)
+    with open_bag(bag_path) as bag:
+        topics = bag.topics()
+        img_t = find_topic(topics, IMAGE_TYPES, image_topic, "image", bag_path)
+        det_t = find_topic(topics, (DETECTION_TYPE,), detections_topic, "detections", bag_path)
+        gt_info = topics.get(GROUND_TRUTH_TOPIC)
+        gt_t = GROUND_TRUTH_TOPIC if gt_info is not None and gt_info.msgtype == OUTPUT_TYPE \
+            else None
+        summary.image_topic, summary.detections_topic = img_t, det_t
+        summary.has_ground_truth = gt_t is not None
+        n_images = topics[img_t].count
+
+        # Pass 1: the small messages, keyed by header stamp.
+        detections = _collect(bag, det_t, detections_to_boxes)
+        truth = _collect(bag, gt_t, lambda msg: {str(v.track_id): truth_row(v)
+                                                 for v in msg.vehicles})
+        sink = None
+        if video is not None:
+            duration_s = bag.duration_ns / 1e9
+            fps = (n_images - 1) / duration_s if n_images > 1 and duration_s > 0 else 10.0
+            sink = VideoSink(video, fps=min(max(fps, 1.0), 60.0))
+
+        # Pass 2: decode each image, run the engine, write.
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=n_images, unit="frame", desc=bag_path.name, leave=False)
+        input_topics = [img_t, det_t] + ([gt_t] if gt_t else [])
+        seen_stamps = set()
+        start = time.perf_counter()
+        with BagWriter(output, overwrite=overwrite) as writer:
+            writer.add_topic(OUTPUT_TOPIC, OUTPUT_TYPE)
+            if with_inputs:
+                for t in input_topics:
+                    writer.add_topic(t, topics[t].msgtype)
+            for m in bag.messages(input_topics if with_inputs else [img_t]):
+                if with_inputs:
+                    writer.write(m.topic, m.log_time_ns, m.msg)
+                if m.topic != img_t:
+                    continue
+                stamp = stamp_to_ns(m.msg.header.stamp)
+                seen_stamps.add(stamp)
+                boxes = detections.get(stamp)
+                if boxes is None:
+                    summary.images_without_detections += 1
+                    boxes = []
+                try:
+                    image = msg_to_bgr(m.msg, img_t, stamp)
+                except ImageConversionError as exc:
+                    LOG.warning("%s", exc)
+                    summary.bad_images += 1
+                    image = None
+                if image is None:
+                    results = _bad_image_results(m.msg, boxes, engine)
+                    frame = FrameResult(stamp, results, ["image could not be decoded"], 0.0, 0)
+                else:
+                    frame = engine.process(image, stamp, boxes)
+                    summary.engine_s += frame.latency_s
+                    summary.latencies_s.append(frame.latency_s)
+                writer.write(OUTPUT_TOPIC, m.log_time_ns,
+                             vehicle_light_array(m.msg.header, frame.results, make))
+                summary.images += 1
+                summary.outputs += 1
+                summary.detections += len(boxes)
+                summary.entries += len(frame.results)
+                gt = truth.get(stamp)
+                if gt:
+                    _record(summary.tracks, stamp, gt, frame.results)
+                if sink is not None and image is not None:
+                    heat = engine.attention_masks(image, boxes) if video_attention else None
+                    sink.add(draw_results(image, frame.results, heat,
+                                          caption=f"{stamp / 1e9:.3f} s"))
+                if on_frame is not None:
+                    on_frame(image, boxes, frame)
+                if bar is not None:
+                    bar.update(1)
+        summary.elapsed_s = time.perf_counter() - start
+        if bar is not None:
+            bar.close()
+        if sink is not None:
+            summary.video = sink.close()
+    summary.detections_without_image = len(set(detections) - seen_stamps)
+    summary.counters = engine.counters
+    return summary
+
+
+def _record(tracks: Dict[str, TrackRecord], stamp: int, truth: Mapping[str, np.ndarray],
+            results: Sequence[VehicleResult]) -> None:
+    """Keep the judged results that have a ground-truth entry of the same track ID."""
+    for res in results:
+        row = truth.get(res.track_id)
+        if row is None or not res.judged:
+            continue
+        rec = tracks.setdefault(res.track_id, TrackRecord())
+        rec.stamps_ns.append(stamp)
+        rec.truth.append(row)
+        rec.pred.append(result_row(res))
+        rec.frames_observed.append(res.frames_observed)
+
+
+def score_summary(summary: ReplaySummary) -> Optional[Dict[str, object]]:
+    """Metrics of the replay's judged frames against the bag's ground truth.
+
+    Returns:
+        A ``metrics.MetricAccumulator.report()`` dict, or None when nothing matched.
+    """
+    from signal_light_node.metrics import MetricAccumulator
+
+    if not summary.tracks:
+        return None
+    acc = MetricAccumulator()
+    for rec in summary.tracks.values():
+        acc.add_frames(np.stack(rec.truth), np.stack(rec.pred))
+    return acc.report()
