@@ -253,3 +253,11 @@ def test_config_dict_round_trip() -> None:
     assert config.replace(dropout=0.1).dropout == 0.1
     with pytest.raises(ConfigError, match="unknown keys"):
         ModelConfig.from_dict({**config.to_dict(), "colour": "red"})
+
+
+def test_empty_batch_steps() -> None:
+    model = tiny_model()
+    with torch.no_grad():
+        probs, state = model.step(random_crops(0), model.initial_state(0))
+    assert probs["intent"].shape == (0, 5)
+    assert state_batch_size(state) == 0 and split_state(state) == []
