@@ -1,0 +1,119 @@
+"""``signal-light record -o OUT --topics ...``: write live topics into an MCAP bag.
+
+Each topic is subscribed as soon as it shows up in the graph (its type is taken from
+there) and received as raw CDR bytes, which rosbags deserializes with the project's
+typestore and ``bagio.BagWriter`` writes; the log time is the receive time. Stops after
+``--duration`` seconds, ``--count`` messages, ``--idle-timeout`` seconds without a
+message, or on SIGINT/SIGTERM, always closing the bag properly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import time
+from collections import Counter
+from typing import Dict, List
+
+from signal_light_node.errors import SignalLightError
+
+LOG = logging.getLogger("signal_light_node.record")
+
+#: How often the graph is checked for topics that are not subscribed yet.
+_GRAPH_POLL_S = 0.2
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``signal-light record``."""
+    parser.add_argument("-o", "--output", required=True, help="bag directory to create")
+    parser.add_argument("--topics", nargs="+", required=True, metavar="TOPIC",
+                        help="topics to record (subscribed as soon as they appear)")
+    parser.add_argument("--duration", type=float, metavar="S",
+                        help="stop after S seconds")
+    parser.add_argument("--count", type=int, metavar="N",
+                        help="stop after N messages (all topics together)")
+    parser.add_argument("--idle-timeout", type=float, metavar="S",
+                        help="stop when nothing arrived for S seconds after the first message")
+    parser.add_argument("--qos", choices=("reliable", "best_effort"), default="reliable",
+                        help="reliability of the subscriptions (default reliable; "
+                             "best_effort also hears best-effort publishers)")
+    parser.add_argument("--depth", type=int, default=100, help="subscription queue depth")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing bag")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Record until a stop condition; returns the exit code."""
+    from signal_light_node.bagio import BagWriter, normalize_msgtype, typestore
+    from signal_light_node.node.ros_io import message_class, qos, ros_context, stop_on_signals
+
+    for name in ("duration", "idle_timeout"):
+        value = getattr(args, name)
+        if value is not None and not value > 0:
+            raise SignalLightError(f"--{name.replace('_', '-')} must be > 0, got {value}")
+    if args.count is not None and args.count < 1:
+        raise SignalLightError(f"--count must be >= 1, got {args.count}")
+    store = typestore()
+    wanted: List[str] = list(dict.fromkeys(args.topics))
+    counts: Counter = Counter()
+    last_message = [0.0]
+
+    with stop_on_signals() as stop, ros_context() as context, \
+            BagWriter(args.output, overwrite=args.overwrite) as bag:
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+
+        node = Node(f"signal_light_recorder_{os.getpid()}", context=context)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        subs: Dict[str, object] = {}
+
+        def callback_for(topic: str, msgtype: str):
+            def on_message(raw: bytes) -> None:
+                now = time.time_ns()
+                bag.write(topic, now, store.deserialize_cdr(raw, msgtype))
+                counts[topic] += 1
+                last_message[0] = time.monotonic()
+                if args.count is not None and sum(counts.values()) >= args.count:
+                    stop.set()
+            return on_message
+
+        def subscribe_new() -> None:
+            graph = dict(node.get_topic_names_and_types())
+            for topic in wanted:
+                if topic in subs or topic not in graph:
+                    continue
+                msgtype = normalize_msgtype(graph[topic][0])
+                bag.add_topic(topic, msgtype)
+                subs[topic] = node.create_subscription(
+                    message_class(msgtype), topic, callback_for(topic, msgtype),
+                    qos(args.qos, args.depth), raw=True)
+                LOG.info("recording %s [%s]", topic, msgtype)
+                if len(subs) == len(wanted):
+                    LOG.info("recording all %d topic(s) into %s", len(wanted), args.output)
+
+        started = time.monotonic()
+        next_poll = started
+        try:
+            while not stop.is_set():
+                now = time.monotonic()
+                if len(subs) < len(wanted) and now >= next_poll:
+                    subscribe_new()
+                    next_poll = now + _GRAPH_POLL_S
+                if args.duration is not None and now - started >= args.duration:
+                    break
+                if (args.idle_timeout is not None and last_message[0]
+                        and now - last_message[0] >= args.idle_timeout):
+                    LOG.info("no message for %.1f s; stopping", args.idle_timeout)
+                    break
+                executor.spin_once(timeout_sec=0.05)
+        finally:
+            executor.remove_node(node)
+            node.destroy_node()
+        missing = [t for t in wanted if t not in subs]
+        if missing:
+            LOG.warning("never saw topic(s) %s in the graph", ", ".join(missing))
+        LOG.info("wrote %d messages to %s%s: %s", sum(counts.values()), args.output,
+                 " (stopped by signal)" if stop.is_set() and args.count is None else "",
+                 ", ".join(f"{t} {counts[t]}" for t in wanted))
+    return 0

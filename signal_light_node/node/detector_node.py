@@ -1,0 +1,277 @@
+"""The ``signal_light_detector`` rclpy node (executable ``detector``).
+
+A thin adapter over :class:`~signal_light_node.engine.LightStateEngine`:
+
+* the subscription callbacks only read the header stamp and hand the message to a
+  :class:`~signal_light_node.node.pairing.StampPairer`;
+* a complete (image, detections) pair goes into a bounded drop-oldest queue;
+* one worker thread decodes the image, runs the engine and publishes
+  ``~/output/vehicle_lights`` (and, when enabled and watched, ``~/output/debug/image``);
+* a timer publishes the node's figures on ``/diagnostics``.
+
+Every conversion is the core's (``image_codec``, ``conversions``); nothing here knows a
+message layout beyond the topic types.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from typing import Any, Dict, List, Optional
+
+import rclpy
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+
+from signal_light_node.conversions import (detections_to_boxes, rclpy_make, stamp_to_ns,
+                                           vehicle_light_array)
+from signal_light_node.errors import ConfigError, ImageConversionError, SignalLightError
+from signal_light_node.node.pairing import StampPairer
+from signal_light_node.node.params import (NODE_NAME, DetectorParams, read_parameters,
+                                           updated)
+from signal_light_node.node.ros_io import message_class, qos
+from signal_light_node.node.stats import ERROR, OK, WARN, LatencyWindow, Snapshot, health
+from signal_light_node.node.worker import DropOldestQueue, Worker
+
+_NS = 1_000_000_000
+
+#: Topic names relative to the node (remap them with ``-r ~/input/image:=/camera/...``).
+IMAGE_TOPIC = "~/input/image"
+COMPRESSED_TOPIC = "~/input/image/compressed"
+DETECTIONS_TOPIC = "~/input/detections"
+OUTPUT_TOPIC = "~/output/vehicle_lights"
+DEBUG_TOPIC = "~/output/debug/image"
+DIAGNOSTICS_TOPIC = "/diagnostics"
+
+_LEVEL_BYTES = {OK: b"\x00", WARN: b"\x01", ERROR: b"\x02"}
+
+
+class SignalLightDetector(Node):
+    """The detector node. Construct, then :meth:`setup`; :meth:`stop` before destroying.
+
+    Construction declares and validates the parameters; ``setup`` loads the model and
+    creates the topics, so a failure of either leaves a node that can be destroyed cleanly.
+
+    Raises:
+        ConfigError: From the constructor, when a parameter is unusable.
+    """
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(NODE_NAME, **kwargs)
+        self.params: DetectorParams = read_parameters(self)
+        self.engine: Any = None
+        self.model_path = ""
+        self._worker: Optional[Worker] = None
+        self._counts: Dict[str, int] = {"outputs": 0, "bad_images": 0, "debug_images": 0}
+        self._latency = LatencyWindow()
+        self._processing = LatencyWindow()
+        self._last_snapshot: Optional[Snapshot] = None
+        self._last_engine: Dict[str, int] = {}
+
+    # ------------------------------------------------------------------ start-up
+    def setup(self) -> None:
+        """Load the model and start the topics, the worker and the diagnostics timer.
+
+        Raises:
+            CheckpointError: The model file is missing or incompatible.
+            ConfigError: The model does not fit the parameters (device, crop size).
+        """
+        from signal_light_node.engine import engine_from_checkpoint
+        from signal_light_node.model.checkpoint import DEFAULT_WEIGHTS
+
+        p = self.params
+        if p.num_threads > 0:
+            import torch
+
+            torch.set_num_threads(p.num_threads)
+        self.model_path = p.model_path or str(DEFAULT_WEIGHTS)
+        self.engine = engine_from_checkpoint(
+            p.model_path or None, device=p.device, thresholds=p.thresholds,
+            track_timeout_s=p.track_timeout_s, max_tracks=p.max_tracks, max_gap_s=p.max_gap_s,
+            crop_margin=p.crop_margin)
+
+        self._pairer = StampPairer(int(p.sync_slop_s * _NS), int(p.sync_timeout_s * _NS),
+                                   p.image_queue_size, p.detection_queue_size)
+        self._queue = DropOldestQueue(p.work_queue_size)
+        self._out = self.create_publisher(message_class("signal_light_msgs/msg/"
+                                                           "VehicleLightStateArray"),
+                                          OUTPUT_TOPIC, 10)
+        self._debug = None
+        if p.publish_debug_image:
+            self._debug = self.create_publisher(message_class("sensor_msgs/msg/Image"),
+                                                DEBUG_TOPIC, 2)
+        self._diag = self.create_publisher(message_class("diagnostic_msgs/msg/"
+                                                            "DiagnosticArray"),
+                                           DIAGNOSTICS_TOPIC, 10)
+        self._worker = Worker(self._queue, self._process, name="signal_light_inference").start()
+
+        if p.image_transport == "compressed":
+            image_type, image_topic = "sensor_msgs/msg/CompressedImage", COMPRESSED_TOPIC
+        else:
+            image_type, image_topic = "sensor_msgs/msg/Image", IMAGE_TOPIC
+        self._image_sub = self.create_subscription(
+            message_class(image_type), image_topic, self._on_image,
+            qos(p.reliability, p.image_queue_size))
+        self._det_sub = self.create_subscription(
+            message_class("vision_msgs/msg/Detection2DArray"), DETECTIONS_TOPIC,
+            self._on_detections, qos(p.reliability, p.detection_queue_size))
+        self._image_topic = self._image_sub.topic_name
+        self._decode = _decoder(p.image_transport)
+        self._last_snapshot = self._snapshot()
+        self._timer = self.create_timer(p.diagnostics_period_s, self._publish_diagnostics)
+        self.add_on_set_parameters_callback(self._check_new_parameters)
+        self.add_post_set_parameters_callback(self._apply_new_parameters)
+        self.get_logger().info(
+            f"ready: {self._image_topic} ({p.image_transport}, {p.reliability}) + "
+            f"{self._det_sub.topic_name} "
+            f"-> {self._out.topic_name}; model {self.model_path} on {p.device}, "
+            f"pairing {'exact' if p.sync_slop_s == 0 else f'within {p.sync_slop_s} s'}")
+
+    def stop(self) -> None:
+        """Stop the worker (frames still queued are dropped and counted)."""
+        if self._worker is not None:
+            self._worker.stop(drain=False, timeout=5.0)
+
+    # ---------------------------------------------------------------- callbacks
+    def _on_image(self, msg: Any) -> None:
+        pair = self._pairer.add_image(stamp_to_ns(msg.header.stamp), msg, time.monotonic_ns())
+        if pair is not None:
+            self._queue.put(pair)
+
+    def _on_detections(self, msg: Any) -> None:
+        pair = self._pairer.add_detections(stamp_to_ns(msg.header.stamp), msg,
+                                           time.monotonic_ns())
+        if pair is not None:
+            self._queue.put(pair)
+
+    # ------------------------------------------------------------------- worker
+    def _process(self, pair: Any) -> None:
+        try:
+            image = self._decode(pair.image, self._image_topic, pair.stamp_ns)
+        except ImageConversionError as exc:
+            self._counts["bad_images"] += 1
+            self.get_logger().warning(f"skipping frame: {exc}", throttle_duration_sec=5.0)
+            return
+        boxes = detections_to_boxes(pair.detections)
+        frame = self.engine.process(image, pair.stamp_ns, boxes)
+        out = vehicle_light_array(pair.image.header, frame.results, rclpy_make)
+        if not rclpy.ok(context=self.context):
+            return  # shutting down: the publisher may already be gone
+        self._out.publish(out)
+        done = time.monotonic_ns()
+        self._counts["outputs"] += 1
+        self._latency.add((done - pair.image_received_ns) / _NS)
+        self._processing.add(
+            (done - max(pair.image_received_ns, pair.detections_received_ns)) / _NS)
+        if frame.warnings:
+            self.get_logger().warning(f"stamp {pair.stamp_ns}: {'; '.join(frame.warnings)}",
+                                      throttle_duration_sec=5.0)
+        if self._debug is not None and self._debug.get_subscription_count() > 0:
+            self._publish_debug(image, pair, boxes, frame.results)
+
+    def _publish_debug(self, image: Any, pair: Any, boxes: List[Any], results: List[Any]) -> None:
+        from signal_light_node.image_codec import bgr_to_image_fields
+        from signal_light_node.visualize import draw_results
+
+        attention = self.engine.attention_masks(image, boxes)
+        drawn = draw_results(image, results, attention=attention,
+                             caption=f"{pair.stamp_ns / 1e9:.3f}")
+        msg = rclpy_make("sensor_msgs/msg/Image", header=pair.image.header,
+                         **bgr_to_image_fields(drawn))
+        self._debug.publish(msg)
+        self._counts["debug_images"] += 1
+
+    # -------------------------------------------------------------- diagnostics
+    def counters(self) -> Dict[str, int]:
+        """Totals since start: inputs, pairs, outputs, every drop by reason."""
+        out = dict(self._pairer.counters)
+        out.update(self._counts)
+        out["dropped_work_queue"] = self._queue.dropped
+        out["processing_errors"] = self._worker.errors if self._worker else 0
+        out["worker_alive"] = int(bool(self._worker and self._worker.alive))
+        return out
+
+    def _snapshot(self) -> Snapshot:
+        return Snapshot(time.monotonic(), self.counters())
+
+    def _publish_diagnostics(self) -> None:
+        self._pairer.expire(time.monotonic_ns())
+        now = self._snapshot()
+        engine = self.engine.counters
+        extra = {
+            "active_tracks": engine.get("active_tracks", 0),
+            "unjudged_boxes": engine.get("unjudged", 0),
+            "duplicate_track_ids": engine.get("duplicates", 0),
+            "track_resets": engine.get("resets", 0),
+            "work_queue_length": len(self._queue),
+            "pending_images": self._pairer.pending[0],
+            "pending_detections": self._pairer.pending[1],
+            "model_path": self.model_path,
+            "device": self.params.device,
+        }
+        level, message, values = health(self._last_snapshot, now, self._latency.summary(),
+                                        self._processing.summary(), extra)
+        self._last_snapshot = now
+        KeyValue = message_class("diagnostic_msgs/msg/KeyValue")
+        status = rclpy_make("diagnostic_msgs/msg/DiagnosticStatus", level=_LEVEL_BYTES[level],
+                            name=f"{self.get_name()}: vehicle light state",
+                            message=message, hardware_id="signal_light_node",
+                            values=[KeyValue(key=k, value=v) for k, v in values])
+        array = rclpy_make("diagnostic_msgs/msg/DiagnosticArray", status=[status])
+        array.header.stamp = self.get_clock().now().to_msg()
+        self._diag.publish(array)
+
+    # --------------------------------------------------------------- parameters
+    def _check_new_parameters(self, changes: List[Any]) -> SetParametersResult:
+        try:
+            updated(self.params, {c.name: c.value for c in changes})
+        except ConfigError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    def _apply_new_parameters(self, changes: List[Any]) -> None:
+        self.params = updated(self.params, {c.name: c.value for c in changes})
+        self._pairer.configure(int(self.params.sync_slop_s * _NS),
+                               int(self.params.sync_timeout_s * _NS))
+        self.get_logger().info("parameters changed: " + ", ".join(
+            f"{c.name}={c.value}" for c in changes))
+
+
+def _decoder(image_transport: str) -> Any:
+    from signal_light_node.image_codec import compressed_msg_to_bgr, image_msg_to_bgr
+
+    return compressed_msg_to_bgr if image_transport == "compressed" else image_msg_to_bgr
+
+
+def main(args: Optional[List[str]] = None) -> int:
+    """Run the node until Ctrl-C or a shutdown request; returns the exit code.
+
+    A configuration or model problem at start-up is reported in ONE log line and gives
+    exit code 1.
+    """
+    logging.basicConfig(level=logging.INFO, format="[%(levelname)s] [%(name)s]: %(message)s")
+    rclpy.init(args=args)
+    node: Optional[SignalLightDetector] = None
+    code = 0
+    try:
+        node = SignalLightDetector()
+        node.setup()
+        rclpy.spin(node)
+    except SignalLightError as exc:
+        logger = node.get_logger() if node is not None else rclpy.logging.get_logger(NODE_NAME)
+        logger.fatal(f"cannot start: {exc}")
+        code = 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.stop()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())
