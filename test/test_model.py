@@ -261,3 +261,13 @@ def test_empty_batch_steps() -> None:
         probs, state = model.step(random_crops(0), model.initial_state(0))
     assert probs["intent"].shape == (0, 5)
     assert state_batch_size(state) == 0 and split_state(state) == []
+
+
+def test_gradient_flows_back_through_time() -> None:
+    # Training unrolls the recurrence: the last output must depend on the first frame.
+    model = tiny_model()
+    crops = random_crops(2, t=4).requires_grad_(True)
+    logits, _ = model.forward_sequence(crops)
+    logits["intent"][:, -1].sum().backward()
+    assert crops.grad[:, 0].abs().sum() > 0
+    assert crops.grad[:, -1].abs().sum() > 0
