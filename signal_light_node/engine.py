@@ -266,10 +266,10 @@ class LightStateEngine:
                 probs, new_state = self.model.step(x, state)
                 self._counts["model_steps"] += 1
                 frames = self.bank.store(ids, new_state, stamp_ns)
-                probs_np = {t: probs[t].detach().float().cpu().numpy() for t in TASKS}
+                table = _ProbTable({t: probs[t].detach().float().cpu().numpy() for t in TASKS})
             else:
                 frames = self.bank.store(ids, state, stamp_ns)
-                probs_np = {}
+                table = None
         row_of = {unique[k]: j for j, k in enumerate(valid)}
         reason_of = {i: reasons[k] for k, i in enumerate(unique)}
         results: List[VehicleResult] = []
@@ -277,7 +277,7 @@ class LightStateEngine:
         for i, box in enumerate(boxes):
             j = row_of.get(i)
             if j is not None:
-                results.append(self._judged(box, width, height, probs_np, j, int(frames[j])))
+                results.append(self._judged(box, width, height, table, j, int(frames[j])))
                 continue
             if first_index[box.track_id] != i:
                 n_dup += 1
@@ -298,23 +298,21 @@ class LightStateEngine:
             LOG.debug("%s", text)
         return FrameResult(stamp_ns, results, warnings, time.perf_counter() - start, len(ids))
 
-    def _judged(self, box: TrackBox, width: int, height: int, probs: Mapping[str, np.ndarray],
+    def _judged(self, box: TrackBox, width: int, height: int, table: "_ProbTable",
                 j: int, frames_observed: int) -> VehicleResult:
         lights = {}
         classification: List[Tuple[int, float]] = []
         for task, code, threshold in self._thresholds:
-            off, on, unknown = (float(v) for v in probs[task][j, :3])
-            lights[task] = LightEstimate(LightStatus(int(np.argmax(probs[task][j]))),
-                                         off, on, unknown)
+            off, on, unknown = table.rows[task][j][:3]
+            lights[task] = LightEstimate(LightStatus(table.best[task][j]), off, on, unknown)
             if on >= threshold:
                 classification.append((code, on))
-        intent = int(np.argmax(probs["intent"][j]))
-        view = int(np.argmax(probs["view"][j]))
+        intent, view = table.best["intent"][j], table.best["view"][j]
         return VehicleResult(
             track_id=box.track_id, roi=clip_roi(box, width, height),
             brake=lights["brake"], left=lights["left"], right=lights["right"],
-            intent=Intent(intent), intent_probability=float(probs["intent"][j, intent]),
-            view=View(view), view_probability=float(probs["view"][j, view]),
+            intent=Intent(intent), intent_probability=table.rows["intent"][j][intent],
+            view=View(view), view_probability=table.rows["view"][j][view],
             classification=tuple(classification), frames_observed=frames_observed, judged=True)
 
     # ------------------------------------------------------------ debug overlay
@@ -356,6 +354,17 @@ class LightStateEngine:
             patch = resized[cy0 - y0:cy1 - y0, cx0 - x0:cx1 - x0]
             np.maximum(heat[cy0:cy1, cx0:cx1], patch, out=heat[cy0:cy1, cx0:cx1])
         return np.clip(heat, 0.0, 1.0)
+
+
+class _ProbTable:
+    """One frame's probabilities as Python floats, with the argmax per task and row.
+
+    Converting once per frame keeps the per-box work free of numpy scalar overhead.
+    """
+
+    def __init__(self, probs: Mapping[str, np.ndarray]) -> None:
+        self.rows = {t: p.tolist() for t, p in probs.items()}
+        self.best = {t: p.argmax(axis=1).tolist() for t, p in probs.items()}
 
 
 _RESET_TEXT = {"stamp_backwards": "the stamp jumped backwards (bag looped?)",
