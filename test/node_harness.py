@@ -1,0 +1,247 @@
+"""Helpers of the live-node tests: a model to load, a bag to feed, the node as a subprocess,
+and an in-process rclpy client that feeds frames and collects the node's outputs.
+
+The client uses a private rclpy context without signal handlers, on the same random
+``ROS_DOMAIN_ID`` as the subprocesses it talks to.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence, Tuple
+
+REPO = Path(__file__).resolve().parents[1]
+COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
+RAW_TYPE = "sensor_msgs/msg/Image"
+DETECTIONS_TYPE = "vision_msgs/msg/Detection2DArray"
+OUTPUT_TOPIC = "/signal_light_detector/output/vehicle_lights"
+
+
+def tiny_checkpoint(path: Path) -> Path:
+    """A small, untrained checkpoint written with the model factory (loads in well under 1 s)."""
+    from signal_light_node.model.checkpoint import ModelConfig, build_model, save_checkpoint
+
+    config = ModelConfig(input_size=32, attention_channels=(4, 4, 4), backbone_channels=(8, 8),
+                         lstm_hidden=(8, 8), head_channels=4, fc_hidden=16)
+    return save_checkpoint(path, build_model(config), config)
+
+
+def model_args(tmp_path: Path) -> Tuple[List[str], bool]:
+    """``(--ros-args parameters, uses the shipped weights)``: the shipped weights when they
+    exist, else a tiny checkpoint in ``tmp_path``."""
+    from signal_light_node.model.checkpoint import DEFAULT_WEIGHTS
+
+    if Path(DEFAULT_WEIGHTS).is_file():
+        return [], True
+    return ["-p", f"model_path:={tiny_checkpoint(tmp_path / 'tiny.pt')}"], False
+
+
+def committed_bag(image_type: str) -> Optional[Path]:
+    """A committed bag under ``bags/`` with an image topic of ``image_type``, if any."""
+    from signal_light_node.bagio import open_bag
+
+    for path in sorted((REPO / "bags").iterdir()) if (REPO / "bags").is_dir() else []:
+        if not (path.is_dir() and (path / "metadata.yaml").exists()) and path.suffix != ".mcap":
+            continue
+        with open_bag(path) as bag:
+            types = {info.msgtype for info in bag.topics().values()}
+        if image_type in types and DETECTIONS_TYPE in types:
+            return path
+    return None
+
+
+def scene_bag(tmp_path: Path, raw: bool, n_frames: int = 20) -> Path:
+    """The committed bag for this image type, else a small synthetic one in ``tmp_path``."""
+    found = committed_bag(RAW_TYPE if raw else COMPRESSED_TYPE)
+    if found is not None:
+        return found
+    from signal_light_node.synth_bag import write_scene_bag
+
+    path = tmp_path / ("scene_raw" if raw else "scene")
+    write_scene_bag(path, seed=11, n_frames=n_frames, width=480, height=270, fps=10.0, raw=raw,
+                    n_vehicles=4, lighting="day", night_fraction=0.0)
+    return path
+
+
+@dataclass
+class Frame:
+    """One camera frame of a bag, ready to publish."""
+
+    stamp_ns: int
+    frame_id: str
+    image: bytes
+    detections: bytes
+    track_ids: List[str]
+    truth: Optional[object] = None
+
+
+def load_frames(bag_path: Path, max_frames: int) -> Tuple[str, List[Frame]]:
+    """``(image type, frames)``: the first ``max_frames`` frames with image and detections."""
+    from signal_light_node.bagio import open_bag, typestore
+    from signal_light_node.conversions import detections_to_boxes, stamp_to_ns
+    from signal_light_node.node.bag_player import choose_topics
+
+    store = typestore()
+    by_stamp: Dict[int, Dict[str, object]] = defaultdict(dict)
+    with open_bag(bag_path) as bag:
+        topics = choose_topics(bag.topics())
+        image_type = next(t for t in topics.values() if t != DETECTIONS_TYPE)
+        gt = "/ground_truth/vehicle_lights"
+        wanted = list(topics) + ([gt] if gt in bag.topics() else [])
+        for m in bag.messages(wanted):
+            entry = by_stamp[stamp_to_ns(m.msg.header.stamp)]
+            if m.topic == gt:
+                entry["truth"] = m.msg
+            elif m.msgtype == DETECTIONS_TYPE:
+                entry["detections"] = bytes(store.serialize_cdr(m.msg, m.msgtype))
+                entry["ids"] = [b.track_id for b in detections_to_boxes(m.msg)]
+            else:
+                entry["image"] = bytes(store.serialize_cdr(m.msg, m.msgtype))
+                entry["frame_id"] = m.msg.header.frame_id
+            complete = [s for s, e in by_stamp.items() if "image" in e and "detections" in e]
+            if len(complete) >= max_frames and (gt not in wanted or all(
+                    "truth" in by_stamp[s] for s in complete)):
+                break
+    frames = [Frame(s, e["frame_id"], e["image"], e["detections"], e["ids"], e.get("truth"))
+              for s, e in sorted(by_stamp.items()) if "image" in e and "detections" in e]
+    return image_type, frames[:max_frames]
+
+
+class DetectorProcess:
+    """``detector`` in its own process; output goes to a log file.
+
+    Args:
+        args: Arguments after ``--ros-args``.
+        env: Environment (the test's ROS domain).
+        log: Log file.
+    """
+
+    def __init__(self, args: Sequence[str], env: Dict[str, str], log: Path) -> None:
+        self.log = log
+        self._file = open(log, "w")
+        self.proc = subprocess.Popen(["detector", "--ros-args", *args], env=env, cwd=REPO,
+                                     stdout=self._file, stderr=subprocess.STDOUT)
+
+    def text(self) -> str:
+        """Everything the node logged so far (it writes to the file directly)."""
+        return self.log.read_text()
+
+    def wait_ready(self, timeout: float = 60.0) -> None:
+        """Wait for the node's ``ready`` line; fail with its log if it exits or hangs."""
+        deadline = time.monotonic() + timeout
+        while "ready:" not in self.text():
+            if self.proc.poll() is not None:
+                raise AssertionError(f"detector exited with {self.proc.returncode}:\n{self.text()}")
+            if time.monotonic() > deadline:
+                raise AssertionError(f"detector not ready after {timeout} s:\n{self.text()}")
+            time.sleep(0.05)
+
+    def stop(self, timeout: float = 20.0) -> int:
+        """SIGINT, then wait; SIGKILL if it does not end. Returns the exit code."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(10)
+        if not self._file.closed:
+            self._file.close()
+        return self.proc.returncode
+
+
+@dataclass
+class LiveClient:
+    """Publishes frames to the node and collects what it publishes.
+
+    Use as a context manager; ``domain_id`` must be the node's.
+    """
+
+    domain_id: int
+    image_type: str
+    outputs: Dict[int, List[object]] = field(default_factory=lambda: defaultdict(list))
+    diagnostics: List[object] = field(default_factory=list)
+
+    def __enter__(self) -> "LiveClient":
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+
+        from signal_light_node.conversions import stamp_to_ns
+        from signal_light_node.node.ros_io import message_class, qos
+
+        self._rclpy = rclpy
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=self.domain_id,
+                   signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+        self.node = rclpy.create_node(f"live_test_client_{os.getpid()}", context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        image_topic = ("/signal_light_detector/input/image/compressed"
+                       if self.image_type == COMPRESSED_TYPE else
+                       "/signal_light_detector/input/image")
+        self.image_pub = self.node.create_publisher(message_class(self.image_type), image_topic,
+                                                    qos("reliable", 50))
+        self.det_pub = self.node.create_publisher(
+            message_class(DETECTIONS_TYPE), "/signal_light_detector/input/detections",
+            qos("reliable", 50))
+
+        def on_output(msg: object) -> None:
+            self.outputs[stamp_to_ns(msg.header.stamp)].append(msg)
+
+        self.node.create_subscription(
+            message_class("signal_light_msgs/msg/VehicleLightStateArray"), OUTPUT_TOPIC,
+            on_output, qos("reliable", 100))
+        self.node.create_subscription(message_class("diagnostic_msgs/msg/DiagnosticArray"),
+                                      "/diagnostics", self.diagnostics.append,
+                                      qos("reliable", 100))
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self._rclpy.try_shutdown(context=self.context)
+
+    def spin_until(self, condition, timeout: float) -> bool:
+        """Process callbacks until ``condition()`` holds or the timeout passes."""
+        deadline = time.monotonic() + timeout
+        while not condition():
+            if time.monotonic() > deadline:
+                return False
+            self.executor.spin_once(timeout_sec=0.05)
+        return True
+
+    def wait_connected(self, timeout: float = 30.0) -> None:
+        """Wait until the node subscribes our inputs and we subscribe its output."""
+        ok = self.spin_until(lambda: self.image_pub.get_subscription_count() > 0
+                             and self.det_pub.get_subscription_count() > 0
+                             and self.node.count_publishers(OUTPUT_TOPIC) > 0, timeout)
+        assert ok, "the detector and the test client did not discover each other"
+
+    def get_parameters(self, names: Sequence[str], timeout: float = 20.0) -> Dict[str, object]:
+        """The node's current values of ``names`` through its parameter service."""
+        from rcl_interfaces.srv import GetParameters
+        from rclpy.parameter import parameter_value_to_python
+
+        client = self.node.create_client(GetParameters, "/signal_light_detector/get_parameters")
+        try:
+            assert self.spin_until(client.service_is_ready, timeout), "no parameter service"
+            future = client.call_async(GetParameters.Request(names=list(names)))
+            assert self.spin_until(future.done, timeout), "parameter service did not answer"
+            return {n: parameter_value_to_python(v)
+                    for n, v in zip(names, future.result().values)}
+        finally:
+            self.node.destroy_client(client)
+
+    def feed(self, frames: Sequence[Frame], timeout_per_frame: float = 20.0) -> None:
+        """Publish frame by frame, each time waiting for its output (no overload drops)."""
+        for frame in frames:
+            self.image_pub.publish(frame.image)
+            self.det_pub.publish(frame.detections)
+            assert self.spin_until(lambda: frame.stamp_ns in self.outputs, timeout_per_frame), \
+                f"no output for the frame stamped {frame.stamp_ns}"
