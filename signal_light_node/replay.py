@@ -342,17 +342,58 @@ def _record(tracks: Dict[str, TrackRecord], stamp: int, truth: Mapping[str, np.n
         rec.frames_observed.append(res.frames_observed)
 
 
-def score_summary(summary: ReplaySummary) -> Optional[Dict[str, object]]:
-    """Metrics of the replay's judged frames against the bag's ground truth.
+def score_summary(summary: ReplaySummary, settings: Any = None) -> Optional[Dict[str, Any]]:
+    """Score the replay's output against the bag's ground truth, with the evaluation's rules.
+
+    The warm-up and grace-window rules are those of ``signal-light evaluate``
+    (:mod:`signal_light_node.training.evaluation`); they apply from each start of a
+    track's state in the engine (``frames_observed == 1``), so a track that timed out
+    and came back warms up again. Only judged boxes with a ground-truth entry of the
+    same track ID are scored.
+
+    Args:
+        summary: A replay summary of a bag with ground truth.
+        settings: ``training.evaluation.EvalSettings`` (default: its defaults).
 
     Returns:
-        A ``metrics.MetricAccumulator.report()`` dict, or None when nothing matched.
+        ``{"settings", "counts", "no_grace", "grace"}`` shaped like ``evaluate_tracks``'
+        result (reports from ``metrics.MetricAccumulator.report``), or None when no
+        judged box had ground truth.
     """
+    from dataclasses import asdict
+
     from signal_light_node.metrics import MetricAccumulator
+    from signal_light_node.training.evaluation import EvalSettings, grace_mask, warmup_mask
+    from signal_light_node.training.sources import TrackSequence
 
     if not summary.tracks:
         return None
-    acc = MetricAccumulator()
-    for rec in summary.tracks.values():
-        acc.add_frames(np.stack(rec.truth), np.stack(rec.pred))
-    return acc.report()
+    settings = settings or EvalSettings()
+    strict, graced = MetricAccumulator(), MetricAccumulator()
+    counts = {"tracks": 0, "frames": 0, "warmup_excluded": 0, "scored": 0,
+              "grace_excluded": {t: 0 for t in TASKS}}
+    for track_id, rec in sorted(summary.tracks.items()):
+        frames = np.asarray(rec.frames_observed)
+        starts = list(np.flatnonzero(frames == 1)) or [0]
+        if starts[0] != 0:
+            starts.insert(0, 0)
+        for a, b in zip(starts, starts[1:] + [len(frames)]):
+            n = b - a
+            seq = TrackSequence(track_id=f"{track_id}@{a}", labels=np.stack(rec.truth[a:b]),
+                                mask=np.ones(n, bool),
+                                stamps_ns=np.asarray(rec.stamps_ns[a:b], np.int64),
+                                box_size=np.full(n, math.nan), occlusion=np.full(n, math.nan),
+                                source=f"replay:{summary.output.name}")
+            pred = np.stack(rec.pred[a:b])
+            rows = np.flatnonzero(warmup_mask(seq, settings))
+            counts["tracks"] += 1
+            counts["frames"] += n
+            counts["scored"] += len(rows)
+            counts["warmup_excluded"] += n - len(rows)
+            for i, task in enumerate(TASKS):
+                strict.add(task, seq.labels[rows, i], pred[rows, i])
+                keep = grace_mask(seq, i, settings)[rows]
+                counts["grace_excluded"][task] += int((~keep).sum())
+                graced.add(task, seq.labels[rows[keep], i], pred[rows[keep], i])
+    return {"settings": asdict(settings), "counts": counts, "no_grace": strict.report(),
+            "grace": graced.report()}

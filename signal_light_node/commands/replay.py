@@ -76,11 +76,26 @@ def run(args: argparse.Namespace) -> int:
                          overwrite=args.overwrite, progress=not args.no_progress)
     print(summary.text())
     if summary.has_ground_truth:
-        report = score_summary(summary)
-        if report is None:
+        result = score_summary(summary)
+        if result is None:
             print("ground truth present, but no judged detection matched it")
         else:
-            from signal_light_node.metrics import markdown_report
-
-            print(markdown_report(report, title=f"Agreement with the ground truth of {args.bag}"))
+            print(render_scores(result, args.bag))
     return 0
+
+
+def render_scores(result: dict, bag: Path) -> str:
+    """The replay's agreement with the ground truth as Markdown."""
+    from signal_light_node.metrics import markdown_report
+
+    st, c = result["settings"], result["counts"]
+    head = (f"Agreement with the ground truth of {bag}: {c['frames']} judged frames with ground "
+            f"truth in {c['tracks']} track segments, {c['scored']} scored after the warm-up "
+            f"(first max({st['warmup_frames']} frames, {st['warmup_seconds']:g} s) of each "
+            f"track state).")
+    if c["scored"] == 0:
+        return head + " Nothing left to score."
+    return "\n".join([head, "", markdown_report(result["no_grace"], "After warm-up"),
+                      markdown_report(result["grace"], f"After warm-up, "
+                                      f"{st['grace_seconds']:g} s grace window after label "
+                                      f"changes")])
