@@ -1,0 +1,171 @@
+"""Camera effects applied to the finished scene: exposure, haze, vignetting, blur, motion
+blur, sensor noise and JPEG artefacts.
+
+All per-frame work is on ``uint8`` images with OpenCV calls (saturating adds, LUTs, small
+kernels); the expensive parts (noise fields, haze/vignette images) are made once.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import cv2
+import numpy as np
+
+
+@dataclass
+class CameraParams:
+    """Random camera behaviour for one renderer (all in image units).
+
+    Attributes:
+        noise: Sensor noise sigma (grey levels).
+        blur: Gaussian blur sigma (0 = sharp).
+        motion_blur: Maximum motion-blur length in pixels (0 = none).
+        motion_prob: Fraction of frames with motion blur.
+        jpeg_quality: JPEG quality, or 0 for no compression.
+        exposure: Base exposure gain.
+        exposure_drift: Amplitude of slow exposure changes.
+        exposure_jump: Probability per second of an auto-exposure jump.
+        gamma: Tone curve exponent.
+        vignette: Darkening at the corners (0..1).
+        haze: Strength of haze near the horizon (0..1).
+        haze_colour: BGR colour of the haze.
+        shake: Camera shake amplitude in pixels.
+    """
+
+    noise: float = 2.0
+    blur: float = 0.0
+    motion_blur: float = 0.0
+    motion_prob: float = 0.0
+    jpeg_quality: int = 0
+    exposure: float = 1.0
+    exposure_drift: float = 0.0
+    exposure_jump: float = 0.0
+    gamma: float = 1.0
+    vignette: float = 0.0
+    haze: float = 0.0
+    haze_colour: tuple = (200, 200, 200)
+    shake: float = 0.0
+
+
+def sample_camera(rng: np.random.Generator, lighting_noise: float, lighting: str, weather: str) -> CameraParams:
+    """Random camera parameters; noise grows in the dark, haze appears with haze or rain."""
+    haze = 0.0
+    if weather == "haze":
+        haze = rng.uniform(0.25, 0.55)
+    elif weather == "rain":
+        haze = rng.uniform(0.1, 0.3)
+    elif rng.random() < 0.3:
+        haze = rng.uniform(0.03, 0.15)
+    g = {"day": rng.uniform(185, 230), "dusk": rng.uniform(90, 150), "night": rng.uniform(25, 55)}[lighting]
+    return CameraParams(
+        noise=lighting_noise * rng.uniform(0.6, 1.3),
+        blur=float(rng.choice([0.0, 0.0, rng.uniform(0.4, 1.2)])),
+        motion_blur=float(rng.uniform(2, 7)) if rng.random() < 0.45 else 0.0,
+        motion_prob=float(rng.uniform(0.1, 0.5)),
+        jpeg_quality=int(rng.integers(35, 92)) if rng.random() < 0.7 else 0,
+        exposure=float(rng.uniform(0.85, 1.2)),
+        exposure_drift=float(rng.uniform(0.0, 0.15)),
+        exposure_jump=float(rng.uniform(0.0, 0.15)),
+        gamma=float(rng.uniform(0.85, 1.15)),
+        vignette=float(rng.uniform(0.0, 0.35)),
+        haze=float(haze),
+        haze_colour=(g * rng.uniform(0.95, 1.08), g, g * rng.uniform(0.92, 1.04)),
+        shake=float(rng.choice([0.0, rng.uniform(0.5, 4.0)])),
+    )
+
+
+class Camera:
+    """Applies ``CameraParams`` to rendered frames.
+
+    Args:
+        params: The camera behaviour.
+        width: Image width.
+        height: Image height.
+        horizon: Horizon row (haze is strongest there).
+        seed: Seed for the fixed noise fields and the exposure schedule.
+        enabled: False turns every effect off (clean images for tests).
+    """
+
+    _POOL = 3
+    _PAD = 16
+
+    def __init__(self, params: CameraParams, width: int, height: int, horizon: float, seed: int, enabled: bool = True) -> None:
+        self.p = params
+        self.enabled = enabled
+        self.width, self.height = width, height
+        rng = np.random.default_rng(seed)
+        self._rng = rng
+        # Noise fields: signed noise split into a positive and a negative uint8 part.
+        self._noise = []
+        if params.noise > 0.2:
+            for _ in range(self._POOL):
+                n = rng.normal(0, params.noise, (height + self._PAD, width + self._PAD, 3)).astype(np.float32)
+                n[..., :] += rng.normal(0, params.noise * 0.5, (height + self._PAD, width + self._PAD, 1)).astype(np.float32)
+                self._noise.append((np.clip(n, 0, 255).astype(np.uint8), np.clip(-n, 0, 255).astype(np.uint8)))
+        # Haze and vignette: out = img * mult / 255 + add.
+        ys = np.arange(height, dtype=np.float32)[:, None]
+        xs = np.arange(width, dtype=np.float32)[None, :]
+        haze = params.haze * np.exp(-np.abs(ys - horizon) / (0.35 * height)) + params.haze * 0.3
+        haze = np.clip(haze, 0, 0.9)
+        r2 = ((xs - width / 2) / (width / 2)) ** 2 + ((ys - height / 2) / (height / 2)) ** 2
+        vig = 1.0 - params.vignette * np.clip(r2 / 2.0, 0, 1)
+        mult = np.broadcast_to((1.0 - haze) * vig, (height, width))
+        self._mult = np.repeat((mult * 255.0)[:, :, None], 3, 2).clip(0, 255).astype(np.uint8)
+        add = np.broadcast_to(haze, (height, width))[:, :, None] * np.asarray(params.haze_colour, np.float32)[None, None, :]
+        self._add = add.clip(0, 255).astype(np.uint8)
+        self._use_mult = params.haze > 0.005 or params.vignette > 0.02
+        # Exposure: a slow drift plus occasional jumps (auto-exposure reacting to the scene).
+        self._drift_f = rng.uniform(0.05, 0.3)
+        self._drift_ph = rng.uniform(0, 2 * np.pi)
+        self._jumps = np.sort(rng.uniform(0, 600, rng.poisson(params.exposure_jump * 600)))
+        self._jump_vals = rng.uniform(-0.2, 0.2, len(self._jumps))
+        self._last_lut_key = None
+        self._lut = None
+
+    def exposure(self, t: float) -> float:
+        """Exposure gain at time ``t``."""
+        g = self.p.exposure * (1.0 + self.p.exposure_drift * math.sin(2 * math.pi * self._drift_f * t + self._drift_ph))
+        k = int(np.searchsorted(self._jumps, t % 600.0))
+        if k > 0:
+            g *= 1.0 + self._jump_vals[k - 1]
+        return g
+
+    def apply(self, img: np.ndarray, t: float, frame_rng: np.random.Generator) -> np.ndarray:
+        """Return the camera's view of the scene ``img`` at time ``t``."""
+        if not self.enabled:
+            return img
+        p = self.p
+        if self._use_mult:
+            img = cv2.multiply(img, self._mult, scale=1.0 / 255.0)
+            img = cv2.add(img, self._add)
+        gain = round(self.exposure(t), 2)
+        key = (gain, p.gamma)
+        if key != self._last_lut_key:
+            x = np.arange(256, dtype=np.float32) / 255.0
+            self._lut = np.clip(255.0 * (x * gain) ** p.gamma, 0, 255).astype(np.uint8)
+            self._last_lut_key = key
+        img = cv2.LUT(img, self._lut)
+        if p.motion_blur > 0 and frame_rng.random() < p.motion_prob:
+            n = int(frame_rng.uniform(2, p.motion_blur + 1))
+            if n >= 2:
+                k = np.zeros((n, n), np.float32)
+                ang = frame_rng.uniform(0, np.pi)
+                c = (n - 1) / 2
+                cv2.line(k, (int(round(c - c * math.cos(ang))), int(round(c - c * math.sin(ang)))),
+                         (int(round(c + c * math.cos(ang))), int(round(c + c * math.sin(ang)))), 1.0, 1)
+                img = cv2.filter2D(img, -1, k / max(k.sum(), 1e-6))
+        if p.blur > 0.05:
+            img = cv2.GaussianBlur(img, (0, 0), p.blur)
+        if self._noise:
+            pos, neg = self._noise[int(frame_rng.integers(0, self._POOL))]
+            ox, oy = int(frame_rng.integers(0, self._PAD)), int(frame_rng.integers(0, self._PAD))
+            img = cv2.add(img, pos[oy:oy + self.height, ox:ox + self.width])
+            img = cv2.subtract(img, neg[oy:oy + self.height, ox:ox + self.width])
+        if p.jpeg_quality > 0:
+            ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(p.jpeg_quality)])
+            if ok:
+                img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+        return img

@@ -1,0 +1,356 @@
+"""Lamp designs, their placement on each face of a vehicle, and blink/brake timing.
+
+Coordinates are normalised to the vehicle's full box as drawn in the image: ``u`` runs
+from the image-left edge (0) to the image-right edge (1), ``v`` from the top (0) to the
+bottom (1). Every lamp knows which of the vehicle's own sides it belongs to, so the
+label code never has to reason about mirroring again.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from signal_light_node.labels import Intent, View
+
+#: Rear lamp families; each also decides the matching front and side lamps.
+LAMP_DESIGNS: Tuple[str, ...] = ("amber", "red_combined", "led_strip", "sequential")
+
+#: Roles a lamp can play; ``turn_tail`` is the US-style red lamp that is tail, brake and blinker.
+ROLES = ("tail", "turn", "turn_tail", "chmsl", "head", "drl", "position")
+
+Colour = Tuple[float, float, float]
+
+
+@dataclass
+class Lamp:
+    """One lamp (or one lamp segment group) on one face of a vehicle.
+
+    Attributes:
+        role: One of ``ROLES``.
+        side: The vehicle's own side, "L", "R" or "C" (centre).
+        rect: (u0, v0, u1, v1) in normalised box coordinates.
+        shape: "rect", "round", "strip" or "ellipse".
+        emit: Emission colour (BGR, 0..255) when fully lit.
+        lens: Colour of the unlit lens (BGR) before scene lighting.
+        segments: Number of segments (sequential indicators light them one by one).
+        outward: +1 when the outer end of the lamp is at larger ``u``, else -1.
+        glow: Relative size of the halo around the lit lamp.
+    """
+
+    role: str
+    side: str
+    rect: Tuple[float, float, float, float]
+    shape: str
+    emit: Colour
+    lens: Colour
+    segments: int = 1
+    outward: int = 1
+    glow: float = 1.0
+
+
+@dataclass
+class LampStyle:
+    """Per-vehicle lamp parameters shared by every face (colours, timing, technology)."""
+
+    design: str
+    tech: str  # "led" or "bulb"
+    amber: Colour
+    red: Colour
+    white: Colour
+    amber_lens: Colour
+    red_lens: Colour
+    chmsl: bool
+    blink_hz: float
+    duty: float
+    tau_rise: float
+    tau_fall: float
+    tail_level: float
+    combined_dim: float
+    drl_day: bool
+    drl_dims_on_turn: bool
+    seq_fraction: float
+    seq_segments: int
+    glow: float
+    brightness: float
+
+
+def sample_lamp_style(rng: np.random.Generator, kind: str, design: Optional[str] = None,
+                      tech: Optional[str] = None, chmsl: Optional[bool] = None,
+                      blink_hz: Optional[float] = None, duty: Optional[float] = None) -> LampStyle:
+    """Draw a random lamp style; any argument given fixes that parameter."""
+    if design is None:
+        design = str(rng.choice(LAMP_DESIGNS, p=[0.38, 0.22, 0.22, 0.18]))
+    if tech is None:
+        # Strips and sequential indicators only exist as LEDs.
+        tech = "led" if design in ("led_strip", "sequential") else str(rng.choice(["led", "bulb"]))
+    if chmsl is None:
+        chmsl = bool(rng.random() < {"truck": 0.25, "bus": 0.6}.get(kind, 0.85))
+    amber = (rng.uniform(0, 45), rng.uniform(115, 200), 255.0)
+    red = (rng.uniform(10, 70), rng.uniform(0, 45), rng.uniform(225, 255))
+    white = (rng.uniform(225, 255), rng.uniform(235, 255), rng.uniform(235, 255))
+    lens_kind = rng.random()
+    if lens_kind < 0.35:  # clear / silver indicator lens
+        g = rng.uniform(120, 200)
+        amber_lens = (g, g * rng.uniform(0.97, 1.03), g * rng.uniform(0.98, 1.05))
+    elif lens_kind < 0.7:  # amber lens
+        amber_lens = (rng.uniform(20, 60), rng.uniform(90, 140), rng.uniform(150, 210))
+    else:  # smoked
+        g = rng.uniform(30, 70)
+        amber_lens = (g, g, g * 1.1)
+    red_lens = (rng.uniform(20, 55), rng.uniform(15, 45), rng.uniform(95, 160))
+    return LampStyle(
+        design=design, tech=tech, amber=amber, red=red, white=white,
+        amber_lens=amber_lens, red_lens=red_lens, chmsl=chmsl,
+        blink_hz=float(blink_hz if blink_hz is not None else rng.uniform(1.0, 2.2)),
+        duty=float(duty if duty is not None else rng.uniform(0.3, 0.7)),
+        tau_rise=float(rng.uniform(0.03, 0.08)), tau_fall=float(rng.uniform(0.05, 0.14)),
+        tail_level=float(rng.uniform(0.18, 0.4)), combined_dim=float(rng.uniform(0.2, 0.55)),
+        drl_day=bool(rng.random() < 0.6), drl_dims_on_turn=bool(rng.random() < 0.5),
+        seq_fraction=float(rng.uniform(0.35, 0.7)), seq_segments=int(rng.integers(4, 8)),
+        glow=float(rng.uniform(0.6, 1.5)), brightness=float(rng.uniform(0.75, 1.0)),
+    )
+
+
+# --------------------------------------------------------------------------- layouts
+
+def _pair(rect_left: Tuple[float, float, float, float], mirror_sides: bool) -> List[Tuple[str, Tuple[float, float, float, float], int]]:
+    """The image-left rect and its mirror, tagged with the vehicle side each one is on.
+
+    From behind the vehicle's left is the image left; from the front it is the image right
+    (``mirror_sides``). ``outward`` points to the box edge nearest to the lamp.
+    """
+    u0, v0, u1, v1 = rect_left
+    img_left = (u0, v0, u1, v1)
+    img_right = (1.0 - u1, v0, 1.0 - u0, v1)
+    left_side, right_side = ("R", "L") if mirror_sides else ("L", "R")
+    return [(left_side, img_left, -1), (right_side, img_right, 1)]
+
+
+def _rear_band(kind: str, rng: np.random.Generator) -> Tuple[float, float]:
+    """Vertical centre and height of the rear lamp band for a body kind."""
+    if kind in ("truck", "bus"):
+        return rng.uniform(0.78, 0.86), rng.uniform(0.04, 0.07)
+    if kind == "van":
+        return rng.uniform(0.45, 0.62), rng.uniform(0.1, 0.2)
+    if kind == "suv":
+        return rng.uniform(0.42, 0.55), rng.uniform(0.07, 0.12)
+    return rng.uniform(0.38, 0.52), rng.uniform(0.07, 0.12)
+
+
+def rear_lamps(style: LampStyle, kind: str, rng: np.random.Generator, chmsl_v: float) -> List[Lamp]:
+    """Lamps on the rear face (view BEHIND)."""
+    vc, h = _rear_band(kind, rng)
+    inset = rng.uniform(0.02, 0.06)
+    width = rng.uniform(0.13, 0.24) if kind not in ("truck", "bus") else rng.uniform(0.07, 0.13)
+    lamps: List[Lamp] = []
+    shape = str(rng.choice(["rect", "round", "ellipse"])) if kind not in ("van",) else "rect"
+    d = style.design
+    # Drawn once so that both sides of the vehicle match.
+    where = str(rng.choice(["below", "above", "inner"]))
+    strip_frac = rng.uniform(0.3, 0.45)
+    for side, (u0, v0, u1, v1), out in _pair((inset, vc - h / 2, inset + width, vc + h / 2), False):
+        if d == "red_combined":
+            lamps.append(Lamp("turn_tail", side, (u0, v0, u1, v1), shape, style.red, style.red_lens, glow=style.glow))
+        elif d == "amber":
+            # Separate amber segment: below, above or on the inner end of the tail lamp.
+            if where == "below":
+                split = v0 + (v1 - v0) * rng.uniform(0.55, 0.7)
+                lamps.append(Lamp("tail", side, (u0, v0, u1, split), shape, style.red, style.red_lens, glow=style.glow))
+                lamps.append(Lamp("turn", side, (u0, split, u1, v1), "rect", style.amber, style.amber_lens, glow=style.glow))
+            elif where == "above":
+                split = v0 + (v1 - v0) * rng.uniform(0.3, 0.45)
+                lamps.append(Lamp("turn", side, (u0, v0, u1, split), "rect", style.amber, style.amber_lens, glow=style.glow))
+                lamps.append(Lamp("tail", side, (u0, split, u1, v1), shape, style.red, style.red_lens, glow=style.glow))
+            else:
+                cut = (u1 - u0) * rng.uniform(0.3, 0.45)
+                if out < 0:  # image-left lamp: inner end is at larger u
+                    lamps.append(Lamp("tail", side, (u0, v0, u1 - cut, v1), shape, style.red, style.red_lens, glow=style.glow))
+                    lamps.append(Lamp("turn", side, (u1 - cut, v0, u1, v1), "rect", style.amber, style.amber_lens, glow=style.glow))
+                else:
+                    lamps.append(Lamp("turn", side, (u0, v0, u0 + cut, v1), "rect", style.amber, style.amber_lens, glow=style.glow))
+                    lamps.append(Lamp("tail", side, (u0 + cut, v0, u1, v1), shape, style.red, style.red_lens, glow=style.glow))
+        else:  # LED strip / sequential: thin red strip above a thin amber strip
+            sh = (v1 - v0) * strip_frac
+            lamps.append(Lamp("tail", side, (u0, v0, u1, v0 + sh), "strip", style.red, style.red_lens, glow=style.glow))
+            segs = style.seq_segments if d == "sequential" else 1
+            lamps.append(Lamp("turn", side, (u0, v1 - sh, u1, v1), "strip", style.amber, style.amber_lens,
+                              segments=segs, outward=out, glow=style.glow))
+    if d == "led_strip" and kind in ("car", "suv") and rng.random() < 0.5:
+        # Full-width light bar joining the two tail lamps (tail only, never blinks).
+        lamps.append(Lamp("tail", "C", (inset + width, vc - h / 2, 1 - inset - width, vc - h / 2 + h * 0.25),
+                          "strip", style.red, style.red_lens, glow=style.glow * 0.5))
+    if style.chmsl:
+        cw = rng.uniform(0.12, 0.3) if kind not in ("truck", "bus") else rng.uniform(0.08, 0.15)
+        lamps.append(Lamp("chmsl", "C", (0.5 - cw / 2, chmsl_v, 0.5 + cw / 2, chmsl_v + rng.uniform(0.018, 0.035)),
+                          "strip", style.red, style.red_lens, glow=style.glow))
+    return lamps
+
+
+def front_lamps(style: LampStyle, kind: str, rng: np.random.Generator) -> List[Lamp]:
+    """Lamps on the front face (view FRONT): the vehicle's left is the image right."""
+    if kind in ("truck", "bus"):
+        vc, h = rng.uniform(0.7, 0.82), rng.uniform(0.05, 0.09)
+    elif kind == "van":
+        vc, h = rng.uniform(0.5, 0.62), rng.uniform(0.06, 0.1)
+    else:
+        vc, h = rng.uniform(0.5, 0.62), rng.uniform(0.06, 0.11)
+    inset = rng.uniform(0.03, 0.07)
+    width = rng.uniform(0.14, 0.24)
+    d = style.design
+    lamps: List[Lamp] = []
+    place = str(rng.choice(["outer", "below", "strip"])) if d in ("amber", "red_combined") else "strip"
+    for side, (u0, v0, u1, v1), out in _pair((inset, vc - h / 2, inset + width, vc + h / 2), True):
+        shape = "ellipse" if d in ("amber", "red_combined") else "rect"
+        lamps.append(Lamp("head", side, (u0, v0, u1, v1), shape, style.white, (150, 150, 150), glow=style.glow * 1.6))
+        if place == "outer":
+            cw = (u1 - u0) * 0.3
+            r = (u0 - cw * 0.6, v0, u0 + cw * 0.4, v1) if out < 0 else (u1 - cw * 0.4, v0, u1 + cw * 0.6, v1)
+            lamps.append(Lamp("turn", side, r, "rect", style.amber, style.amber_lens, glow=style.glow))
+        elif place == "below":
+            w2 = (u1 - u0) * 0.6
+            r = (u0, v1 + h * 0.4, u0 + w2, v1 + h * 0.9) if out < 0 else (u1 - w2, v1 + h * 0.4, u1, v1 + h * 0.9)
+            lamps.append(Lamp("turn", side, r, "rect", style.amber, style.amber_lens, glow=style.glow))
+        else:
+            lamps.append(Lamp("drl", side, (u0, v0 - h * 0.45, u1, v0 - h * 0.1), "strip", style.white, (170, 170, 170), glow=style.glow))
+            segs = style.seq_segments if d == "sequential" else 1
+            lamps.append(Lamp("turn", side, (u0, v1 + h * 0.15, u1, v1 + h * 0.5), "strip", style.amber, style.amber_lens,
+                              segments=segs, outward=out, glow=style.glow))
+    return lamps
+
+
+def side_lamps(style: LampStyle, kind: str, rng: np.random.Generator, view: View) -> List[Lamp]:
+    """Lamps on one flank. From the LEFT the vehicle points to the image left, from the RIGHT to the image right."""
+    side = "L" if view == View.LEFT else "R"
+    if kind in ("truck", "bus"):
+        v_front, v_rear = rng.uniform(0.7, 0.8), rng.uniform(0.76, 0.86)
+    else:
+        v_front, v_rear = rng.uniform(0.45, 0.6), rng.uniform(0.36, 0.52)
+    h = rng.uniform(0.06, 0.1)
+    ew = rng.uniform(0.025, 0.045) if kind != "bus" else rng.uniform(0.012, 0.02)
+    lamps: List[Lamp] = [
+        Lamp("head", side, (0.0, v_front - h / 2, ew * 1.5, v_front + h / 2), "rect", style.white, (150, 150, 150), glow=style.glow),
+        Lamp("turn", side, (0.0, v_front + h / 2, ew, v_front + h), "rect", style.amber, style.amber_lens, glow=style.glow),
+    ]
+    # Side repeater on the front wing (cars) or along the body (trucks and buses).
+    rep_u = rng.uniform(0.14, 0.24) if kind not in ("truck", "bus") else rng.uniform(0.1, 0.5)
+    rw = rng.uniform(0.012, 0.025)
+    lamps.append(Lamp("turn", side, (rep_u, v_front - h * 0.6, rep_u + rw * 2, v_front - h * 0.2), "rect",
+                      style.amber, style.amber_lens, glow=style.glow * 0.8))
+    rear_role = "turn_tail" if style.design == "red_combined" else "tail"
+    lamps.append(Lamp(rear_role, side, (1.0 - ew, v_rear - h / 2, 1.0, v_rear + h / 2), "rect", style.red, style.red_lens, glow=style.glow))
+    if style.design != "red_combined":
+        lamps.append(Lamp("turn", side, (1.0 - ew, v_rear + h / 2, 1.0, v_rear + h), "rect", style.amber, style.amber_lens, glow=style.glow))
+    if view == View.RIGHT:  # the vehicle points to the image right: mirror
+        for lamp in lamps:
+            u0, v0, u1, v1 = lamp.rect
+            lamp.rect = (1.0 - u1, v0, 1.0 - u0, v1)
+    return lamps
+
+
+# --------------------------------------------------------------------------- timing
+
+@dataclass
+class _Segment:
+    start: float
+    end: float
+    value: int
+
+
+class Timeline:
+    """A piecewise-constant signal (blinker state or brake) drawn lazily from an RNG.
+
+    Args:
+        rng: Generator owned by this timeline (keeps results independent of query order).
+        states: Possible values.
+        weights: Probability of each value when a new segment starts.
+        durations: Per value, (mean, min, max) seconds of a segment.
+        fixed: When given, the signal holds this value forever.
+    """
+
+    def __init__(self, rng: np.random.Generator, states: Sequence[int], weights: Sequence[float],
+                 durations: Sequence[Tuple[float, float, float]], fixed: Optional[int] = None) -> None:
+        self._rng = rng
+        self._states = list(states)
+        self._weights = np.asarray(weights, dtype=float) / float(np.sum(weights))
+        self._dur = list(durations)
+        self._fixed = fixed
+        # Start somewhere inside a segment so sequences do not all begin with a transition.
+        first = self._draw_state(None)
+        length = self._draw_duration(first)
+        offset = rng.uniform(0.0, length)
+        self._segments: List[_Segment] = [_Segment(-offset, length - offset, first)]
+
+    def _draw_state(self, previous: Optional[int]) -> int:
+        w = self._weights.copy()
+        if previous is not None:
+            w[self._states.index(previous)] = 0.0  # a new segment always changes the value
+            w /= w.sum()
+        return int(self._states[int(self._rng.choice(len(self._states), p=w))])
+
+    def _draw_duration(self, state: int) -> float:
+        mean, lo, hi = self._dur[self._states.index(state)]
+        return float(np.clip(self._rng.exponential(mean), lo, hi))
+
+    def segment(self, t: float) -> Tuple[int, float]:
+        """The value at time ``t`` (s) and the time its segment started."""
+        if self._fixed is not None:
+            return self._fixed, -1e9
+        while self._segments[-1].end <= t:
+            last = self._segments[-1]
+            state = self._draw_state(last.value)
+            self._segments.append(_Segment(last.end, last.end + self._draw_duration(state), state))
+        for seg in reversed(self._segments):
+            if seg.start <= t:
+                return seg.value, seg.start
+        return self._segments[0].value, self._segments[0].start
+
+
+def blinker_timeline(rng: np.random.Generator, fixed: Optional[Intent] = None, hazard_rate: float = 0.12) -> Timeline:
+    """Blinker state over time: OFF, LEFT, RIGHT or HAZARD segments (~40-50 % of time ON)."""
+    states = [int(Intent.OFF), int(Intent.LEFT), int(Intent.RIGHT), int(Intent.HAZARD)]
+    w_turn = (1.0 - hazard_rate) / 2.0
+    weights = [1.0, w_turn, w_turn, hazard_rate]
+    durations = [(3.5, 0.8, 12.0), (4.0, 1.2, 12.0), (4.0, 1.2, 12.0), (4.0, 1.5, 12.0)]
+    return Timeline(rng, states, weights, durations, None if fixed is None else int(fixed))
+
+
+def brake_timeline(rng: np.random.Generator, fixed: Optional[bool] = None) -> Timeline:
+    """Brake pressed (1) or released (0) over time (~40 % of time pressed)."""
+    return Timeline(rng, [0, 1], [1.0, 1.0], [(3.0, 0.5, 10.0), (2.2, 0.5, 8.0)],
+                    None if fixed is None else int(bool(fixed)))
+
+
+def flasher_level(t_active: float, style: LampStyle, exposure_s: float, delay: float = 0.0) -> float:
+    """Brightness (0..1) of a blinker that was switched on ``t_active`` seconds ago.
+
+    Real flashers start with a lit half; LEDs switch hard, bulbs rise and fade with time
+    constants. The camera integrates over its exposure time, so a transition inside the
+    exposure gives an intermediate level.
+
+    Args:
+        t_active: Seconds since the blinker was switched on (plus the vehicle's phase).
+        style: The vehicle's lamp style (frequency, duty, technology).
+        exposure_s: Camera exposure time in seconds.
+        delay: Extra delay of this segment within the on phase (sequential indicators).
+    """
+    period = 1.0 / style.blink_hz
+    on = style.duty * period
+    total = 0.0
+    samples = (0.0, 0.5, 1.0)
+    for s in samples:
+        tau = (t_active - s * exposure_s) % period
+        if style.tech == "led":
+            total += 1.0 if delay <= tau < on else 0.0
+        else:
+            er, ef = math.exp(-on / style.tau_rise), math.exp(-(period - on) / style.tau_fall)
+            r0 = ef * (1 - er) / (1 - er * ef)
+            if tau < on:
+                total += 1.0 - (1.0 - r0) * math.exp(-tau / style.tau_rise)
+            else:
+                v_end = 1.0 - (1.0 - r0) * er
+                total += v_end * math.exp(-(tau - on) / style.tau_fall)
+    return total / len(samples)

@@ -1,0 +1,633 @@
+"""The scene renderer: layout, vehicle motion, occlusion, tracker simulation and labels.
+
+A ``SceneRenderer`` owns a camera on a street and a handful of vehicles seen from behind,
+from the front or from a side. Each frame it moves the vehicles, decides which lamps are
+lit (per-vehicle blinker and brake timelines), works out which lamps are visible
+(other vehicles, poles and the image border hide them), draws everything and hands back
+the image with one ``VehicleTruth`` per vehicle that is visible enough to be listed.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Any, Dict, Iterator, List, Optional, Sequence, Tuple
+
+import cv2
+import numpy as np
+
+from signal_light_node.boxes import TrackBox
+from signal_light_node.errors import ConfigError
+from signal_light_node.labels import Intent, LightStatus, View, intent_from_lights
+from signal_light_node.synth import lamps as lamp_mod
+from signal_light_node.synth.camera import Camera, sample_camera
+from signal_light_node.synth.environment import (GLOW_SCALE, LIGHTINGS, Environment, Lighting, Occluder, add_glow, ellipse,
+                                                 sample_lighting, shade)
+from signal_light_node.synth.lamps import Lamp, LampStyle, blinker_timeline, brake_timeline, flasher_level, sample_lamp_style
+from signal_light_node.synth.truth import RenderedFrame, VehicleTruth
+from signal_light_node.synth.vehicles import CLASS_IDS, KIND_DIMS, KIND_WEIGHTS, KINDS, BodyShape, body_shape, face_size_m, sample_colour
+
+LOG = logging.getLogger(__name__)
+
+_SHIFT = 3
+_ONE = 1 << _SHIFT
+_MARGIN = 12
+#: A lamp counts as visible when at least this fraction of it can be seen.
+LAMP_VISIBLE_FRACTION = 0.5
+#: Vehicles smaller than this (visible box, pixels) or more hidden than this are not listed.
+MIN_LISTED_PX = 8.0
+MAX_LISTED_OCCLUSION = 0.9
+
+_VIEW_WEIGHTS = {View.BEHIND: 0.42, View.FRONT: 0.26, View.LEFT: 0.16, View.RIGHT: 0.16}
+_SCENE_KEYS = {"vehicles", "occluders", "poles", "distractors", "weather", "effects", "shake", "respawn", "horizon", "focal"}
+_VEHICLE_KEYS = {"view", "kind", "lamp_design", "tech", "chmsl", "intent", "brake", "colour", "lights_on", "center_x",
+                 "width_px", "speed", "blink_hz", "duty", "phase", "shear", "roll", "specular"}
+
+
+def _lamp_poly(lamp: Lamp) -> np.ndarray:
+    """Normalised outline polygon of a lamp."""
+    u0, v0, u1, v1 = lamp.rect
+    if lamp.shape in ("round", "ellipse"):
+        cu, cv, ru, rv = (u0 + u1) / 2, (v0 + v1) / 2, (u1 - u0) / 2, (v1 - v0) / 2
+        if lamp.shape == "ellipse":
+            a = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+            return np.stack([cu + ru * np.cos(a), cv + rv * np.sin(a)], 1).astype(np.float32)
+        k = 0.35  # rounded rectangle: cut corners
+        return np.array([[u0 + ru * k, v0], [u1 - ru * k, v0], [u1, v0 + rv * k], [u1, v1 - rv * k], [u1 - ru * k, v1],
+                         [u0 + ru * k, v1], [u0, v1 - rv * k], [u0, v0 + rv * k]], np.float32)
+    return np.array([[u0, v0], [u1, v0], [u1, v1], [u0, v1]], np.float32)
+
+
+def _segment_polys(lamp: Lamp) -> List[np.ndarray]:
+    """Segments of a sequential lamp ordered from the inner end to the outer end."""
+    u0, v0, u1, v1 = lamp.rect
+    n = lamp.segments
+    edges = np.linspace(u0, u1, n + 1)
+    gap = (u1 - u0) / n * 0.15
+    polys = [np.array([[edges[i] + gap, v0], [edges[i + 1] - gap, v0], [edges[i + 1] - gap, v1], [edges[i] + gap, v1]], np.float32)
+             for i in range(n)]
+    return polys if lamp.outward > 0 else polys[::-1]
+
+
+@dataclass
+class _Vehicle:
+    track_id: str
+    kind: str
+    view: View
+    style: LampStyle
+    colour: Tuple[float, float, float]
+    face_w: float
+    face_h: float
+    shape: BodyShape
+    lamps: List[Lamp]
+    lamp_polys: List[List[np.ndarray]]
+    X: float
+    Z: float
+    vx: float
+    vz: float
+    lights_on: bool
+    blinker: lamp_mod.Timeline
+    brake: lamp_mod.Timeline
+    phase: float
+    shear: float
+    roll: float
+    spots: List[Tuple[float, float, float, float, float]]
+    paints: Dict[str, Tuple[float, float, float]]
+    part_pts: np.ndarray = field(default=None)
+    part_splits: List[Tuple[str, int, int]] = field(default_factory=list)
+    sil_splits: List[Tuple[int, int]] = field(default_factory=list)
+    tracker_bias: Tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    tracker_sigma: float = 0.02
+
+
+@dataclass
+class _Drawn:
+    """Per-frame drawing state of one vehicle."""
+
+    v: _Vehicle
+    box: Tuple[float, float, float, float]  # full (unclipped) extent
+    roi: Tuple[int, int, int, int]  # clipped integer ROI x0, y0, x1, y1
+    M: np.ndarray
+    canvas: np.ndarray
+    alpha: np.ndarray
+    vis: Optional[np.ndarray] = None
+    full_area: float = 1.0
+
+
+class SceneRenderer:
+    """Procedural street scenes with vehicles whose lights switch on and off.
+
+    Args:
+        seed: Everything is deterministic from this seed.
+        width: Image width in pixels.
+        height: Image height in pixels.
+        fps: Frame rate; None draws one in [10, 30].
+        n_vehicles: Number of labelled vehicles in the scene at a time; None draws 3..6.
+        lighting: "day", "dusk" or "night"; None draws one (night with ``night_fraction``).
+        night_fraction: Probability of night when ``lighting`` is None.
+        **overrides: Scene controls for tests and tools. Scene keys: ``vehicles`` (list of
+            per-vehicle dicts, see below), ``occluders`` (list of static (x0, y0, x1, y1)
+            pixel rectangles in front of every vehicle), ``poles`` (number of moving poles),
+            ``distractors`` (bool), ``weather`` ("clear", "rain", "haze"), ``effects`` (bool,
+            camera noise/blur/JPEG), ``shake`` (bool), ``respawn`` (bool), ``horizon``
+            (fraction of the height), ``focal`` (fraction of the width). Vehicle keys:
+            ``view`` (View), ``kind``, ``lamp_design``, ``tech`` ("led"/"bulb"), ``chmsl``,
+            ``intent`` (Intent held for the whole sequence), ``brake`` (bool held),
+            ``colour`` (BGR), ``lights_on``, ``center_x`` (pixels), ``width_px`` (box width),
+            ``speed`` (m/s; 0 = parked), ``blink_hz``, ``duty``, ``phase`` (s), ``shear``,
+            ``roll`` (degrees), ``specular`` (bool).
+
+    Raises:
+        ConfigError: On an unknown override or a value out of range.
+    """
+
+    def __init__(self, seed: int, width: int = 640, height: int = 360, fps: Optional[float] = None,
+                 n_vehicles: Optional[int] = None, lighting: Optional[str] = None, night_fraction: float = 0.35,
+                 **overrides: Any) -> None:
+        unknown = set(overrides) - _SCENE_KEYS
+        if unknown:
+            raise ConfigError(f"unknown SceneRenderer overrides {sorted(unknown)}; allowed: {sorted(_SCENE_KEYS)}")
+        for i, vo in enumerate(overrides.get("vehicles") or []):
+            bad = set(vo) - _VEHICLE_KEYS
+            if bad:
+                raise ConfigError(f"unknown keys {sorted(bad)} in vehicles[{i}]; allowed: {sorted(_VEHICLE_KEYS)}")
+        if width < 64 or height < 48:
+            raise ConfigError(f"image size {width}x{height} is too small (need at least 64x48)")
+        if lighting is not None and lighting not in LIGHTINGS:
+            raise ConfigError(f"lighting must be one of {LIGHTINGS}, got {lighting!r}")
+        if fps is not None and not (0 < fps <= 240):
+            raise ConfigError(f"fps must be in (0, 240], got {fps}")
+        if not 0.0 <= night_fraction <= 1.0:
+            raise ConfigError(f"night_fraction must be in [0, 1], got {night_fraction}")
+        self.seed = int(seed)
+        self.width, self.height = int(width), int(height)
+        self._overrides = overrides
+        rng = np.random.default_rng([self.seed, 0x5CE7E])
+        self.fps = float(fps) if fps is not None else float(rng.uniform(10.0, 30.0))
+        if lighting is None:
+            r = rng.random()
+            lighting = "night" if r < night_fraction else ("dusk" if r < night_fraction + 0.25 * (1 - night_fraction) else "day")
+        self.lighting = lighting
+        vehicles_o = overrides.get("vehicles") or []
+        if n_vehicles is None:
+            n_vehicles = len(vehicles_o) if vehicles_o else int(rng.integers(3, 7))
+        if n_vehicles < 0:
+            raise ConfigError(f"n_vehicles must be >= 0, got {n_vehicles}")
+        self.n_vehicles = int(n_vehicles)
+        self.start_ns = int(1_700_000_000_000_000_000 + int(rng.integers(0, 10 ** 16)))
+
+    # ------------------------------------------------------------------ setup
+    def _setup(self) -> None:
+        """(Re)build the world so that every call of ``frames`` starts from the same state."""
+        o = self._overrides
+        rng = np.random.default_rng([self.seed, 1])
+        self._rng = rng
+        W, H = self.width, self.height
+        self._f = W * float(o.get("focal", rng.uniform(0.75, 1.3)))
+        self._hy = H * float(o.get("horizon", rng.uniform(0.36, 0.5)))
+        self._vx = W * rng.uniform(0.35, 0.65)
+        self._cam_h = rng.uniform(1.2, 1.7)
+        self._light: Lighting = sample_lighting(rng, self.lighting)
+        weather = o.get("weather") or str(rng.choice(["clear", "clear", "clear", "rain", "haze"]))
+        if weather not in ("clear", "rain", "haze"):
+            raise ConfigError(f"weather must be clear, rain or haze, got {weather!r}")
+        self._env = Environment(np.random.default_rng([self.seed, 2]), W, H, _MARGIN, self._hy, self._vx, self._light,
+                                distractors=bool(o.get("distractors", True)), weather=weather, n_poles=o.get("poles"))
+        for rect in o.get("occluders") or []:
+            x0, y0, x1, y1 = (float(v) for v in rect)
+            self._env.occluders.append(Occluder(0, 0, 0, 0, 0, (90, 90, 90), rect=(x0, y0, x1, y1)))
+        cam_params = sample_camera(rng, self._light.noise, self.lighting, weather)
+        if not o.get("shake", True):
+            cam_params.shake = 0.0
+        self._camera = Camera(cam_params, W, H, self._hy, self.seed * 7 + 3, enabled=bool(o.get("effects", True)))
+        self._next_id = int(rng.integers(1, 50))
+        self._vehicles: List[_Vehicle] = []
+        vo = o.get("vehicles") or []
+        for i in range(self.n_vehicles):
+            self._vehicles.append(self._spawn(vo[i] if i < len(vo) else {}, entering=False))
+
+    def _spawn(self, vo: Dict[str, Any], entering: bool) -> _Vehicle:
+        rng = self._rng
+        vrng = np.random.default_rng([self.seed, 100 + self._next_id])
+        track_id = str(self._next_id)
+        self._next_id += int(rng.integers(1, 4))
+        views = list(_VIEW_WEIGHTS)
+        view = View(vo["view"]) if "view" in vo else views[int(vrng.choice(4, p=list(_VIEW_WEIGHTS.values())))]
+        kind = vo.get("kind") or str(vrng.choice(KINDS, p=np.asarray(KIND_WEIGHTS) / sum(KIND_WEIGHTS)))
+        if kind not in KIND_DIMS:
+            raise ConfigError(f"kind must be one of {KINDS}, got {kind!r}")
+        design = vo.get("lamp_design")
+        if design is not None and design not in lamp_mod.LAMP_DESIGNS:
+            raise ConfigError(f"lamp_design must be one of {lamp_mod.LAMP_DESIGNS}, got {design!r}")
+        style = sample_lamp_style(vrng, kind, design, vo.get("tech"), vo.get("chmsl"), vo.get("blink_hz"), vo.get("duty"))
+        scale = vrng.uniform(0.93, 1.07)
+        face_w, face_h = face_size_m(kind, view, scale)
+        shape = body_shape(kind, view, vrng)
+        if view == View.BEHIND:
+            lamps = lamp_mod.rear_lamps(style, kind, vrng, shape.chmsl_v)
+        elif view == View.FRONT:
+            lamps = lamp_mod.front_lamps(style, kind, vrng)
+        else:
+            lamps = lamp_mod.side_lamps(style, kind, vrng, view)
+        lamp_polys = [_segment_polys(l) if l.segments > 1 else [_lamp_poly(l)] for l in lamps]
+        W, f = self.width, self._f
+        # Depth from the wanted size: between ~24 px and half the frame wide.
+        z_min = face_w * f / (0.5 * W)
+        z_max = min(70.0, face_w * f / 22.0)
+        if "width_px" in vo:
+            Z = face_w * f / float(vo["width_px"])
+        else:
+            Z = float(math.exp(vrng.uniform(math.log(z_min), math.log(max(z_max, z_min * 1.01)))))
+        if "center_x" in vo:
+            x_img = float(vo["center_x"])
+        elif entering and view in (View.LEFT, View.RIGHT):
+            x_img = -0.4 * face_w * f / Z if vrng.random() < 0.5 else W + 0.4 * face_w * f / Z
+        else:
+            x_img = vrng.uniform(-0.08, 1.08) * W
+        X = (x_img - self._vx) * Z / f
+        speed = vo.get("speed")
+        if view in (View.LEFT, View.RIGHT):
+            # Crossing traffic: moves towards its front (image left from the LEFT view).
+            heading = -1.0 if view == View.LEFT else 1.0
+            s = float(speed) if speed is not None else (0.0 if vrng.random() < 0.3 else vrng.uniform(1.0, 7.0))
+            if entering and s == 0.0:
+                s = vrng.uniform(1.0, 5.0)
+            if entering and speed is None:
+                heading = 1.0 if x_img < 0 else -1.0
+                view = View.RIGHT if heading > 0 else View.LEFT
+                if view != (View.LEFT if lamps[0].side == "L" else View.RIGHT):
+                    shape = body_shape(kind, view, vrng)
+                    lamps = lamp_mod.side_lamps(style, kind, vrng, view)
+                    lamp_polys = [_segment_polys(l) if l.segments > 1 else [_lamp_poly(l)] for l in lamps]
+            vx, vz = heading * s, 0.0
+        else:
+            s = float(speed) if speed is not None else None
+            if view == View.BEHIND:
+                vz = s if s is not None else vrng.uniform(-1.5, 1.5)
+            else:
+                vz = -(s if s is not None else vrng.uniform(0.0, 4.0))
+            vx = 0.0 if s is not None else vrng.uniform(-0.25, 0.25)
+        fixed_intent = vo.get("intent")
+        if fixed_intent is not None and Intent(fixed_intent) == Intent.UNKNOWN:
+            raise ConfigError("intent override must be OFF, LEFT, RIGHT or HAZARD")
+        lights_on = bool(vo["lights_on"]) if "lights_on" in vo else bool(vrng.random() < self._light.lights_on)
+        colour = tuple(float(c) for c in vo["colour"]) if "colour" in vo else sample_colour(vrng)
+        paints = self._paints(vrng, colour, kind)
+        spots = []
+        if vo.get("specular", vrng.random() < (0.7 if self.lighting == "day" else 0.4)):
+            for _ in range(int(vrng.integers(1, 4))):
+                spots.append((vrng.uniform(0.1, 0.9), vrng.uniform(0.05, 0.6), vrng.uniform(0.02, 0.1), vrng.uniform(0.01, 0.04),
+                              vrng.uniform(0.4, 1.0)))
+        v = _Vehicle(track_id=track_id, kind=kind, view=view, style=style, colour=colour, face_w=face_w, face_h=face_h,
+                     shape=shape, lamps=lamps, lamp_polys=lamp_polys, X=X, Z=Z, vx=vx, vz=vz, lights_on=lights_on,
+                     blinker=blinker_timeline(np.random.default_rng([self.seed, 200 + int(track_id)]),
+                                              None if fixed_intent is None else Intent(fixed_intent)),
+                     brake=brake_timeline(np.random.default_rng([self.seed, 300 + int(track_id)]),
+                                          None if vo.get("brake") is None else bool(vo["brake"])),
+                     phase=float(vo["phase"]) if "phase" in vo else float(vrng.uniform(0, 1.0 / style.blink_hz)),
+                     shear=float(vo.get("shear", vrng.uniform(-0.05, 0.05))),
+                     roll=float(vo.get("roll", vrng.uniform(-1.5, 1.5))), spots=spots, paints=paints,
+                     tracker_bias=tuple(float(b) for b in vrng.normal(0, 0.02, 4)),
+                     tracker_sigma=float(vrng.uniform(0.008, 0.035)))
+        pts, splits, sil = [], [], []
+        n = 0
+        for key, poly in shape.parts:
+            pts.append(poly)
+            splits.append((key, n, n + len(poly)))
+            n += len(poly)
+        for poly in shape.silhouette:
+            pts.append(poly)
+            sil.append((n, n + len(poly)))
+            n += len(poly)
+        v.part_pts = np.concatenate(pts, 0).astype(np.float32)
+        v.part_splits, v.sil_splits = splits, sil
+        return v
+
+    def _paints(self, rng: np.random.Generator, colour, kind: str) -> Dict[str, Tuple[float, float, float]]:
+        lt = self._light
+        glass_g = rng.uniform(35, 95) if lt.name == "day" else rng.uniform(10, 35)
+        glass = (glass_g * rng.uniform(1.0, 1.25), glass_g * rng.uniform(0.95, 1.1), glass_g)
+        trim = (rng.uniform(25, 50),) * 3 if rng.random() < 0.6 else tuple(c * 0.8 for c in colour)
+        plate = (230, 230, 230) if rng.random() < 0.75 else (40, 200, 240)
+        box = colour if rng.random() < 0.4 else (rng.uniform(180, 240),) * 3
+        return {
+            "body": shade(colour, lt), "shade": shade(colour, lt, 0.55), "glass": shade(glass, lt, 1.0 / max(lt.ambient, 0.5)),
+            "dark": shade((22, 22, 24), lt), "trim": shade(trim, lt), "plate": shade(plate, lt, 1.0 if lt.name == "day" else 2.0),
+            "grille": shade((rng.uniform(20, 60),) * 3 if rng.random() < 0.8 else (160, 160, 165), lt),
+            "sign": (20, 150, 250) if lt.name != "day" else shade((20, 120, 220), lt, 1.3), "box": shade(box, lt),
+        }
+
+    # ------------------------------------------------------------------ per-frame geometry
+    def _project(self, v: _Vehicle) -> Tuple[float, float, float, float]:
+        f = self._f
+        bottom = self._hy + f * self._cam_h / v.Z
+        h = v.face_h * f / v.Z
+        w = v.face_w * f / v.Z
+        cx = self._vx + f * v.X / v.Z
+        return cx - w / 2, bottom - h, cx + w / 2, bottom
+
+    def _move(self, v: _Vehicle, dt: float) -> bool:
+        """Advance a vehicle by ``dt`` seconds; False when it left the scene."""
+        v.X += v.vx * dt
+        v.Z += v.vz * dt
+        z_min = v.face_w * self._f / (0.55 * self.width)
+        if v.Z < z_min:
+            if v.view == View.BEHIND:
+                v.vz = abs(v.vz)
+                v.Z = z_min
+            else:
+                return False
+        if v.Z > 90:
+            return False
+        x0, y0, x1, y1 = self._project(v)
+        if x1 < -2 or x0 > self.width + 2:
+            return False
+        return True
+
+    def _affine(self, v: _Vehicle, box: Tuple[float, float, float, float], ox: float, oy: float) -> np.ndarray:
+        x0, y0, x1, y1 = box
+        bw, bh = x1 - x0, y1 - y0
+        a = math.radians(v.roll)
+        c, s = math.cos(a), math.sin(a)
+        # u,v -> local (centred, sheared) -> rotated -> ROI coordinates.
+        A = np.array([[bw, v.shear * bh], [0.0, bh]])
+        R = np.array([[c, -s], [s, c]])
+        L = R @ A
+        centre = np.array([(x0 + x1) / 2 - ox, (y0 + y1) / 2 - oy])
+        t = centre - L @ np.array([0.5, 0.5])
+        return np.hstack([L, t[:, None]]).astype(np.float64)
+
+    # ------------------------------------------------------------------ rendering
+    def frames(self, n_frames: int) -> Iterator[RenderedFrame]:
+        """Render ``n_frames`` consecutive frames (each call starts the same sequence again).
+
+        Args:
+            n_frames: Number of frames to render.
+
+        Yields:
+            One ``RenderedFrame`` per frame.
+        """
+        if n_frames < 0:
+            raise ConfigError(f"n_frames must be >= 0, got {n_frames}")
+        self._setup()
+        dt = 1.0 / self.fps
+        for index in range(n_frames):
+            t = index * dt
+            if index > 0:
+                for i, v in enumerate(self._vehicles):
+                    if not self._move(v, dt) and self._overrides.get("respawn", True):
+                        self._vehicles[i] = self._spawn({}, entering=True)
+            yield self._render(index, t)
+
+    def _render(self, index: int, t: float) -> RenderedFrame:
+        W, H = self.width, self.height
+        frng = np.random.default_rng([self.seed, 3, index])
+        cam = self._camera
+        shake = cam.p.shake if cam.enabled else 0.0
+        sx = int(np.clip(round(_MARGIN + shake * math.sin(t * 7.3 + self.seed) + frng.normal(0, shake * 0.3)), 0, 2 * _MARGIN))
+        sy = int(np.clip(round(_MARGIN + shake * math.sin(t * 5.1 + 1.7 * self.seed) + frng.normal(0, shake * 0.3)), 0, 2 * _MARGIN))
+        img = self._env.background[sy:sy + H, sx:sx + W].copy()
+        layer = np.zeros(((H + GLOW_SCALE - 1) // GLOW_SCALE, (W + GLOW_SCALE - 1) // GLOW_SCALE, 3), np.float32)
+        ddx, ddy = sx - _MARGIN, sy - _MARGIN
+        self._env.draw_lights(img, layer, t, ddx, ddy)
+
+        # Bodies first (in any order), then visibility near-to-far, then lamps, then compositing far-to-near.
+        drawn: List[_Drawn] = []
+        for v in self._vehicles:
+            d = self._draw_body(v, t, ddx, ddy)
+            if d is not None:
+                drawn.append(d)
+        coverage = np.zeros((H, W), np.uint8)
+        occ_x = [self._env.occluder_x(o, t) for o in self._env.occluders]
+        for o, x in zip(self._env.occluders, occ_x):
+            o.draw(coverage, x - ddx, ddy, value=255)
+        drawn.sort(key=lambda d: d.v.Z)
+        for d in drawn:
+            x0, y0, x1, y1 = d.roi
+            cov = coverage[y0:y1, x0:x1]
+            sil = d.alpha > 127
+            d.vis = sil & (cov == 0)
+            cov[sil] = 255
+        truths: List[VehicleTruth] = []
+        for d in drawn:
+            tr = self._lamps_and_truth(d, t, layer, frng)
+            if tr is not None:
+                truths.append(tr)
+        for d in reversed(drawn):
+            x0, y0, x1, y1 = d.roi
+            a = d.alpha.astype(np.float32) * (1.0 / 255.0)
+            roi = img[y0:y1, x0:x1]
+            img[y0:y1, x0:x1] = cv2.blendLinear(d.canvas, roi, a, 1.0 - a)
+        for o, x in zip(self._env.occluders, occ_x):
+            o.draw(img, x - ddx, ddy)
+        rain = self._env.rain_slice(t)
+        if rain is not None:
+            img = cv2.add(img, rain)
+        glow = cv2.GaussianBlur(layer, (0, 0), 1.6)
+        glow = cv2.resize(glow, (layer.shape[1] * GLOW_SCALE, layer.shape[0] * GLOW_SCALE), interpolation=cv2.INTER_LINEAR)[:H, :W]
+        img = cv2.add(img, np.clip(glow, 0, 255).astype(np.uint8))
+        img = cam.apply(img, t, frng)
+        # Listing order follows the vehicle list (stable), not depth.
+        order = {v.track_id: i for i, v in enumerate(self._vehicles)}
+        truths.sort(key=lambda tr: order.get(tr.track_id, 0))
+        stamp = self.start_ns + int(round(index * 1e9 / self.fps))
+        return RenderedFrame(index=index, stamp_ns=stamp, image=img, vehicles=truths, lighting=self.lighting)
+
+    def _draw_body(self, v: _Vehicle, t: float, ddx: float, ddy: float) -> Optional[_Drawn]:
+        W, H = self.width, self.height
+        box = self._project(v)
+        box = (box[0] - ddx, box[1] - ddy, box[2] - ddx, box[3] - ddy)
+        bw, bh = box[2] - box[0], box[3] - box[1]
+        if bw < 2 or bh < 2:
+            return None
+        pad = abs(v.shear) * bh + abs(math.radians(v.roll)) * max(bw, bh) + 2
+        rx0, ry0 = int(max(0, math.floor(box[0] - pad))), int(max(0, math.floor(box[1] - pad)))
+        rx1, ry1 = int(min(W, math.ceil(box[2] + pad))), int(min(H, math.ceil(box[3] + pad)))
+        if rx1 - rx0 < 1 or ry1 - ry0 < 1:
+            return None
+        M = self._affine(v, box, rx0, ry0)
+        pts = v.part_pts @ M[:, :2].T + M[:, 2]
+        ipts = np.round(pts * _ONE).astype(np.int32)
+        canvas = np.zeros((ry1 - ry0, rx1 - rx0, 3), np.uint8)
+        alpha = np.zeros((ry1 - ry0, rx1 - rx0), np.uint8)
+        cv2.fillPoly(alpha, [ipts[a:b] for a, b in v.sil_splits], 255, cv2.LINE_AA, _SHIFT)
+        for key, a, b in v.part_splits:
+            cv2.fillPoly(canvas, [ipts[a:b]], v.paints.get(key, v.paints["body"]), cv2.LINE_AA, _SHIFT)
+        # Shading: light from above and from the sun's side, darker towards the ground.
+        hh, ww = canvas.shape[:2]
+        ys = (np.arange(hh, dtype=np.float32) + ry0 - box[1]) / bh
+        xs = (np.arange(ww, dtype=np.float32) + rx0 - box[0]) / bw
+        gy = 1.12 - 0.35 * np.clip(ys, 0, 1)
+        gx = 1.0 + 0.12 * self._light.sun_side * (np.clip(xs, 0, 1) - 0.5)
+        g = gy[:, None] * gx[None, :]
+        canvas = np.minimum(canvas * g[:, :, None], 255).astype(np.uint8)
+        # Specular spots move over the body as the vehicle moves through the image.
+        cx_img = (box[0] + box[2]) / 2
+        for (su, sv, sru, srv, strength) in v.spots:
+            u = su + 0.25 * (cx_img / W - 0.5)
+            flick = 0.5 + 0.5 * math.sin(cx_img * 0.05 + su * 10)
+            s = strength * flick * (1.0 if self.lighting == "day" else 0.5)
+            if s < 0.15:
+                continue
+            p = M @ np.array([u, sv, 1.0])
+            c = tuple(min(255.0, 200 + 55 * s) for _ in range(3))
+            ellipse(canvas, p[0], p[1], sru * bw, max(0.6, srv * bh), c, angle=-8.0)
+        area_in = float(np.count_nonzero(alpha > 127))
+        full_box_area = bw * bh
+        in_box_area = max(0.0, (min(box[2], W) - max(box[0], 0))) * max(0.0, (min(box[3], H) - max(box[1], 0)))
+        full_area = area_in + max(0.0, full_box_area - in_box_area) * v.shape.fill_ratio
+        return _Drawn(v, box, (rx0, ry0, rx1, ry1), M, canvas, alpha, full_area=max(full_area, 1.0))
+
+    def _lamp_levels(self, v: _Vehicle, t: float) -> Tuple[List[List[float]], bool, bool, bool]:
+        """Brightness of every lamp segment at time ``t`` plus (brake, left active, right active)."""
+        st = v.style
+        state, start = v.blinker.segment(t)
+        brake = bool(v.brake.segment(t)[0])
+        left_on = state in (Intent.LEFT, Intent.HAZARD)
+        right_on = state in (Intent.RIGHT, Intent.HAZARD)
+        t_act = t - start + (v.phase if start < -1e8 else 0.0)
+        if start < -1e8:
+            t_act = t + v.phase
+        exp_s = self._light.exposure_s
+        tail = st.tail_level if v.lights_on else 0.0
+        night = self.lighting != "day"
+        levels: List[List[float]] = []
+        for lamp, polys in zip(v.lamps, v.lamp_polys):
+            active = (lamp.side == "L" and left_on) or (lamp.side == "R" and right_on)
+            role = lamp.role
+            if role == "tail":
+                lev = (1.0 if brake and lamp.side != "C" else tail)
+                levels.append([lev])
+            elif role == "chmsl":
+                levels.append([1.0 if brake else 0.0])
+            elif role == "turn":
+                if not active:
+                    levels.append([0.0] * len(polys))
+                elif len(polys) > 1:
+                    step = st.duty / st.blink_hz * st.seq_fraction / len(polys)
+                    levels.append([flasher_level(t_act, st, exp_s, delay=k * step) for k in range(len(polys))])
+                else:
+                    levels.append([flasher_level(t_act, st, exp_s)])
+            elif role == "turn_tail":
+                base = 1.0 if brake else tail
+                if active:
+                    low = st.combined_dim if brake else tail
+                    levels.append([low + (1.0 - low) * flasher_level(t_act, st, exp_s)])
+                else:
+                    levels.append([base])
+            elif role == "head":
+                levels.append([1.0 if (v.lights_on and (night or v.view == View.FRONT)) else 0.0])
+            elif role in ("drl", "position"):
+                on = v.lights_on or st.drl_day
+                lev = 0.55 if on else 0.0
+                if on and active and st.drl_dims_on_turn:
+                    lev *= 1.0 - 0.85 * flasher_level(t_act, st, exp_s)
+                levels.append([lev])
+            else:
+                levels.append([0.0])
+        return levels, brake, left_on, right_on
+
+    def _lamps_and_truth(self, d: _Drawn, t: float, layer: np.ndarray, frng: np.random.Generator) -> Optional[VehicleTruth]:
+        v = d.v
+        W, H = self.width, self.height
+        rx0, ry0, rx1, ry1 = d.roi
+        levels, brake, left_on, right_on = self._lamp_levels(v, t)
+        lt = self._light
+        night = self.lighting != "day"
+        visible = {"L": False, "R": False, "brake": False}
+        for lamp, polys, levs in zip(v.lamps, v.lamp_polys, levels):
+            # Visibility: fraction of the lamp's silhouette pixels that are not hidden.
+            allp = np.concatenate(polys, 0) @ d.M[:, :2].T + d.M[:, 2]
+            lx0, ly0 = allp.min(0)
+            lx1, ly1 = allp.max(0)
+            full = max((lx1 - lx0) * (ly1 - ly0), 1e-3)
+            ix0, iy0 = int(max(0, math.floor(lx0))), int(max(0, math.floor(ly0)))
+            ix1, iy1 = int(min(rx1 - rx0, math.ceil(lx1))), int(min(ry1 - ry0, math.ceil(ly1)))
+            if ix1 > ix0 and iy1 > iy0:
+                n_vis = float(np.count_nonzero(d.vis[iy0:iy1, ix0:ix1]))
+                n_sil = float(np.count_nonzero(d.alpha[iy0:iy1, ix0:ix1] > 127))
+                inside = (ix1 - ix0) * (iy1 - iy0)
+                outside = max(0.0, (math.ceil(lx1) - math.floor(lx0)) * (math.ceil(ly1) - math.floor(ly0)) - inside)
+                frac = n_vis / max(1.0, n_sil + outside * 0.8)
+            else:
+                frac = 0.0
+            if frac >= LAMP_VISIBLE_FRACTION and full >= 1.5:
+                if lamp.role in ("turn", "turn_tail") and lamp.side in ("L", "R"):
+                    visible[lamp.side] = True
+                if lamp.role in ("tail", "turn_tail", "chmsl") and lamp.side != "C":
+                    visible["brake"] = True
+            # Drawing: unlit lens, then the lit colour blended in by the level.
+            lens = shade(lamp.lens, lt, 1.0 / max(lt.ambient, 0.35) * (0.7 if night else 1.0))
+            gain = v.style.brightness * lt.lamp_gain
+            for poly, lev in zip(polys, levs):
+                p = poly @ d.M[:, :2].T + d.M[:, 2]
+                ip = np.round(p * _ONE).astype(np.int32)
+                k = min(1.0, lev * gain * (1.25 if night else 1.0))
+                col = tuple(lc * (1 - k) + e * k for lc, e in zip(lens, lamp.emit))
+                cv2.fillPoly(d.canvas, [ip], col, cv2.LINE_AA, _SHIFT)
+                if k > 0.05:
+                    c = p.mean(0)
+                    size = max(float(np.ptp(p[:, 0])), float(np.ptp(p[:, 1])))
+                    if night and k > 0.5:
+                        # Over-exposed core: the centre of a bright lamp clips towards white.
+                        core = (p - c) * 0.55 + c
+                        hot = 0.35 + 0.4 * k
+                        cc = tuple(e + (255 - e) * hot for e in lamp.emit)
+                        cv2.fillPoly(d.canvas, [np.round(core * _ONE).astype(np.int32)], cc, cv2.LINE_AA, _SHIFT)
+                    radius = size * (0.9 + 0.6 * lamp.glow) * (1.8 if night else 1.0) * (2.2 if lamp.role == "head" else 1.0)
+                    add_glow(layer, c[0] + rx0, c[1] + ry0, radius, lamp.emit, 0.45 * k * lt.glow * max(frac, 0.0) * lamp.glow)
+        # Labels.
+        ys, xs = np.nonzero(d.vis)
+        if len(xs) == 0:
+            return None
+        bx0, by0 = float(xs.min() + rx0), float(ys.min() + ry0)
+        bx1, by1 = float(xs.max() + rx0 + 1), float(ys.max() + ry0 + 1)
+        occlusion = float(np.clip(1.0 - len(xs) / d.full_area, 0.0, 1.0))
+        if bx1 - bx0 < MIN_LISTED_PX or by1 - by0 < MIN_LISTED_PX or occlusion > MAX_LISTED_OCCLUSION:
+            return None
+        left = (LightStatus.ON if left_on else LightStatus.OFF) if visible["L"] else LightStatus.UNKNOWN
+        right = (LightStatus.ON if right_on else LightStatus.OFF) if visible["R"] else LightStatus.UNKNOWN
+        brake_s = (LightStatus.ON if brake else LightStatus.OFF) if visible["brake"] else LightStatus.UNKNOWN
+        class_id = CLASS_IDS[v.kind]
+        tracker = self._tracker_box(v, (bx0, by0, bx1, by1), d, class_id, frng)
+        return VehicleTruth(track_id=v.track_id, box=(bx0, by0, bx1, by1), tracker_box=tracker, brake=brake_s, left=left,
+                            right=right, intent=intent_from_lights(left, right), view=v.view, occlusion=occlusion, kind=v.kind,
+                            lamp_design=v.style.design, class_id=class_id)
+
+    def _tracker_box(self, v: _Vehicle, box: Tuple[float, float, float, float], d: _Drawn, class_id: str,
+                     frng: np.random.Generator) -> Optional[TrackBox]:
+        """What a tracker would report: jittered, sometimes too large, cut off or missing."""
+        r = frng.random()
+        jit = frng.normal(0, 1, 4)
+        mode = frng.random()
+        side = int(frng.integers(0, 4))
+        amount = frng.uniform(0.08, 0.3)
+        if r < 0.03:
+            return None
+        x0, y0, x1, y1 = box
+        if mode < 0.25:
+            # Amodal box: the tracker keeps the full extent behind an occluder (clipped to the image).
+            fx0, fy0, fx1, fy1 = d.box
+            x0, y0 = max(0.0, fx0), max(0.0, fy0)
+            x1, y1 = min(float(self.width), fx1), min(float(self.height), fy1)
+        w, h = x1 - x0, y1 - y0
+        b = v.tracker_bias
+        s = v.tracker_sigma
+        x0 += (b[0] + s * jit[0]) * w
+        x1 += (b[1] + s * jit[1]) * w
+        y0 += (b[2] + s * jit[2]) * h
+        y1 += (b[3] + s * jit[3]) * h
+        if 0.25 <= mode < 0.33:  # too large
+            x0, x1 = x0 - amount * w * 0.5, x1 + amount * w * 0.5
+            y0, y1 = y0 - amount * h * 0.5, y1 + amount * h * 0.5
+        elif 0.33 <= mode < 0.39:  # cut off on one side
+            if side == 0:
+                x0 += amount * w
+            elif side == 1:
+                x1 -= amount * w
+            elif side == 2:
+                y0 += amount * h
+            else:
+                y1 -= amount * h
+        return TrackBox(v.track_id, float(x0), float(y0), float(x1), float(y1), class_id)
