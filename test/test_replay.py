@@ -321,6 +321,16 @@ def test_cli_replay_prints_summary_and_metrics(small_bag, tmp_path, capsys):
                  str(tmp_path / "missing.pt"), "--no-progress", "--overwrite"]) == 2
 
 
+def test_rendered_scene_bag_end_to_end(tmp_path):
+    from signal_light_node.synth_bag import DETECTIONS_TOPIC, write_scene_bag
+
+    bag = tmp_path / "scene"
+    write_scene_bag(bag, seed=11, n_frames=12, fps=10.0, width=480, height=270, n_vehicles=3)
+    summary = replay_bag(bag, tmp_path / "out", _tiny_engine(), progress=False)
+    assert summary.has_ground_truth and summary.tracks
+    assert _check_structure(bag, tmp_path / "out", summary.image_topic, DETECTIONS_TOPIC) == 12
+
+
 # ------------------------------------------------------------------ committed bags
 
 
