@@ -51,7 +51,8 @@ POSITIVE_CLASSES: Dict[str, Tuple[int, ...]] = {
     **{t: (int(LightStatus.ON),) for t in LIGHT_TASKS},
 }
 
-#: Upper edges (exclusive) of the box-size bands in pixels (the box's longer side).
+#: Upper edges (exclusive) of the box-size bands in pixels (``sqrt(width * height)`` of
+#: the tracked box, as the data stream records it).
 BOX_SIZE_EDGES: Tuple[float, ...] = (32.0, 64.0, 128.0)
 BOX_SIZE_BANDS: Tuple[str, ...] = ("<32px", "32-64px", "64-128px", ">=128px")
 
@@ -239,7 +240,7 @@ def _band(values: ArrayLike, edges: Sequence[float], names: Sequence[str]) -> np
 
 
 def box_size_band(size_px: ArrayLike) -> np.ndarray:
-    """Band name of each box size (longer side in pixels); NaN gives ``"unknown"``."""
+    """Band name of each box size in pixels (<32, 32-64, 64-128, >=128); NaN gives ``"unknown"``."""
     return _band(size_px, BOX_SIZE_EDGES, BOX_SIZE_BANDS)
 
 

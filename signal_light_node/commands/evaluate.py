@@ -1,0 +1,185 @@
+"""``signal-light evaluate``: score a checkpoint, frame by frame, as the engine runs it.
+
+Data (one of): a materialised split (``--split DIR``), labelled bags (``--bags``), the
+UC Merced layout (``--ucm``), or synthetic tracks rendered on the fly
+(``--synthetic-seed N --tracks N``; the same seed always gives the same tracks).
+
+Every track is stepped through ``model.step`` from a fresh state; frames in the warm-up
+(the first ``max(--warmup-frames, --warmup-seconds)`` of each track) are not scored, and
+a second report also leaves out ``--grace`` seconds after each ground-truth change (see
+:mod:`signal_light_node.training.evaluation`). Writes ``metrics.json``, ``metrics.md``,
+``confusion_intent.png`` (no grace window) and ``confusion_intent_grace.png`` into
+``--out`` and prints the Markdown.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+from itertools import islice
+from pathlib import Path
+from typing import Any, Dict, Iterable, Iterator, Optional, Tuple
+
+from signal_light_node.errors import ConfigError
+
+logger = logging.getLogger(__name__)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``signal-light evaluate``."""
+    parser.formatter_class = argparse.ArgumentDefaultsHelpFormatter
+    parser.add_argument("--checkpoint", type=Path, default=None,
+                        help="checkpoint to score (default: the shipped weights)")
+    parser.add_argument("--out", type=Path, required=True, help="directory for the reports")
+    data = parser.add_argument_group("data (choose one)")
+    data.add_argument("--split", type=Path, default=None, help="materialised split directory")
+    data.add_argument("--bags", nargs="+", type=Path, default=[], metavar="BAG",
+                      help="bags with /ground_truth/vehicle_lights, images and detections")
+    data.add_argument("--ucm", nargs="+", type=Path, default=[], metavar="ROOT",
+                      help="UC Merced Vehicle Rear Signal dataset roots")
+    data.add_argument("--synthetic-seed", type=int, default=None,
+                      help="render synthetic test tracks from this stream seed")
+    data.add_argument("--tracks", type=int, default=200,
+                      help="number of synthetic tracks (with --synthetic-seed)")
+    data.add_argument("--track-frames", type=int, default=120,
+                      help="frames per synthetic scene (with --synthetic-seed)")
+    data.add_argument("--lighting", default="unknown",
+                      help="lighting recorded for bag tracks (bags do not carry it)")
+    rules = parser.add_argument_group("scoring")
+    rules.add_argument("--warmup-frames", type=int, default=10,
+                       help="frames at the start of each track not scored")
+    rules.add_argument("--warmup-seconds", type=float, default=1.0,
+                       help="seconds at the start of each track not scored")
+    rules.add_argument("--grace", type=float, default=0.5,
+                       help="seconds after each label change left out of the grace report")
+    parser.add_argument("--batch-tracks", type=int, default=32, help="tracks stepped together")
+    parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
+    parser.add_argument("--threads", type=int, default=None, help="torch threads")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def _tracks(args: argparse.Namespace, crop: Any) -> Tuple[Iterable[Any], Optional[int], Dict]:
+    """The chosen data as an iterable of tracks, its length if known, and a description."""
+    from signal_light_node.training import sources
+
+    chosen = [name for name, given in (("--split", args.split is not None),
+                                       ("--bags", bool(args.bags)), ("--ucm", bool(args.ucm)),
+                                       ("--synthetic-seed", args.synthetic_seed is not None))
+              if given]
+    if len(chosen) != 1:
+        raise ConfigError("choose exactly one of --split, --bags, --ucm, --synthetic-seed"
+                          + (f" (got {', '.join(chosen)})" if chosen else ""))
+    if args.split is not None:
+        from signal_light_node.data.split import SequenceSplit
+
+        split = SequenceSplit(args.split)
+        if split.crop != crop:
+            raise ConfigError(f"split {args.split} was cropped with {split.crop}, the model "
+                              f"needs {crop}")
+
+        def gen() -> Iterator[Any]:
+            for i in range(len(split)):
+                yield sources.track_from_item(split[i], f"{args.split.name}:{i}")
+
+        return gen(), len(split), {"split": str(args.split), **split.summary()}
+    if args.bags:
+        tracks = []
+        for bag in args.bags:
+            tracks += sources.load_bag_tracks(bag, crop, lighting=args.lighting)
+        return tracks, len(tracks), {"bags": [str(b) for b in args.bags]}
+    if args.ucm:
+        tracks = []
+        for root in args.ucm:
+            tracks += sources.load_ucm_tracks(root, crop)
+        return tracks, len(tracks), {"ucm": [str(u) for u in args.ucm]}
+    if args.tracks < 1 or args.track_frames < 2:
+        raise ConfigError("--tracks must be >= 1 and --track-frames >= 2")
+    from signal_light_node.data.stream import SyntheticSequenceStream
+
+    stream = SyntheticSequenceStream(int(args.synthetic_seed), int(args.track_frames), crop,
+                                     mirror_prob=0.0, jitter=False, full_tracks=True, rank=0)
+    items = islice(stream.sequences(worker_id=0), int(args.tracks))
+    gen = (sources.track_from_item(item, f"synthetic:{args.synthetic_seed}:{i}")
+           for i, item in enumerate(items))
+    return gen, int(args.tracks), {"synthetic_seed": int(args.synthetic_seed),
+                                   "tracks": int(args.tracks),
+                                   "track_frames": int(args.track_frames)}
+
+
+def _headline(result: Dict[str, Any]) -> str:
+    lines = ["| report | intent macro-F1 | brake accuracy | intent FP | intent FN | "
+             "lights FP | lights FN |", "|---|---:|---:|---:|---:|---:|---:|"]
+    for key, name in (("no_grace", "after warm-up"), ("grace", "after warm-up, with grace")):
+        s = result[key]["summary"]
+
+        def pct(v: Optional[float]) -> str:
+            return "–" if v is None else f"{100 * v:.1f} %"
+
+        lines.append(f"| {name} | {pct(s['intent_macro_f1'])} | {pct(s['brake_accuracy'])} | "
+                     f"{pct(s['intent_fp_rate'])} | {pct(s['intent_fn_rate'])} | "
+                     f"{pct(s['lights_fp_rate'])} | {pct(s['lights_fn_rate'])} |")
+    return "\n".join(lines)
+
+
+def render_markdown(result: Dict[str, Any]) -> str:
+    """The whole evaluation as Markdown (headline, then both full reports)."""
+    from signal_light_node.metrics import markdown_report
+
+    st, counts = result["settings"], result["counts"]
+    parts = [
+        f"## Evaluation of `{result['checkpoint']}`", "",
+        f"Data: `{json.dumps(result['data_brief'])}`", "",
+        f"{counts['tracks']} tracks, {counts['stepped']} frames stepped through `model.step`, "
+        f"{counts['scored']} scored after the warm-up (first max({st['warmup_frames']} frames, "
+        f"{st['warmup_seconds']:g} s) of each track, {counts['warmup_excluded']} frames). "
+        f"Grace window: {st['grace_seconds']:g} s after each ground-truth change of a head.", "",
+        _headline(result), "",
+        markdown_report(result["no_grace"], "After warm-up (no grace window)"),
+        markdown_report(result["grace"],
+                        f"After warm-up, {st['grace_seconds']:g} s grace window after label changes"),
+    ]
+    return "\n".join(parts)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Evaluate and write the reports; prints the Markdown."""
+    import numpy as np
+    import torch
+
+    from signal_light_node.labels import CLASS_NAMES
+    from signal_light_node.metrics import render_confusion_png
+    from signal_light_node.model import DEFAULT_WEIGHTS, load_checkpoint
+    from signal_light_node.training.evaluation import EvalSettings, evaluate_tracks
+
+    if args.threads:
+        torch.set_num_threads(int(args.threads))
+    checkpoint = args.checkpoint or DEFAULT_WEIGHTS
+    loaded = load_checkpoint(checkpoint, map_location=args.device)
+    settings = EvalSettings(warmup_frames=args.warmup_frames,
+                            warmup_seconds=args.warmup_seconds, grace_seconds=args.grace,
+                            batch_tracks=args.batch_tracks)
+    tracks, total, data = _tracks(args, loaded.config.crop_config())
+    started = time.monotonic()
+    result = evaluate_tracks(loaded.model.to(args.device), tracks, settings, args.device,
+                             progress=not args.no_progress, total=total)
+    result = {"checkpoint": str(checkpoint), "data": data,
+              "data_brief": {k: v for k, v in data.items()
+                             if k not in ("label_histogram", "lighting")},
+              "seconds": round(time.monotonic() - started, 1),
+              "checkpoint_meta": {k: loaded.meta.get(k) for k in
+                                  ("training_data", "created", "package_version")}, **result}
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")
+    markdown = render_markdown(result)
+    (out / "metrics.md").write_text(markdown)
+    for key, name in (("no_grace", "confusion_intent.png"), ("grace", "confusion_intent_grace.png")):
+        intent = result[key]["overall"].get("intent")
+        matrix = np.asarray(intent["confusion"]) if intent else np.zeros((5, 5), np.int64)
+        render_confusion_png(matrix, CLASS_NAMES["intent"], str(out / name),
+                             title=f"intent, {'grace window' if key == 'grace' else 'after warm-up'}")
+    print(markdown)
+    logger.info("wrote %s/metrics.json, metrics.md, confusion_intent.png", out)
+    return 0

@@ -1,0 +1,149 @@
+"""``signal-light train``: train (or fine-tune) the light-state model.
+
+Examples::
+
+    # from scratch on the synthetic stream, 60 minutes on this CPU
+    signal-light train --out runs/syn --max-minutes 60
+
+    # fine-tune the shipped weights on your labelled bags and the UCM dataset
+    signal-light train --out runs/ft --init-from default --bags my.bag --ucm ~/ucm --steps 2000
+
+    # resume an interrupted run (last.pt + last.state.pt in --out)
+    signal-light train --out runs/syn --max-minutes 30 --resume
+
+    # data-parallel over two processes (gloo on CPU; NCCL with --device cuda)
+    torchrun --nproc_per_node=2 -m signal_light_node.cli train --out runs/ddp --steps 1000
+
+See :mod:`signal_light_node.training.train` for the recipe and the files written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any, Dict
+
+from signal_light_node.errors import ConfigError
+
+
+def _key_values(text: str, what: str) -> Dict[str, Any]:
+    """Parse ``a=1,b=x`` or a JSON object into a dict (values JSON-decoded when possible)."""
+    text = text.strip()
+    if not text:
+        return {}
+    if text.startswith("{"):
+        try:
+            value = json.loads(text)
+        except ValueError as exc:
+            raise ConfigError(f"{what}: invalid JSON: {exc}") from None
+        if not isinstance(value, dict):
+            raise ConfigError(f"{what}: expected a JSON object")
+        return value
+    out: Dict[str, Any] = {}
+    for part in text.split(","):
+        key, sep, raw = part.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"{what}: expected key=value pairs, got {part!r}")
+        try:
+            out[key.strip()] = json.loads(raw)
+        except ValueError:
+            out[key.strip()] = raw.strip()
+    return out
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``signal-light train``."""
+    parser.formatter_class = argparse.ArgumentDefaultsHelpFormatter
+    g = parser.add_argument_group("run")
+    g.add_argument("--out", required=True, type=Path, help="output directory (checkpoints, logs)")
+    g.add_argument("--steps", type=int, default=None, help="total optimiser steps to reach")
+    g.add_argument("--max-minutes", type=float, default=None,
+                   help="wall-clock budget of this invocation")
+    g.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
+    g.add_argument("--seed", type=int, default=0, help="seed of init, data and sampling")
+    g.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    g.add_argument("--workers", type=int, default=1,
+                   help="DataLoader processes rendering synthetic data (0: in the main process)")
+    g.add_argument("--resume", nargs="?", const="", default=None, metavar="CKPT",
+                   help="resume from CKPT (default OUT/last.pt) and its .state.pt")
+    g.add_argument("--init-from", default=None, metavar="CKPT",
+                   help="start from these weights ('default' = the shipped weights)")
+    g.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+    g = parser.add_argument_group("data")
+    g.add_argument("--bags", nargs="+", type=Path, default=[], metavar="BAG",
+                   help="labelled bags (/ground_truth/vehicle_lights + images + detections)")
+    g.add_argument("--ucm", nargs="+", type=Path, default=[], metavar="ROOT",
+                   help="UC Merced Vehicle Rear Signal dataset roots")
+    g.add_argument("--synthetic-fraction", type=float, default=None,
+                   help="share of synthetic sequences (default 1 without --bags/--ucm, else 0)")
+    g.add_argument("--batch", type=int, default=8, help="sequences per step (per process)")
+    g.add_argument("--seq-len", type=int, default=16, help="frames per training sequence")
+    g.add_argument("--no-mirror", action="store_true", help="no mirroring augmentation")
+    g.add_argument("--no-jitter", action="store_true", help="no colour jitter")
+    g.add_argument("--no-balance", action="store_true",
+                   help="do not thin the synthetic stream towards equal rare-class strata")
+    g.add_argument("--stream", default="", metavar="K=V,...",
+                   help="extra SyntheticSequenceStream options, e.g. 'vehicles=[2,5]'")
+
+    g = parser.add_argument_group("optimisation")
+    g.add_argument("--lr", type=float, default=2e-3, help="initial Adam learning rate")
+    g.add_argument("--weight-decay", type=float, default=1e-4, help="L2 on dense layers")
+    g.add_argument("--task-weights", default="", metavar="T=W,...",
+                   help="loss weight per head, e.g. 'intent=1,brake=1,left=0.5,right=0.5,view=0.5'")
+    g.add_argument("--class-weight-power", type=float, default=0.5,
+                   help="class weights (share)^-power; 0 disables")
+    g.add_argument("--loss-warmup", type=int, default=3,
+                   help="leading frames per window without intent/left/right loss")
+    g.add_argument("--model", default="", metavar="K=V,...",
+                   help="ModelConfig fields, e.g. 'use_attention=false' (ignored with --init-from)")
+
+    g = parser.add_argument_group("validation")
+    g.add_argument("--val-split", type=Path, default=None,
+                   help="materialised split to validate on (default: OUT/val_split, "
+                        "or held-out bag/UCM tracks)")
+    g.add_argument("--val-sequences", type=int, default=96,
+                   help="size of OUT/val_split when it has to be made")
+    g.add_argument("--val-every", type=int, default=200, help="steps between validations")
+    g.add_argument("--val-fraction", type=float, default=0.1,
+                   help="share of bag/UCM tracks held out for validation")
+    g.add_argument("--patience", type=int, default=3,
+                   help="validations without improvement before the LR drops")
+
+
+def options_from_args(args: argparse.Namespace) -> "Any":
+    """Turn parsed arguments into :class:`TrainOptions`."""
+    from signal_light_node.training.train import DEFAULT_TASK_WEIGHTS, TrainOptions
+
+    task_weights = dict(DEFAULT_TASK_WEIGHTS)
+    task_weights.update({k: float(v) for k, v in
+                         _key_values(args.task_weights, "--task-weights").items()})
+    resume = None
+    if args.resume is not None:
+        resume = Path(args.resume) if args.resume else args.out / "last.pt"
+    return TrainOptions(
+        out=args.out, max_steps=args.steps, max_minutes=args.max_minutes, batch=args.batch,
+        seq_len=args.seq_len, lr=args.lr, weight_decay=args.weight_decay,
+        task_weights=task_weights, class_weight_power=args.class_weight_power,
+        balance=not args.no_balance, loss_warmup=args.loss_warmup, val_split=args.val_split,
+        val_sequences=args.val_sequences, val_every=args.val_every,
+        val_fraction=args.val_fraction, plateau_patience=args.patience, device=args.device,
+        seed=args.seed, threads=args.threads, workers=args.workers, resume=resume,
+        init_from=Path(args.init_from) if args.init_from else None, bags=list(args.bags),
+        ucm=list(args.ucm), synthetic_fraction=args.synthetic_fraction,
+        mirror_prob=0.0 if args.no_mirror else 0.5, jitter=not args.no_jitter,
+        model=_key_values(args.model, "--model"), stream=_key_values(args.stream, "--stream"),
+        progress=not args.no_progress)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Train; prints a JSON summary (rank 0 only under torchrun)."""
+    from signal_light_node.training.train import train
+
+    summary = train(options_from_args(args))
+    import os
+
+    if int(os.environ.get("RANK", "0")) == 0:
+        print(json.dumps(summary, indent=2))
+    return 0

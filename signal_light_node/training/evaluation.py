@@ -1,0 +1,211 @@
+"""Streaming evaluation: every track stepped frame by frame, as the engine steps it.
+
+Each track starts from ``model.initial_state`` and is advanced one ``model.step`` per
+observed frame (frames with ``mask`` False, e.g. a box that could not be cropped, are
+neither stepped nor scored, as the engine never judges them). Tracks are batched only
+for speed: at frame index ``t`` every track of the batch that has a frame ``t`` is
+stepped together, which gives the same outputs as stepping each track alone. The
+predicted class of a head is the argmax of its probabilities, as in the engine.
+
+Scoring rules (documented in the report's ``settings``):
+
+* **Warm-up**: the first frames of every track are not scored: a frame is scored only
+  when at least ``warmup_frames`` frames of the track came before it *and* at least
+  ``warmup_seconds`` have passed since the track's first frame (a blink needs about one
+  cycle, 0.5–1 s, before it can be told from a lamp that is off).
+* **Grace window** (second report): for each head separately, frames within
+  ``grace_seconds`` after a change of that head's ground-truth label (the frame of the
+  change included) are not scored either, since the model needs a moment to notice that
+  a blinker was switched on or off.
+
+Breakdowns: lighting (the track's), view (the ground-truth view of the frame), box-size
+band and occlusion band (:mod:`signal_light_node.metrics`).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass
+from typing import Any, Dict, Iterable, Iterator, List, Optional, Sequence
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from signal_light_node.errors import ConfigError
+from signal_light_node.labels import CLASS_NAMES, TASKS
+from signal_light_node.metrics import MetricAccumulator, box_size_band, occlusion_band
+from signal_light_node.model import select_state, to_input
+from signal_light_node.training.sources import TrackSequence
+
+logger = logging.getLogger(__name__)
+
+_VIEW = TASKS.index("view")
+
+
+@dataclass(frozen=True)
+class EvalSettings:
+    """Scoring rules (see the module docstring).
+
+    Attributes:
+        warmup_frames: Frames at the start of each track that are never scored.
+        warmup_seconds: Time from a track's first frame during which nothing is scored.
+        grace_seconds: Time after each ground-truth change not scored in the grace report.
+        batch_tracks: Tracks stepped together.
+    """
+
+    warmup_frames: int = 10
+    warmup_seconds: float = 1.0
+    grace_seconds: float = 0.5
+    batch_tracks: int = 32
+
+    def __post_init__(self) -> None:
+        if self.warmup_frames < 0 or self.warmup_seconds < 0 or self.grace_seconds < 0:
+            raise ConfigError("warm-up and grace window must be >= 0")
+        if self.batch_tracks < 1:
+            raise ConfigError(f"batch_tracks must be >= 1, got {self.batch_tracks}")
+
+
+def warmup_mask(track: TrackSequence, settings: EvalSettings) -> np.ndarray:
+    """bool ``[T]``: True for frames scored after the warm-up (valid frames only).
+
+    A frame is past the warm-up when ``warmup_frames`` valid frames of the track precede
+    it and its stamp is at least ``warmup_seconds`` after the first valid frame's.
+    """
+    valid = np.asarray(track.mask, bool)
+    out = np.zeros(len(track), bool)
+    if not valid.any():
+        return out
+    order = np.cumsum(valid) - 1  # number of valid frames before each frame
+    t0 = track.stamps_ns[np.flatnonzero(valid)[0]]
+    late = (track.stamps_ns - t0) >= int(round(settings.warmup_seconds * 1e9))
+    return valid & (order >= settings.warmup_frames) & late
+
+
+def grace_mask(track: TrackSequence, task_index: int, settings: EvalSettings) -> np.ndarray:
+    """bool ``[T]``: False for frames within the grace window after a label change.
+
+    A change is a valid frame whose label differs from the previous valid frame's; the
+    window covers stamps in ``[change, change + grace_seconds)``.
+    """
+    valid = np.flatnonzero(np.asarray(track.mask, bool) & (track.labels[:, task_index] >= 0))
+    keep = np.ones(len(track), bool)
+    if valid.size < 2 or settings.grace_seconds <= 0:
+        return keep
+    lab = track.labels[valid, task_index]
+    changes = valid[1:][lab[1:] != lab[:-1]]
+    grace = int(round(settings.grace_seconds * 1e9))
+    for c in changes:
+        start = track.stamps_ns[c]
+        keep &= ~((track.stamps_ns >= start) & (track.stamps_ns < start + grace))
+    return keep
+
+
+@torch.no_grad()
+def predict_track_batch(model: Any, tracks: Sequence[TrackSequence],
+                        device: torch.device) -> List[np.ndarray]:
+    """Step a batch of tracks frame by frame; returns int64 ``[T_i, len(TASKS)]`` each.
+
+    Rows of frames that are not stepped (mask False) are -1.
+    """
+    n = len(tracks)
+    length = max(len(t) for t in tracks)
+    preds = [np.full((len(t), len(TASKS)), -1, np.int64) for t in tracks]
+    state = model.initial_state(n)
+    for i in range(length):
+        active = [k for k, t in enumerate(tracks) if i < len(t) and bool(t.mask[i])]
+        if not active:
+            continue
+        crops = np.stack([tracks[k].crop_window(i, i + 1)[0] for k in active])
+        index = torch.as_tensor(active, dtype=torch.long, device=device)
+        sub = select_state(state, index) if len(active) < n else state
+        probs, new_sub = model.step(to_input(crops).to(device), sub)
+        labels = np.stack([probs[t].argmax(1).cpu().numpy() for t in TASKS], axis=1)
+        for row, k in enumerate(active):
+            preds[k][i] = labels[row]
+        if len(active) == n:
+            state = new_sub
+        else:
+            # Scatter the stepped rows back; untouched rows keep their state.
+            state = tuple((h.index_copy(0, index, nh), c.index_copy(0, index, nc))
+                          for (h, c), (nh, nc) in zip(state, new_sub))
+    return preds
+
+
+def _groups(track: TrackSequence, rows: np.ndarray) -> Dict[str, Any]:
+    view = track.labels[rows, _VIEW]
+    names = np.array(CLASS_NAMES["view"] + ("unknown",), dtype=object)
+    view_names = names[np.where((view >= 0) & (view < len(CLASS_NAMES["view"])), view, -1)]
+    return {"lighting": track.lighting or "unknown",
+            "view": view_names,
+            "box_size": box_size_band(track.box_size[rows]),
+            "occlusion": occlusion_band(track.occlusion[rows])}
+
+
+def _chunks(tracks: Iterable[TrackSequence], size: int) -> Iterator[List[TrackSequence]]:
+    chunk: List[TrackSequence] = []
+    for track in tracks:
+        chunk.append(track)
+        if len(chunk) == size:
+            yield chunk
+            chunk = []
+    if chunk:
+        yield chunk
+
+
+def evaluate_tracks(model: Any, tracks: Iterable[TrackSequence],
+                    settings: EvalSettings = EvalSettings(),
+                    device: "str | torch.device" = "cpu", progress: bool = True,
+                    total: Optional[int] = None) -> Dict[str, Any]:
+    """Score a model on tracks with and without the grace window.
+
+    Tracks are consumed lazily, ``settings.batch_tracks`` at a time, so a long test set
+    never has to sit in memory at once.
+
+    Args:
+        model: A ``LightStateModel`` (eval mode is set here).
+        tracks: Tracks with ground truth (any iterable).
+        settings: Scoring rules.
+        device: Where to run the model.
+        progress: Show a progress bar.
+        total: Number of tracks, for the progress bar.
+
+    Returns:
+        ``{"settings", "counts", "no_grace": report, "grace": report}`` where the reports
+        come from :meth:`MetricAccumulator.report` and ``counts`` says how many frames
+        were stepped, excluded by the warm-up and (per head) by the grace window.
+
+    Raises:
+        ConfigError: There were no tracks.
+    """
+    device = torch.device(device)
+    model.eval()
+    strict, graced = MetricAccumulator(), MetricAccumulator()
+    counts = {"tracks": 0, "frames": 0, "stepped": 0, "warmup_excluded": 0,
+              "scored": 0, "grace_excluded": {t: 0 for t in TASKS}}
+    bar = tqdm(total=total, desc="evaluate", unit="track", disable=not progress)
+    for batch in _chunks(tracks, settings.batch_tracks):
+        preds = predict_track_batch(model, batch, device)
+        for track, pred in zip(batch, preds):
+            stepped = np.asarray(track.mask, bool)
+            scored = warmup_mask(track, settings)
+            counts["tracks"] += 1
+            counts["frames"] += len(track)
+            counts["stepped"] += int(stepped.sum())
+            counts["warmup_excluded"] += int((stepped & ~scored).sum())
+            counts["scored"] += int(scored.sum())
+            rows = np.flatnonzero(scored)
+            groups = _groups(track, rows)
+            for i, task in enumerate(TASKS):
+                y, p = track.labels[rows, i], pred[rows, i]
+                strict.add(task, y, p, groups)
+                keep = grace_mask(track, i, settings)[rows]
+                counts["grace_excluded"][task] += int((~keep).sum())
+                graced.add(task, y[keep], p[keep],
+                           {k: (v if isinstance(v, str) else v[keep]) for k, v in groups.items()})
+        bar.update(len(batch))
+    bar.close()
+    if counts["tracks"] == 0:
+        raise ConfigError("nothing to evaluate: no tracks")
+    return {"settings": asdict(settings), "counts": counts, "no_grace": strict.report(),
+            "grace": graced.report()}

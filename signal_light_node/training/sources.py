@@ -1,0 +1,471 @@
+"""Data sources other than the live synthetic stream, as per-track sequences.
+
+Every source is turned into :class:`TrackSequence` objects: one vehicle track, its crops
+(cut with :func:`signal_light_node.crops.crop_vehicle`, the one crop code), one label
+row per frame in ``labels.TASKS`` order, and what the evaluation groups by (lighting,
+box size, occlusion). Training draws windows from them with :class:`WindowDataset`;
+evaluation streams them frame by frame.
+
+Sources:
+
+* **Labelled bags** (:func:`load_bag_tracks`): images (raw or compressed), tracked
+  detections (``vision_msgs/Detection2DArray``) and ground truth on
+  ``/ground_truth/vehicle_lights`` (``signal_light_msgs/VehicleLightStateArray``), matched
+  by header stamp. A vehicle is used in a frame when the frame has its detection (the
+  box the engine would crop) and its ground-truth entry (same track ID).
+* **UC Merced Vehicle Rear Signal layout** (:func:`load_ucm_tracks`):
+  ``<footage>/<footage>_<XXX>/<footage>_<XXX>_<start>/light_mask/frameNNNNNNNN.png``
+  with XXX in OOO, BOO, OLO, BLO, OOR, BOR, OLR, BLR (B brake, L left, R right, O off).
+  Every image is already a crop of one vehicle seen from behind, so the whole image is
+  the box; the label holds for the whole sequence. Frames are read lazily.
+* **Materialised synthetic splits** (:func:`split_tracks`): items of
+  :class:`signal_light_node.data.split.SequenceSplit`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Dict, Iterator, List, Mapping, Optional, Sequence, Tuple
+
+import cv2
+import numpy as np
+import torch
+
+from signal_light_node.boxes import TrackBox
+from signal_light_node.crops import CropConfig, crop_vehicle
+from signal_light_node.data.stream import PAD_LABEL
+from signal_light_node.errors import BagIOError, ConfigError, CropError
+from signal_light_node.labels import TASKS, Intent, LightStatus, View, intent_from_lights
+
+logger = logging.getLogger(__name__)
+
+GROUND_TRUTH_TOPIC = "/ground_truth/vehicle_lights"
+IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+DETECTION_TYPE = "vision_msgs/msg/Detection2DArray"
+GROUND_TRUTH_TYPE = "signal_light_msgs/msg/VehicleLightStateArray"
+
+#: The eight UCM sequence codes: (brake, left, right) letters, O = off.
+UCM_CODES = ("OOO", "BOO", "OLO", "BLO", "OOR", "BOR", "OLR", "BLR")
+_UCM_FRAME = re.compile(r"^frame(\d+)\.png$", re.IGNORECASE)
+
+
+@dataclass
+class TrackSequence:
+    """One vehicle track as the model sees it.
+
+    Attributes:
+        track_id: Unique name of the track within its source.
+        labels: int64 ``[T, len(TASKS)]`` ground truth per frame (negative = not labelled).
+        mask: bool ``[T]``; False for frames without a usable crop (never stepped).
+        stamps_ns: int64 ``[T]`` frame times.
+        box_size: float ``[T]`` box size ``sqrt(width * height)`` in pixels (NaN if unknown).
+        occlusion: float ``[T]`` hidden fraction 0..1 (NaN if unknown).
+        lighting: "day", "dusk", "night" or "unknown".
+        source: Where the track came from (for reports).
+        crops: uint8 ``[T, S, S, 3]`` when held in memory, else None.
+        frame_paths: Image files cropped on demand when ``crops`` is None.
+        crop_config: Crop settings for ``frame_paths``.
+    """
+
+    track_id: str
+    labels: np.ndarray
+    mask: np.ndarray
+    stamps_ns: np.ndarray
+    box_size: np.ndarray
+    occlusion: np.ndarray
+    lighting: str = "unknown"
+    source: str = ""
+    crops: Optional[np.ndarray] = None
+    frame_paths: Optional[List[Path]] = None
+    crop_config: CropConfig = field(default_factory=CropConfig)
+
+    def __len__(self) -> int:
+        return int(self.labels.shape[0])
+
+    @property
+    def fps(self) -> float:
+        """Frame rate from the stamps (10 Hz when fewer than two frames)."""
+        if len(self) < 2:
+            return 10.0
+        span = float(self.stamps_ns[-1] - self.stamps_ns[0]) / 1e9
+        return (len(self) - 1) / span if span > 0 else 10.0
+
+    def crop_window(self, start: int, stop: int) -> np.ndarray:
+        """Crops of frames ``start..stop-1`` as uint8 ``[n, S, S, 3]``.
+
+        Raises:
+            ConfigError: The window is outside the track.
+            CropError: A lazily read frame cannot be read.
+        """
+        if not 0 <= start <= stop <= len(self):
+            raise ConfigError(f"window {start}..{stop} outside track {self.track_id} "
+                              f"of {len(self)} frames")
+        if self.crops is not None:
+            return self.crops[start:stop]
+        if self.frame_paths is None:
+            raise ConfigError(f"track {self.track_id} has neither crops nor frame paths")
+        return np.stack([_read_full_image_crop(p, self.crop_config)
+                         for p in self.frame_paths[start:stop]]) if stop > start else \
+            np.zeros((0, self.crop_config.size, self.crop_config.size, 3), np.uint8)
+
+
+def _read_full_image_crop(path: Path, config: CropConfig) -> np.ndarray:
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise CropError(f"cannot read image {path}")
+    h, w = image.shape[:2]
+    return crop_vehicle(image, TrackBox(path.name, 0.0, 0.0, float(w), float(h)), config)
+
+
+# ------------------------------------------------------------------------------- UCM
+
+
+def ucm_labels(code: str) -> np.ndarray:
+    """Label row (``TASKS`` order) of a UCM sequence code such as ``"BLO"``.
+
+    Raises:
+        ConfigError: ``code`` is not one of :data:`UCM_CODES`.
+    """
+    code = code.upper()
+    if code not in UCM_CODES:
+        raise ConfigError(f"unknown UCM sequence code {code!r}; expected one of {UCM_CODES}")
+    on, off = int(LightStatus.ON), int(LightStatus.OFF)
+    brake = on if code[0] == "B" else off
+    left = on if code[1] == "L" else off
+    right = on if code[2] == "R" else off
+    row = {"intent": int(intent_from_lights(left, right)), "brake": brake, "left": left,
+           "right": right, "view": int(View.BEHIND)}
+    return np.array([row[t] for t in TASKS], dtype=np.int64)
+
+
+def find_ucm_sequences(root: Path) -> List[Tuple[str, Path]]:
+    """``(code, light_mask dir)`` of every sequence under a UCM root, sorted by path.
+
+    Raises:
+        ConfigError: ``root`` is not a directory or holds no sequence in the layout.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise ConfigError(f"UCM root {root} is not a directory")
+    found = []
+    for mask_dir in sorted(root.glob("*/*/*/light_mask")):
+        seq_dir, code_dir, footage_dir = mask_dir.parent, mask_dir.parent.parent, \
+            mask_dir.parent.parent.parent
+        prefix = footage_dir.name + "_"
+        if not code_dir.name.startswith(prefix):
+            continue
+        code = code_dir.name[len(prefix):].upper()
+        if code not in UCM_CODES or not seq_dir.name.startswith(code_dir.name + "_"):
+            logger.debug("skipping %s: not in the UCM layout", mask_dir)
+            continue
+        found.append((code, mask_dir))
+    if not found:
+        raise ConfigError(f"no sequence in the UCM layout "
+                          f"<footage>/<footage>_<XXX>/<footage>_<XXX>_<start>/light_mask under {root}")
+    return found
+
+
+def load_ucm_tracks(root: Path, crop_config: CropConfig = CropConfig(), fps: float = 15.0
+                    ) -> List[TrackSequence]:
+    """One lazily read track per UCM sequence.
+
+    Args:
+        root: Directory holding the ``<footage>`` folders.
+        crop_config: Crop settings of the model (the whole image is the box).
+        fps: Frame rate assumed for the stamps.
+
+    Returns:
+        Tracks in path order, labelled as a whole by their sequence code, view BEHIND,
+        lighting and occlusion unknown, box size ``sqrt(w * h)`` of the image.
+    """
+    tracks = []
+    for code, mask_dir in find_ucm_sequences(root):
+        frames = []
+        for p in mask_dir.iterdir():
+            m = _UCM_FRAME.match(p.name)
+            if m:
+                frames.append((int(m.group(1)), p))
+        if not frames:
+            logger.warning("UCM sequence %s has no frameNNNNNNNN.png files; skipped", mask_dir)
+            continue
+        frames.sort()
+        paths = [p for _, p in frames]
+        n = len(paths)
+        first = cv2.imread(str(paths[0]), cv2.IMREAD_UNCHANGED)
+        if first is None:
+            raise CropError(f"cannot read image {paths[0]}")
+        size = math.sqrt(float(first.shape[0] * first.shape[1]))
+        numbers = np.array([k for k, _ in frames], dtype=np.int64)
+        stamps = ((numbers - numbers[0]) * (1e9 / fps)).astype(np.int64)
+        tracks.append(TrackSequence(
+            track_id=str(mask_dir.parent.relative_to(root)),
+            labels=np.tile(ucm_labels(code), (n, 1)),
+            mask=np.ones(n, bool),
+            stamps_ns=stamps,
+            box_size=np.full(n, size),
+            occlusion=np.full(n, math.nan),
+            lighting="unknown",
+            source=f"ucm:{code}",
+            frame_paths=paths,
+            crop_config=crop_config,
+        ))
+    logger.info("UCM %s: %d sequences, %d frames", root, len(tracks), sum(len(t) for t in tracks))
+    return tracks
+
+
+# ------------------------------------------------------------------------------- bags
+
+
+def _gt_row(vehicle: Any) -> np.ndarray:
+    row = {"intent": int(vehicle.intent), "brake": int(vehicle.brake.state),
+           "left": int(vehicle.left_blinker.state), "right": int(vehicle.right_blinker.state),
+           "view": int(vehicle.view)}
+    return np.array([row[t] for t in TASKS], dtype=np.int64)
+
+
+def _pick_topic(topics: Mapping[str, Any], types: Sequence[str], wanted: Optional[str],
+                what: str, path: Path) -> str:
+    if wanted:
+        if wanted not in topics:
+            raise BagIOError(f"bag {path} has no topic {wanted} ({what})")
+        return wanted
+    matches = [t for t, info in topics.items() if info.msgtype in types]
+    if not matches:
+        raise BagIOError(f"bag {path} has no {what} topic (types {', '.join(types)})")
+    if len(matches) > 1:
+        logger.warning("bag %s has several %s topics %s; using %s", path, what, matches,
+                       matches[0])
+    return matches[0]
+
+
+def load_bag_tracks(path: Path, crop_config: CropConfig = CropConfig(),
+                    image_topic: Optional[str] = None, detection_topic: Optional[str] = None,
+                    ground_truth_topic: str = GROUND_TRUTH_TOPIC,
+                    lighting: str = "unknown") -> List[TrackSequence]:
+    """Per-track sequences of a bag with ground truth.
+
+    Images, detections and ground truth are matched by header stamp; a frame is used
+    when all three exist for its stamp. Within one frame, a track is used when both its
+    detection and its ground-truth entry exist; a box that cannot be cropped gives a
+    masked frame (never stepped, never scored), as in the engine.
+
+    Args:
+        path: The bag.
+        crop_config: Crop settings of the model.
+        image_topic: Image topic (default: the only/first Image or CompressedImage topic).
+        detection_topic: Detection topic (default: the first Detection2DArray topic).
+        ground_truth_topic: Ground-truth topic.
+        lighting: Lighting written into the tracks (bags do not say).
+
+    Returns:
+        Tracks sorted by track ID; frames of a track in stamp order.
+
+    Raises:
+        BagIOError: The bag cannot be read or lacks one of the three topics.
+    """
+    from signal_light_node.bagio import open_bag
+    from signal_light_node.conversions import detections_to_boxes, stamp_to_ns
+    from signal_light_node.image_codec import msg_to_bgr
+
+    path = Path(path)
+    per_track: Dict[str, Dict[str, list]] = {}
+    pending: Dict[int, Dict[str, Any]] = {}
+    with open_bag(path) as bag:
+        topics = bag.topics()
+        img_t = _pick_topic(topics, IMAGE_TYPES, image_topic, "image", path)
+        det_t = _pick_topic(topics, (DETECTION_TYPE,), detection_topic, "detection", path)
+        gt_t = _pick_topic(topics, (GROUND_TRUTH_TYPE,), ground_truth_topic, "ground truth", path)
+        kinds = {img_t: "image", det_t: "det", gt_t: "gt"}
+        for m in bag.messages([img_t, det_t, gt_t]):
+            stamp = stamp_to_ns(m.msg.header.stamp)
+            entry = pending.setdefault(stamp, {})
+            entry[kinds[m.topic]] = m.msg
+            if len(entry) < 3:
+                continue
+            del pending[stamp]
+            image = msg_to_bgr(entry["image"], img_t, stamp)
+            truth = {str(v.track_id): v for v in entry["gt"].vehicles}
+            for box in detections_to_boxes(entry["det"]):
+                gt = truth.get(box.track_id)
+                if gt is None:
+                    continue
+                rec = per_track.setdefault(box.track_id, {k: [] for k in
+                                                          ("stamp", "crop", "label", "size", "ok")})
+                try:
+                    crop = crop_vehicle(image, box, crop_config)
+                    ok = True
+                except CropError:
+                    crop = np.zeros((crop_config.size, crop_config.size, 3), np.uint8)
+                    ok = False
+                rec["stamp"].append(stamp)
+                rec["crop"].append(crop)
+                rec["label"].append(_gt_row(gt))
+                size = math.sqrt(max(box.width, 0.0) * max(box.height, 0.0))
+                rec["size"].append(float(size) if math.isfinite(size) else math.nan)
+                rec["ok"].append(ok)
+    if pending:
+        logger.info("bag %s: %d stamps lacked an image, detections or ground truth", path,
+                    len(pending))
+    tracks = []
+    for track_id in sorted(per_track):
+        rec = per_track[track_id]
+        order = np.argsort(np.asarray(rec["stamp"]), kind="stable")
+        n = len(order)
+        tracks.append(TrackSequence(
+            track_id=f"{path.name}:{track_id}",
+            labels=np.stack(rec["label"])[order],
+            mask=np.asarray(rec["ok"], bool)[order],
+            stamps_ns=np.asarray(rec["stamp"], np.int64)[order],
+            box_size=np.asarray(rec["size"], np.float64)[order],
+            occlusion=np.full(n, math.nan),
+            lighting=lighting,
+            source=f"bag:{path.name}",
+            crops=np.stack(rec["crop"])[order],
+            crop_config=crop_config,
+        ))
+    if not tracks:
+        raise BagIOError(f"bag {path}: no frame has an image, detections and ground truth with "
+                         f"matching stamps and track IDs")
+    logger.info("bag %s: %d tracks, %d frames", path, len(tracks), sum(len(t) for t in tracks))
+    return tracks
+
+
+# ------------------------------------------------------------------------------ splits
+
+
+def track_from_item(item: Mapping[str, Any], track_id: str, source: str = "synthetic"
+                    ) -> TrackSequence:
+    """A :class:`TrackSequence` from a stream/split item (``crops``, ``labels``, ``mask``, ``meta``)."""
+    crops = np.asarray(item["crops"])
+    labels = np.asarray(item["labels"], dtype=np.int64)
+    n = labels.shape[0]
+    mask = np.asarray(item.get("mask", np.ones(n, bool)), dtype=bool)
+    meta = dict(item.get("meta") or {})
+    fps = float(meta.get("fps") or 10.0)
+    # Frames the tracker missed are left out of a sequence, so time comes from the
+    # frame index (padding has -1 and continues at the frame rate).
+    index = np.asarray(meta.get("frame_index", np.arange(n)), dtype=np.int64).reshape(-1)
+    if index.shape[0] != n:
+        index = np.arange(n)
+    valid = index >= 0
+    if not valid.all():
+        last = int(index[valid].max()) if valid.any() else -1
+        index = index.copy()
+        index[~valid] = last + 1 + np.arange(int((~valid).sum()))
+    stamps = np.round(index * (1e9 / fps)).astype(np.int64)
+
+    def per_frame(key: str) -> np.ndarray:
+        value = meta.get(key)
+        if value is None:
+            return np.full(n, math.nan)
+        arr = np.asarray(value, dtype=np.float64).reshape(-1)
+        return np.full(n, float(arr[0])) if arr.size == 1 else arr
+
+    return TrackSequence(track_id=str(meta.get("track_id", track_id)), labels=labels, mask=mask,
+                         stamps_ns=stamps, box_size=per_frame("box_size"),
+                         occlusion=per_frame("occlusion"),
+                         lighting=str(meta.get("lighting", "unknown")),
+                         source=source, crops=crops)
+
+
+def split_tracks(split_dir: Path) -> List[TrackSequence]:
+    """Every item of a materialised split as a track."""
+    from signal_light_node.data.split import SequenceSplit
+
+    split = SequenceSplit(split_dir)
+    return [track_from_item(split[i], f"{Path(split_dir).name}:{i}", "synthetic")
+            for i in range(len(split))]
+
+
+# ----------------------------------------------------------------------------- windows
+
+Augment = Callable[[Dict[str, Any], np.random.Generator], Dict[str, Any]]
+
+
+class WindowDataset(torch.utils.data.IterableDataset):
+    """Infinite stratified windows of length ``seq_len`` from a fixed set of tracks.
+
+    Items have the layout of the synthetic stream (``crops`` uint8 [T,S,S,3], ``labels``
+    int64 [T,5], ``mask`` bool [T], ``meta``). Tracks shorter than ``seq_len`` are
+    padded with masked frames. Each window is drawn by first choosing a candidate window
+    start uniformly per track and then weighting windows by stratum
+    (:func:`.sampling.stratum_weights`), so rare strata are seen as often as common ones.
+
+    Args:
+        tracks: The tracks.
+        seq_len: Window length T.
+        seed: Base seed; worker ``w`` of rank ``r`` uses ``seed + 7919 * r + w``.
+        augment: Optional ``f(item, rng) -> item`` (mirroring, colour jitter).
+        rank: Process rank under DDP.
+        stride: Distance between candidate window starts inside a track.
+    """
+
+    def __init__(self, tracks: Sequence[TrackSequence], seq_len: int, seed: int = 0,
+                 augment: Optional[Augment] = None, rank: int = 0,
+                 stride: Optional[int] = None) -> None:
+        super().__init__()
+        if not tracks:
+            raise ConfigError("WindowDataset needs at least one track")
+        if seq_len < 1:
+            raise ConfigError(f"seq_len must be >= 1, got {seq_len}")
+        from signal_light_node.training.sampling import sequence_stratum, stratum_weights
+
+        self.tracks = list(tracks)
+        self.seq_len = int(seq_len)
+        self.seed = int(seed)
+        self.rank = int(rank)
+        self.augment = augment
+        stride = max(1, int(stride or max(1, seq_len // 2)))
+        self.windows: List[Tuple[int, int]] = []
+        strata = []
+        for ti, track in enumerate(self.tracks):
+            last = max(0, len(track) - self.seq_len)
+            starts = list(range(0, last + 1, stride))
+            if starts[-1] != last:
+                starts.append(last)
+            for s in starts:
+                self.windows.append((ti, s))
+                end = min(len(track), s + self.seq_len)
+                strata.append(sequence_stratum(track.labels[s:end], track.mask[s:end]))
+        self.strata = strata
+        self.probabilities = stratum_weights(strata)
+
+    def window(self, index: int) -> Dict[str, Any]:
+        """The (unaugmented) window number ``index`` of :attr:`windows`."""
+        ti, start = self.windows[index]
+        track = self.tracks[ti]
+        stop = min(len(track), start + self.seq_len)
+        n = stop - start
+        crops = track.crop_window(start, stop)
+        size = crops.shape[1] if n else track.crop_config.size
+        pad = self.seq_len - n
+        labels = track.labels[start:stop]
+        mask = track.mask[start:stop]
+        if pad:
+            crops = np.concatenate([crops, np.zeros((pad, size, size, 3), np.uint8)])
+            labels = np.concatenate([labels, np.full((pad, labels.shape[1]), PAD_LABEL,
+                                                     np.int64)])
+            mask = np.concatenate([mask, np.zeros(pad, bool)])
+        meta = {"track_id": track.track_id, "source": track.source, "lighting": track.lighting,
+                "box_size": np.pad(track.box_size[start:stop], (0, pad),
+                                   constant_values=np.nan),
+                "occlusion": np.pad(track.occlusion[start:stop], (0, pad),
+                                    constant_values=np.nan),
+                "fps": track.fps, "start": start, "mirrored": False}
+        return {"crops": np.ascontiguousarray(crops), "labels": labels.astype(np.int64),
+                "mask": mask.astype(bool), "meta": meta}
+
+    def __iter__(self) -> Iterator[Dict[str, Any]]:
+        info = torch.utils.data.get_worker_info()
+        worker = info.id if info is not None else 0
+        rng = np.random.default_rng(self.seed + 7919 * self.rank + worker)
+        while True:
+            index = int(rng.choice(len(self.windows), p=self.probabilities))
+            item = self.window(index)
+            if self.augment is not None:
+                item = self.augment(item, rng)
+            yield item

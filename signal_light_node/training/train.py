@@ -1,0 +1,784 @@
+"""The training loop behind ``signal-light train`` (one process, or DDP under torchrun).
+
+Recipe (after the research the model follows, scaled to a CPU):
+
+* **Loss**: the sum over heads of ``task_weight * cross-entropy``, each averaged over
+  the valid frames of the batch (``mask`` True and a label >= 0). The blinker-driven
+  heads (intent, left, right) skip the first ``loss_warmup`` frames of every window:
+  a window starts from a blank state and a blink cannot be told from a dark lamp before
+  about one cycle has been seen.
+* **Class imbalance**: class-weighted cross-entropy with weights ``share^-power`` from
+  running label counts (:class:`.sampling.ClassFrequency`), plus stratified windows:
+  the synthetic stream is thinned towards equal shares of the strata HAZARD /
+  brake-with-blinker / blinker / brake / plain (:class:`.sampling.StratumBalancer`),
+  finite sources draw windows stratum-balanced (:class:`.sources.WindowDataset`).
+* **Optimiser**: Adam; L2 weight decay on the dense layers' weights (the ``nn.Linear``
+  of the shared layer and of the heads), dropout as configured in the model;
+  ``ReduceLROnPlateau`` on the validation loss.
+* **Augmentation**: mirroring (crops flipped, left/right labels and LEFT/RIGHT views
+  swapped) and per-sequence colour/brightness jitter, both from the data stream.
+* **Validation** every ``val_every`` steps on a fixed split: loss and the metrics of
+  :mod:`signal_light_node.metrics` on frames after ``val_warmup`` frames of each
+  sequence; the best checkpoint by :func:`signal_light_node.metrics.selection_score`
+  (mean of intent macro-F1 and brake accuracy) is kept as ``best.pt``.
+* **Files** in ``out``: ``last.pt`` / ``best.pt`` (model checkpoints), ``last.state.pt``
+  (optimizer, scheduler, step, counters, RNG: what ``--resume`` needs), ``log.jsonl``
+  (one line per validation) and ``options.json``.
+* **DDP**: under ``torchrun`` (``WORLD_SIZE`` > 1) the model is wrapped in
+  ``DistributedDataParallel`` (gloo on CPU, NCCL on CUDA); every rank draws its own
+  data (the rank enters all data seeds), rank 0 alone validates and writes files, and
+  the validation loss and the stop decision are broadcast so that every rank's
+  scheduler and loop stay in step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import os
+import random
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, Iterator, List, Mapping, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+from tqdm import tqdm
+
+from signal_light_node.crops import CropConfig
+from signal_light_node.data.stream import (
+    SyntheticSequenceStream,
+    collate_sequences,
+    jitter_colours,
+    mirror_sequence,
+)
+from signal_light_node.errors import CheckpointError, ConfigError
+from signal_light_node.labels import TASKS
+from signal_light_node.metrics import MetricAccumulator, selection_score
+from signal_light_node.model import (
+    DEFAULT_WEIGHTS,
+    ModelConfig,
+    build_model,
+    load_checkpoint,
+    save_checkpoint,
+    to_input,
+)
+from signal_light_node.training.sampling import ClassFrequency, StratumBalancer
+from signal_light_node.training.sources import (
+    TrackSequence,
+    WindowDataset,
+    load_bag_tracks,
+    load_ucm_tracks,
+)
+
+logger = logging.getLogger(__name__)
+
+#: Tasks whose label needs time to be seen (skipped in the first ``loss_warmup`` frames).
+TEMPORAL_TASKS = ("intent", "left", "right")
+
+DEFAULT_TASK_WEIGHTS: Dict[str, float] = {"intent": 1.0, "brake": 1.0, "left": 0.5,
+                                          "right": 0.5, "view": 0.5}
+
+STATE_SUFFIX = ".state.pt"
+
+
+@dataclass
+class TrainOptions:
+    """Everything a training run depends on (also written to ``options.json``).
+
+    Attributes:
+        out: Output directory.
+        max_steps: Stop after this many optimiser steps in total (None: no limit).
+        max_minutes: Stop after this many minutes of this invocation (None: no limit).
+        batch: Sequences per step per process.
+        seq_len: Frames per training sequence.
+        lr: Initial learning rate of Adam.
+        weight_decay: L2 weight decay of the dense layers' weights.
+        task_weights: Loss weight per head (0 drops a head from the loss).
+        class_weight_power: Exponent of the class weights (0: unweighted).
+        balance: Thin the synthetic stream towards equal stratum shares.
+        balance_max_drop: Highest share of a stratum's windows the balancer drops.
+        loss_warmup: Frames at the start of each window without intent/left/right loss.
+        grad_clip: Max gradient norm (0: no clipping).
+        val_split: Materialised validation split (None: see ``val_sequences``).
+        val_sequences: Size of the split materialised under ``out/val_split`` when no
+            split is given and the data is synthetic.
+        val_every: Steps between validations.
+        val_warmup: Frames at the start of each validation sequence not scored.
+        val_fraction: Share of bag/UCM tracks held out for validation (no val_split).
+        plateau_patience: Validations without improvement before the LR drops.
+        plateau_factor: LR multiplier on a plateau.
+        min_lr: Lowest LR.
+        device: "cpu" or "cuda" (or "cuda:N").
+        seed: Seed of the model init, the data and the sampling.
+        threads: torch intra-op threads (None: torch's default).
+        workers: DataLoader worker processes for the synthetic stream (0: in-process).
+        resume: Checkpoint to resume from (its ``.state.pt`` beside it), or None.
+        init_from: Checkpoint whose weights (and model config) start the run, or None.
+        bags: Labelled bags to train on.
+        ucm: UC Merced rear-signal dataset roots to train on.
+        synthetic_fraction: Share of sequences from the synthetic stream; None means 1
+            without bags/UCM and 0 with them.
+        mirror_prob: Probability that a sequence is mirrored.
+        jitter: Colour/brightness jitter per sequence.
+        model: ``ModelConfig`` fields that differ from the defaults (ignored with init_from).
+        stream: Extra ``SyntheticSequenceStream`` options (vehicles, sizes, ...).
+        log_every: Steps between progress-bar metric updates.
+        progress: Show tqdm progress bars.
+        checkpoint_every: Steps between ``last.pt`` saves (0: only at validations).
+    """
+
+    out: Path
+    max_steps: Optional[int] = None
+    max_minutes: Optional[float] = None
+    batch: int = 8
+    seq_len: int = 16
+    lr: float = 2e-3
+    weight_decay: float = 1e-4
+    task_weights: Dict[str, float] = field(default_factory=lambda: dict(DEFAULT_TASK_WEIGHTS))
+    class_weight_power: float = 0.5
+    balance: bool = True
+    balance_max_drop: float = 0.6
+    loss_warmup: int = 3
+    grad_clip: float = 5.0
+    val_split: Optional[Path] = None
+    val_sequences: int = 96
+    val_every: int = 200
+    val_warmup: int = 6
+    val_fraction: float = 0.1
+    plateau_patience: int = 3
+    plateau_factor: float = 0.3
+    min_lr: float = 1e-5
+    device: str = "cpu"
+    seed: int = 0
+    threads: Optional[int] = None
+    workers: int = 1
+    resume: Optional[Path] = None
+    init_from: Optional[Path] = None
+    bags: List[Path] = field(default_factory=list)
+    ucm: List[Path] = field(default_factory=list)
+    synthetic_fraction: Optional[float] = None
+    mirror_prob: float = 0.5
+    jitter: bool = True
+    model: Dict[str, Any] = field(default_factory=dict)
+    stream: Dict[str, Any] = field(default_factory=dict)
+    log_every: int = 10
+    progress: bool = True
+    checkpoint_every: int = 0
+
+    def validate(self) -> None:
+        """Raise ConfigError for values that cannot work."""
+        if self.max_steps is None and self.max_minutes is None:
+            raise ConfigError("give --steps or --max-minutes (or both); training would never stop")
+        if self.max_steps is not None and self.max_steps < 0:
+            raise ConfigError(f"--steps must be >= 0, got {self.max_steps}")
+        if self.max_minutes is not None and not self.max_minutes > 0:
+            raise ConfigError(f"--max-minutes must be positive, got {self.max_minutes}")
+        for name in ("batch", "seq_len", "val_every", "val_sequences", "log_every"):
+            if int(getattr(self, name)) < 1:
+                raise ConfigError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not self.lr > 0:
+            raise ConfigError(f"learning rate must be positive, got {self.lr}")
+        unknown = sorted(set(self.task_weights) - set(TASKS))
+        if unknown:
+            raise ConfigError(f"task weights for unknown tasks {unknown}; tasks are {list(TASKS)}")
+        if any(w < 0 for w in self.task_weights.values()) or \
+                not any(w > 0 for w in self.task_weights.values()):
+            raise ConfigError(f"task weights must be >= 0 with at least one > 0, got "
+                              f"{self.task_weights}")
+        if self.synthetic_fraction is not None and not 0 <= self.synthetic_fraction <= 1:
+            raise ConfigError(f"synthetic fraction must be in 0..1, got {self.synthetic_fraction}")
+        if self.synthetic_fraction == 0 and not (self.bags or self.ucm):
+            raise ConfigError("no data: the synthetic fraction is 0 and no --bags / --ucm given")
+        if not 0 <= self.val_fraction < 1:
+            raise ConfigError(f"validation fraction must be in [0, 1), got {self.val_fraction}")
+        if not str(self.device).startswith(("cpu", "cuda")):
+            raise ConfigError(f"device must be cpu or cuda[:N], got {self.device!r}")
+        if str(self.device).startswith("cuda") and not torch.cuda.is_available():
+            raise ConfigError("--device cuda was asked for but torch sees no CUDA device")
+
+    def to_json(self) -> Dict[str, Any]:
+        """Plain dict of the options (paths as strings)."""
+        out = {}
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, Path):
+                v = str(v)
+            elif isinstance(v, list):
+                v = [str(x) if isinstance(x, Path) else x for x in v]
+            out[f.name] = v
+        return out
+
+
+# ------------------------------------------------------------------------ distributed
+
+
+@dataclass(frozen=True)
+class DistInfo:
+    """Process group facts: rank, world size and whether DDP is active."""
+
+    rank: int = 0
+    world: int = 1
+    local_rank: int = 0
+
+    @property
+    def active(self) -> bool:
+        return self.world > 1
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+
+def init_distributed(device: str) -> DistInfo:
+    """Join the process group when started by torchrun (``WORLD_SIZE`` > 1)."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return DistInfo()
+    import torch.distributed as dist
+
+    backend = "nccl" if device.startswith("cuda") else "gloo"
+    if not dist.is_initialized():
+        dist.init_process_group(backend=backend)
+    info = DistInfo(dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", 0)))
+    logger.info("DDP: rank %d of %d (%s)", info.rank, info.world, backend)
+    return info
+
+
+def _broadcast_float(value: float, dist_info: DistInfo, device: torch.device) -> float:
+    if not dist_info.active:
+        return value
+    import torch.distributed as dist
+
+    t = torch.tensor([value], dtype=torch.float64, device=device)
+    dist.broadcast(t, 0)
+    return float(t.item())
+
+
+# ------------------------------------------------------------------------------- data
+
+
+class _Augment:
+    """Mirroring and colour jitter of a sequence item, the stream's own functions."""
+
+    def __init__(self, mirror_prob: float, jitter: bool) -> None:
+        self.mirror_prob = mirror_prob
+        self.jitter = jitter
+
+    def __call__(self, item: Dict[str, Any], rng: np.random.Generator) -> Dict[str, Any]:
+        if self.mirror_prob > 0 and rng.random() < self.mirror_prob:
+            item = mirror_sequence(item)
+        if self.jitter:
+            crops = jitter_colours(item["crops"], rng)
+            crops[~item["mask"]] = 0
+            item = dict(item, crops=crops)
+        return item
+
+
+class _MixedStream(torch.utils.data.IterableDataset):
+    """Draws each item from one of several infinite datasets with fixed probabilities,
+    optionally thinning the synthetic one with a :class:`StratumBalancer`."""
+
+    def __init__(self, parts: Sequence[torch.utils.data.IterableDataset],
+                 probabilities: Sequence[float], seed: int, rank: int,
+                 balance: Sequence[bool], max_drop: float) -> None:
+        super().__init__()
+        self.parts = list(parts)
+        p = np.asarray(probabilities, dtype=np.float64)
+        self.probabilities = p / p.sum()
+        self.seed, self.rank = int(seed), int(rank)
+        self.balance = list(balance)
+        self.max_drop = float(max_drop)
+
+    def __iter__(self) -> Iterator[Dict[str, Any]]:
+        info = torch.utils.data.get_worker_info()
+        worker = info.id if info is not None else 0
+        seq = np.random.SeedSequence([self.seed, self.rank, worker, 17])
+        rng = np.random.default_rng(seq)
+        iters = []
+        for part, bal in zip(self.parts, self.balance):
+            it = iter(part)
+            if bal:
+                balancer = StratumBalancer(int(rng.integers(2**31)), max_drop=self.max_drop)
+                it = balancer.filter(it)
+            iters.append(it)
+        if len(iters) == 1:
+            yield from iters[0]
+            return
+        while True:
+            k = int(rng.choice(len(iters), p=self.probabilities))
+            yield next(iters[k])
+
+
+def _split_tracks(tracks: List[TrackSequence], fraction: float
+                  ) -> Tuple[List[TrackSequence], List[TrackSequence]]:
+    """Every k-th track (k = 1/fraction) goes to validation; deterministic."""
+    if fraction <= 0 or len(tracks) < 2:
+        return tracks, []
+    k = max(2, int(round(1.0 / fraction)))
+    val = [t for i, t in enumerate(tracks) if i % k == k - 1]
+    train = [t for i, t in enumerate(tracks) if i % k != k - 1]
+    return train, val
+
+
+def _load_sources(opts: TrainOptions, crop: CropConfig) -> List[TrackSequence]:
+    tracks: List[TrackSequence] = []
+    for bag in opts.bags:
+        tracks += load_bag_tracks(Path(bag), crop)
+    for root in opts.ucm:
+        tracks += load_ucm_tracks(Path(root), crop)
+    return tracks
+
+
+# ----------------------------------------------------------------------------- model
+
+
+def dense_parameter_groups(model: nn.Module, weight_decay: float) -> List[Dict[str, Any]]:
+    """Adam parameter groups: weight decay on ``nn.Linear`` weights, none elsewhere."""
+    decay, plain = [], []
+    dense_weights = {id(m.weight) for m in model.modules() if isinstance(m, nn.Linear)}
+    for p in model.parameters():
+        if not p.requires_grad:
+            continue
+        (decay if id(p) in dense_weights else plain).append(p)
+    return [{"params": decay, "weight_decay": weight_decay},
+            {"params": plain, "weight_decay": 0.0}]
+
+
+def batch_input(crops: torch.Tensor, device: torch.device) -> torch.Tensor:
+    """uint8 ``[B, T, S, S, 3]`` crops -> float ``[B, T, 3, S, S]`` via :func:`model.to_input`."""
+    b, t, s = crops.shape[0], crops.shape[1], crops.shape[2]
+    x = to_input(crops.reshape(b * t, s, s, 3).numpy())
+    return x.reshape(b, t, 3, s, s).to(device, non_blocking=True)
+
+
+def multitask_loss(logits: Mapping[str, torch.Tensor], labels: torch.Tensor, mask: torch.Tensor,
+                   task_weights: Mapping[str, float],
+                   class_weights: Optional[Mapping[str, torch.Tensor]] = None,
+                   loss_warmup: int = 0) -> Tuple[torch.Tensor, Dict[str, float]]:
+    """Weighted sum of per-head cross-entropies over the valid frames.
+
+    Args:
+        logits: Task -> ``[B, T, K]``.
+        labels: int64 ``[B, T, len(TASKS)]``; negative entries are ignored.
+        mask: bool ``[B, T]``; False frames are ignored.
+        task_weights: Task -> weight (missing or 0: not in the loss).
+        class_weights: Task -> ``[K]`` class weights, or None.
+        loss_warmup: Leading frames without loss for :data:`TEMPORAL_TASKS`.
+
+    Returns:
+        ``(total loss, {task: its mean cross-entropy})``.
+    """
+    total = logits[TASKS[0]].new_zeros(())
+    parts: Dict[str, float] = {}
+    t_idx = torch.arange(labels.shape[1], device=labels.device)
+    for i, task in enumerate(TASKS):
+        w = float(task_weights.get(task, 0.0))
+        if w <= 0 or task not in logits:
+            continue
+        y = labels[..., i]
+        valid = mask & (y >= 0)
+        if task in TEMPORAL_TASKS and loss_warmup > 0:
+            valid = valid & (t_idx >= loss_warmup)[None, :]
+        k = logits[task].shape[-1]
+        ce = F.cross_entropy(logits[task].reshape(-1, k), y.clamp(min=0).reshape(-1),
+                             weight=None if class_weights is None else class_weights.get(task),
+                             reduction="none")
+        valid_f = valid.reshape(-1).to(ce.dtype)
+        loss = (ce * valid_f).sum() / valid_f.sum().clamp(min=1.0)
+        parts[task] = float(loss.detach())
+        total = total + w * loss
+    return total, parts
+
+
+def _batch_accuracy(logits: Mapping[str, torch.Tensor], labels: torch.Tensor,
+                    mask: torch.Tensor, task: str) -> Optional[float]:
+    i = TASKS.index(task)
+    y = labels[..., i]
+    valid = mask & (y >= 0)
+    n = int(valid.sum())
+    if n == 0:
+        return None
+    return float((logits[task].argmax(-1)[valid] == y[valid]).float().mean())
+
+
+@torch.no_grad()
+def validate(model: nn.Module, items: Sequence[Mapping[str, Any]], device: torch.device,
+             task_weights: Mapping[str, float], warmup: int, batch: int = 16
+             ) -> Dict[str, Any]:
+    """Loss and metrics of ``model`` on fixed sequence items (eval mode, no class weights).
+
+    Frames before ``warmup`` in each sequence are left out of the metrics (not of the
+    loss of brake/view, which are visible from the first frame).
+
+    Returns:
+        ``{"loss": float, "summary": metrics summary, "accuracy": {task: acc}, "score": float}``.
+    """
+    was_training = model.training
+    model.eval()
+    acc = MetricAccumulator()
+    losses, weights = [], []
+    try:
+        for a in range(0, len(items), batch):
+            chunk = collate_sequences(list(items[a:a + batch]))
+            x = batch_input(chunk["crops"], device)
+            labels = chunk["labels"].to(device)
+            mask = chunk["mask"].to(device)
+            logits, _ = model(x)
+            loss, _ = multitask_loss(logits, labels, mask, task_weights, None, warmup)
+            n = float(mask.sum())
+            losses.append(float(loss) * n)
+            weights.append(n)
+            scored = mask.clone()
+            scored[:, :warmup] = False
+            sel = scored.cpu().numpy()
+            y = labels.cpu().numpy()[sel]
+            p = np.stack([logits[t].argmax(-1).cpu().numpy()[sel] for t in TASKS], axis=1)
+            acc.add_frames(y, p)
+    finally:
+        model.train(was_training)
+    report = acc.report()
+    summary = report["summary"]
+    return {"loss": sum(losses) / max(sum(weights), 1.0), "summary": summary,
+            "accuracy": {t: m["accuracy"] for t, m in report["overall"].items()},
+            "macro_f1": {t: m["macro_f1"] for t, m in report["overall"].items()},
+            "score": selection_score(summary)}
+
+
+# ------------------------------------------------------------------------------ trainer
+
+
+def _state_path(checkpoint: Path) -> Path:
+    return checkpoint.with_name(checkpoint.stem + STATE_SUFFIX)
+
+
+def _resolve_init(path: Optional[Path]) -> Optional[Path]:
+    if path is None:
+        return None
+    return DEFAULT_WEIGHTS if str(path) in ("default", "shipped") else Path(path)
+
+
+class Trainer:
+    """One training run; :meth:`run` returns a summary dict.
+
+    Args:
+        opts: The options.
+    """
+
+    def __init__(self, opts: TrainOptions) -> None:
+        opts.validate()
+        self.opts = opts
+        self.out = Path(opts.out)
+        self.dist = init_distributed(str(opts.device))
+        if opts.threads:
+            torch.set_num_threads(int(opts.threads))
+        if str(opts.device).startswith("cuda") and self.dist.active:
+            self.device = torch.device("cuda", self.dist.local_rank)
+        else:
+            self.device = torch.device(opts.device)
+        torch.manual_seed(opts.seed)
+        np.random.seed(opts.seed % (2**32))
+        random.seed(opts.seed)
+
+        self.meta_from_init: Dict[str, Any] = {}
+        self.start_step = 0
+        self.best_score = -math.inf
+        self.best_step = -1
+        state: Optional[Dict[str, Any]] = None
+        init = _resolve_init(opts.init_from)
+        if opts.resume is not None:
+            loaded = load_checkpoint(opts.resume, map_location="cpu")
+            self.config, model = loaded.config, loaded.model
+            state_file = _state_path(Path(opts.resume))
+            if not state_file.is_file():
+                raise CheckpointError(f"cannot resume: training state {state_file} is missing")
+            state = torch.load(state_file, map_location="cpu", weights_only=True)
+        elif init is not None:
+            loaded = load_checkpoint(init, map_location="cpu")
+            self.config, model = loaded.config, loaded.model
+            self.meta_from_init = {"init_from": str(init),
+                                   "init_training_data": loaded.meta.get("training_data")}
+            if opts.model:
+                logger.warning("model options %s ignored: the architecture comes from %s",
+                               sorted(opts.model), init)
+        else:
+            self.config = ModelConfig().replace(**opts.model) if opts.model else ModelConfig()
+            model = build_model(self.config)
+        self.model = model.to(self.device).train()
+        self.crop = self.config.crop_config()
+
+        self.optimizer = torch.optim.Adam(dense_parameter_groups(self.model, opts.weight_decay),
+                                          lr=opts.lr)
+        self.scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
+            self.optimizer, mode="min", factor=opts.plateau_factor,
+            patience=opts.plateau_patience, threshold=1e-3, min_lr=opts.min_lr)
+        self.freq = ClassFrequency(self.config.num_classes, power=opts.class_weight_power)
+        self.train_seconds = 0.0
+        if state is not None:
+            self.optimizer.load_state_dict(state["optimizer"])
+            self.scheduler.load_state_dict(state["scheduler"])
+            self.freq.load_state_dict(state["class_counts"])
+            self.start_step = int(state["step"])
+            self.best_score = float(state["best_score"])
+            self.best_step = int(state["best_step"])
+            self.train_seconds = float(state.get("train_seconds", 0.0))
+            torch.set_rng_state(state["rng"]["torch"])
+            logger.info("resumed from %s at step %d (best %.4f at step %d)", opts.resume,
+                        self.start_step, self.best_score, self.best_step)
+
+        if self.dist.active:
+            from torch.nn.parallel import DistributedDataParallel
+
+            self.net: nn.Module = DistributedDataParallel(
+                self.model, device_ids=[self.device.index] if self.device.type == "cuda" else None)
+        else:
+            self.net = self.model
+
+        self.tracks = _load_sources(opts, self.crop)
+        self.train_tracks, held_out = _split_tracks(
+            self.tracks, opts.val_fraction if opts.val_split is None else 0.0)
+        self.val_items = self._validation_items(held_out) if self.dist.main else []
+        self.loader = self._loader()
+
+    # ----------------------------------------------------------------- data plumbing
+
+    def _synthetic_fraction(self) -> float:
+        if self.opts.synthetic_fraction is not None:
+            return float(self.opts.synthetic_fraction)
+        return 0.0 if self.tracks else 1.0
+
+    def _data_seed(self) -> int:
+        # A resumed run must not replay the data of the steps already taken.
+        return int(self.opts.seed) * 1_000_003 + self.start_step
+
+    def _loader(self) -> torch.utils.data.DataLoader:
+        opts = self.opts
+        parts, probs, balance = [], [], []
+        frac = self._synthetic_fraction()
+        augment = _Augment(opts.mirror_prob, opts.jitter)
+        if frac > 0:
+            parts.append(SyntheticSequenceStream(
+                self._data_seed() % (2**31), opts.seq_len, self.crop,
+                mirror_prob=opts.mirror_prob, jitter=opts.jitter, rank=self.dist.rank,
+                **opts.stream))
+            probs.append(frac)
+            balance.append(opts.balance)
+        if frac < 1:
+            if not self.train_tracks:
+                raise ConfigError("no training tracks: --bags / --ucm gave nothing to train on")
+            parts.append(WindowDataset(self.train_tracks, opts.seq_len, seed=self._data_seed(),
+                                       augment=augment, rank=self.dist.rank))
+            probs.append(1.0 - frac)
+            balance.append(False)  # WindowDataset draws stratum-balanced itself
+        mixed = _MixedStream(parts, probs, self._data_seed(), self.dist.rank, balance,
+                             opts.balance_max_drop)
+        workers = int(opts.workers)
+        return torch.utils.data.DataLoader(
+            mixed, batch_size=opts.batch, collate_fn=collate_sequences, num_workers=workers,
+            persistent_workers=workers > 0, prefetch_factor=4 if workers > 0 else None)
+
+    def _validation_items(self, held_out: List[TrackSequence]) -> List[Dict[str, Any]]:
+        opts = self.opts
+        if opts.val_split is not None:
+            from signal_light_node.data.split import SequenceSplit
+
+            split = SequenceSplit(opts.val_split)
+            if split.crop != self.crop:
+                raise ConfigError(f"validation split {opts.val_split} was cropped with "
+                                  f"{split.crop}, the model uses {self.crop}")
+            return [split[i] for i in range(len(split))]
+        if held_out:
+            win = WindowDataset(held_out, max(opts.seq_len, 2 * opts.val_warmup + 8),
+                                seed=opts.seed)
+            return [win.window(i) for i in range(len(win.windows))]
+        if self._synthetic_fraction() > 0:
+            from signal_light_node.data.split import SequenceSplit, write_split
+
+            val_dir = self.out / "val_split"
+            if not (val_dir / "manifest.json").is_file():
+                logger.info("materialising a validation split of %d sequences in %s",
+                            opts.val_sequences, val_dir)
+                write_split(val_dir, seed=(opts.seed + 1_000_003) % (2**31),
+                            n_sequences=opts.val_sequences, seq_len=max(opts.seq_len, 24),
+                            crop=self.crop, progress=opts.progress, **opts.stream)
+            split = SequenceSplit(val_dir)
+            return [split[i] for i in range(len(split))]
+        return []
+
+    # -------------------------------------------------------------------- saving
+
+    def _meta(self, step: int, val: Optional[Mapping[str, Any]]) -> Dict[str, Any]:
+        opts = self.opts
+        sources = []
+        if self._synthetic_fraction() > 0:
+            sources.append("synthetic stream (signal_light_node.synth scenes)")
+        sources += [f"bag {b}" for b in opts.bags] + [f"UCM {u}" for u in opts.ucm]
+        meta = {
+            "training_data": {"sources": sources,
+                              "synthetic_fraction": self._synthetic_fraction(),
+                              "seed": opts.seed, "seq_len": opts.seq_len, "batch": opts.batch,
+                              "world_size": self.dist.world,
+                              "frames_seen": int(step * opts.batch * opts.seq_len
+                                                 * self.dist.world)},
+            "training": {"step": step, "lr": self.optimizer.param_groups[0]["lr"],
+                         "train_seconds": round(self.train_seconds, 1),
+                         "options": opts.to_json()},
+        }
+        meta.update(self.meta_from_init)
+        if val is not None:
+            meta["metrics"] = {"validation": {k: val[k] for k in
+                                              ("loss", "summary", "accuracy", "macro_f1", "score")}}
+        return meta
+
+    def _save(self, name: str, step: int, val: Optional[Mapping[str, Any]]) -> Path:
+        path = self.out / name
+        save_checkpoint(path, self.model, self.config, self._meta(step, val))
+        if name == "last.pt":
+            state = {"step": step, "optimizer": self.optimizer.state_dict(),
+                     "scheduler": self.scheduler.state_dict(),
+                     "class_counts": self.freq.state_dict(), "best_score": self.best_score,
+                     "best_step": self.best_step, "train_seconds": self.train_seconds,
+                     "rng": {"torch": torch.get_rng_state()}}
+            tmp = _state_path(path).with_suffix(".tmp")
+            torch.save(state, tmp)
+            os.replace(tmp, _state_path(path))
+        return path
+
+    def _log(self, record: Mapping[str, Any]) -> None:
+        with open(self.out / "log.jsonl", "a") as fh:
+            fh.write(json.dumps(record) + "\n")
+
+    # ----------------------------------------------------------------------- loop
+
+    def _validate_and_keep(self, step: int) -> Optional[Dict[str, Any]]:
+        """Rank 0 validates and saves; every rank steps its scheduler with the same loss."""
+        val = None
+        loss = math.nan
+        if self.dist.main and self.val_items:
+            val = validate(self.model, self.val_items, self.device, self.opts.task_weights,
+                           self.opts.val_warmup)
+            loss = val["loss"]
+        loss = _broadcast_float(loss, self.dist, self.device)
+        if not math.isnan(loss):
+            self.scheduler.step(loss)
+        if self.dist.main:
+            improved = val is not None and val["score"] > self.best_score
+            if improved:
+                self.best_score, self.best_step = float(val["score"]), step
+            self._save("last.pt", step, val)
+            if improved or (val is None and step > 0):
+                self._save("best.pt", step, val)
+            record = {"step": step, "time_s": round(self.train_seconds, 1),
+                      "lr": self.optimizer.param_groups[0]["lr"]}
+            if val is not None:
+                record.update(val_loss=round(val["loss"], 5), score=round(val["score"], 5),
+                              summary=val["summary"], accuracy=val["accuracy"],
+                              best=improved)
+                logger.info("step %d: val loss %.4f, intent F1 %s, brake acc %s, score %.4f%s",
+                            step, val["loss"], _pct(val["summary"]["intent_macro_f1"]),
+                            _pct(val["summary"]["brake_accuracy"]), val["score"],
+                            " (best)" if improved else "")
+            self._log(record)
+        return val
+
+    def run(self) -> Dict[str, Any]:
+        """Train until ``max_steps`` or ``max_minutes``; returns a summary of the run."""
+        opts = self.opts
+        if self.dist.main:
+            self.out.mkdir(parents=True, exist_ok=True)
+            (self.out / "options.json").write_text(json.dumps(opts.to_json(), indent=2) + "\n")
+        budget = opts.max_minutes * 60.0 if opts.max_minutes else math.inf
+        max_steps = opts.max_steps if opts.max_steps is not None else None
+        step = self.start_step
+        started = time.monotonic()
+        bar = tqdm(total=max_steps, initial=step, desc="train", unit="step",
+                   disable=not (opts.progress and self.dist.main), dynamic_ncols=True,
+                   mininterval=1.0)
+        ema: Dict[str, float] = {}
+        data_iter = iter(self.loader)
+        last_val: Optional[Dict[str, Any]] = None
+        try:
+            while True:
+                elapsed = time.monotonic() - started
+                stop = (max_steps is not None and step >= max_steps) or elapsed >= budget
+                stop = bool(_broadcast_float(float(stop), self.dist, self.device))
+                if stop:
+                    break
+                t0 = time.monotonic()
+                batch = next(data_iter)
+                labels = batch["labels"].to(self.device)
+                mask = batch["mask"].to(self.device)
+                self.freq.update(batch["labels"].numpy(), batch["mask"].numpy())
+                x = batch_input(batch["crops"], self.device)
+                logits, _ = self.net(x)
+                loss, parts = multitask_loss(logits, labels, mask, opts.task_weights,
+                                             self.freq.tensors(self.device), opts.loss_warmup)
+                self.optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                if opts.grad_clip > 0:
+                    nn.utils.clip_grad_norm_(self.model.parameters(), opts.grad_clip)
+                self.optimizer.step()
+                step += 1
+                self.train_seconds += time.monotonic() - t0
+                for key, value in (("loss", float(loss.detach())),
+                                   ("intent", _batch_accuracy(logits, labels, mask, "intent")),
+                                   ("brake", _batch_accuracy(logits, labels, mask, "brake"))):
+                    if value is not None:
+                        ema[key] = value if key not in ema else 0.9 * ema[key] + 0.1 * value
+                bar.update(1)
+                if step % opts.log_every == 0:
+                    bar.set_postfix(loss=f"{ema.get('loss', math.nan):.3f}",
+                                    intent=_pct(ema.get("intent")), brake=_pct(ema.get("brake")),
+                                    lr=f"{self.optimizer.param_groups[0]['lr']:.1e}",
+                                    best=f"{self.best_score:.3f}" if self.best_step >= 0 else "-")
+                if step % opts.val_every == 0:
+                    last_val = self._validate_and_keep(step)
+                elif opts.checkpoint_every and step % opts.checkpoint_every == 0 \
+                        and self.dist.main:
+                    self._save("last.pt", step, None)
+            # Same condition on every rank: the final state is always validated and saved.
+            if step % opts.val_every != 0 or step == self.start_step:
+                last_val = self._validate_and_keep(step)
+        finally:
+            bar.close()
+            if self.dist.active:
+                import torch.distributed as dist
+
+                dist.barrier()
+        wall = time.monotonic() - started
+        summary = {"steps": step, "steps_this_run": step - self.start_step,
+                   "wall_seconds": round(wall, 1),
+                   "seconds_per_step": round(wall / max(1, step - self.start_step), 3),
+                   "best_score": self.best_score if self.best_step >= 0 else None,
+                   "best_step": self.best_step, "out": str(self.out),
+                   "last_validation": None if last_val is None else {
+                       k: last_val[k] for k in ("loss", "score", "summary", "accuracy")}}
+        if self.dist.main:
+            (self.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        return summary
+
+    def close(self) -> None:
+        """Leave the process group (if any)."""
+        if self.dist.active:
+            import torch.distributed as dist
+
+            if dist.is_initialized():
+                dist.destroy_process_group()
+
+
+def _pct(value: Optional[float]) -> str:
+    return "-" if value is None else f"{100 * value:.1f}%"
+
+
+def train(opts: TrainOptions) -> Dict[str, Any]:
+    """Run one training (see :class:`Trainer`) and return its summary."""
+    trainer = Trainer(opts)
+    try:
+        return trainer.run()
+    finally:
+        trainer.close()

@@ -1,0 +1,161 @@
+"""The training loop: it learns, it resumes, it runs under DDP with two CPU processes."""
+
+import json
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from signal_light_node.errors import ConfigError
+from signal_light_node.labels import TASKS
+from signal_light_node.model import load_checkpoint
+from signal_light_node.training.sampling import (
+    ClassFrequency,
+    StratumBalancer,
+    sequence_stratum,
+    stratum_weights,
+)
+from signal_light_node.training.sources import WindowDataset, load_ucm_tracks
+from signal_light_node.training.train import TrainOptions, Trainer, multitask_loss, validate
+
+from test_ucm_loader import make_ucm
+
+#: A model small enough to train in seconds on 16 px crops.
+TINY = {"input_size": 16, "attention_channels": [4, 4, 4], "backbone_channels": [8, 16],
+        "lstm_hidden": [16, 16], "head_channels": 8, "head_grid": 2, "fc_hidden": 32,
+        "dropout": 0.0, "lstm_dropout": 0.0}
+
+CODES = ["OOO", "BOO", "OLO", "OOR", "OLR", "BLR"]
+
+
+def tiny_options(out: Path, ucm: Path, **changes) -> TrainOptions:
+    opts = dict(out=out, max_steps=10, batch=6, seq_len=8, lr=1e-2, model=dict(TINY),
+                ucm=[ucm], val_fraction=0.0, val_every=1000, workers=0, progress=False,
+                threads=1, jitter=False, mirror_prob=0.0, class_weight_power=0.0,
+                loss_warmup=2, seed=1)
+    opts.update(changes)
+    return TrainOptions(**opts)
+
+
+def test_loss_ignores_masked_frames_and_weights_tasks():
+    logits = {t: torch.zeros(1, 2, k) for t, k in zip(TASKS, (5, 3, 3, 3, 4))}
+    logits["brake"][0, 0] = torch.tensor([5.0, 0.0, 0.0])  # right on frame 0
+    labels = torch.tensor([[[0, 0, 0, 0, 0], [0, 1, 0, 0, 0]]])
+    mask = torch.tensor([[True, False]])
+    loss, parts = multitask_loss(logits, labels, mask, {"brake": 1.0})
+    expected = -torch.log_softmax(torch.tensor([5.0, 0.0, 0.0]), 0)[0]
+    assert loss.item() == pytest.approx(expected.item(), rel=1e-5)
+    assert set(parts) == {"brake"}
+    # intent skips the warm-up frame: with only frame 0 valid nothing is left (loss 0)
+    loss, parts = multitask_loss(logits, labels, mask, {"intent": 1.0}, loss_warmup=1)
+    assert loss.item() == 0.0
+
+
+def test_sampling_strata_and_weights():
+    lab = np.zeros((4, 5), np.int64)
+    assert sequence_stratum(lab) == "plain"
+    lab[2, 1] = 1  # brake ON
+    assert sequence_stratum(lab) == "brake"
+    lab[2, 0] = 1  # LEFT while braking
+    assert sequence_stratum(lab) == "brake_blink"
+    lab[3, 0] = 3
+    assert sequence_stratum(lab) == "hazard"
+    assert sequence_stratum(lab, np.array([1, 1, 0, 0], bool)) == "plain"
+    w = stratum_weights(["plain", "plain", "plain", "hazard"])
+    assert w.tolist() == pytest.approx([1 / 6, 1 / 6, 1 / 6, 1 / 2])
+    bal = StratumBalancer(seed=0, max_drop=0.5, min_count=0)
+    offers = ["hazard" if i % 10 == 0 else "plain" for i in range(400)]
+    kept = np.array([bal.offer(s) for s in offers])
+    is_hazard = np.array([s == "hazard" for s in offers])
+    assert kept[is_hazard].all()  # the rarest stratum is always kept
+    # 9x more common: kept with max(1 - max_drop, 1/9) = 0.5
+    assert 0.4 < kept[~is_hazard].mean() < 0.6
+    assert bal.keep_probability("plain") == pytest.approx(0.5)
+    freq = ClassFrequency({"brake": 3}, power=1.0, max_weight=100)
+    freq.update(np.array([[0], [0], [0], [1]]), np.ones(4, bool), tasks=("brake",))
+    w = freq.weights("brake")
+    assert w[1] > w[0] and w[2] > w[1]  # unseen UNKNOWN gets the largest weight
+
+
+def test_options_are_checked(tmp_path):
+    with pytest.raises(ConfigError, match="never stop"):
+        TrainOptions(out=tmp_path).validate()
+    with pytest.raises(ConfigError, match="unknown tasks"):
+        TrainOptions(out=tmp_path, max_steps=1, task_weights={"horn": 1.0}).validate()
+
+
+def test_tiny_model_overfits_fixed_sequences(tmp_path):
+    # Steady lamps: this proves the loop learns, not that a blink can be read in 8 frames.
+    ucm = tmp_path / "ucm"
+    make_ucm(ucm, CODES, frames=8, steady=True)
+    opts = tiny_options(tmp_path / "run", ucm, max_steps=150, batch=12, lr=5e-3)
+    trainer = Trainer(opts)
+    items = [trainer_window for trainer_window in
+             (WindowDataset(trainer.train_tracks, 8).window(i) for i in range(len(CODES)))]
+    before = validate(trainer.model, items, torch.device("cpu"), opts.task_weights, warmup=2)
+    summary = trainer.run()
+    after = validate(trainer.model, items, torch.device("cpu"), opts.task_weights, warmup=2)
+    assert summary["steps"] == 150
+    assert after["loss"] < 0.25 * before["loss"]
+    for task in ("intent", "brake", "left", "right", "view"):
+        assert after["accuracy"][task] >= 0.95, (task, after["accuracy"])
+    # the kept checkpoint holds the trained weights and the run's description
+    best = load_checkpoint(tmp_path / "run" / "best.pt")
+    assert best.config.input_size == 16
+    assert best.meta["training"]["step"] == 150
+    assert "UCM" in best.meta["training_data"]["sources"][0]
+
+
+def test_resume_continues_from_saved_step(tmp_path):
+    ucm = tmp_path / "ucm"
+    make_ucm(ucm, CODES[:3], frames=8)
+    out = tmp_path / "run"
+    first = Trainer(tiny_options(out, ucm, max_steps=6, val_every=3, val_fraction=0.34)).run()
+    assert first["steps"] == 6
+    state = torch.load(out / "last.state.pt", weights_only=True)
+    assert state["step"] == 6
+    lines = [json.loads(s) for s in (out / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in lines] == [3, 6]
+    trainer = Trainer(tiny_options(out, ucm, max_steps=9, val_every=3, val_fraction=0.34,
+                                   resume=out / "last.pt"))
+    assert trainer.start_step == 6
+    # the optimiser's moment estimates came back too
+    assert any(len(s) for s in trainer.optimizer.state.values())
+    second = trainer.run()
+    assert second["steps"] == 9 and second["steps_this_run"] == 3
+    assert json.loads((out / "log.jsonl").read_text().splitlines()[-1])["step"] == 9
+    assert load_checkpoint(out / "last.pt").meta["training"]["step"] == 9
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_ddp_two_cpu_processes(tmp_path):
+    ucm = tmp_path / "ucm"
+    make_ucm(ucm, CODES[:4], frames=8)
+    out = tmp_path / "ddp"
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2",
+           f"--master_port={_free_port()}", "--master_addr=127.0.0.1",
+           "-m", "signal_light_node.cli", "train", "--out", str(out), "--steps", "4",
+           "--batch", "2", "--seq-len", "6", "--ucm", str(ucm), "--workers", "0",
+           "--threads", "1", "--val-every", "2", "--val-fraction", "0.25", "--no-progress",
+           "--model", json.dumps(TINY)]
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=120,
+                          cwd=str(Path(__file__).resolve().parents[1]))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    ckpt = load_checkpoint(out / "last.pt")
+    assert ckpt.meta["training_data"]["world_size"] == 2
+    assert ckpt.meta["training"]["step"] == 4
+    assert (out / "best.pt").is_file()
+    # only rank 0 wrote: one summary printed, one log line per validation
+    assert proc.stdout.count('"steps": 4') == 1
+    assert [json.loads(s)["step"] for s in (out / "log.jsonl").read_text().splitlines()] == [2, 4]
