@@ -55,9 +55,13 @@ def stop_on_signals() -> Iterator[threading.Event]:
 
 @contextlib.contextmanager
 def ros_context(args: Optional[List[str]] = None) -> Iterator[Any]:
-    """A private rclpy context without rclpy's own signal handlers, shut down on exit."""
+    """A private rclpy context without rclpy's own signal handlers, shut down on exit.
+
+    ``args`` default to none at all: rclpy would otherwise parse ``sys.argv``, where a
+    command's own ``FROM:=TO`` options look like (deprecated) ROS remap rules.
+    """
     context = rclpy.Context()
-    rclpy.init(args=args, context=context,
+    rclpy.init(args=list(args or []), context=context,
                signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
     try:
         yield context
