@@ -136,8 +136,10 @@ def write_scene_bag(path: "str | os.PathLike[str]", seed: int = 0, *,
         raise ConfigError("give either n_frames or duration_s, not both")
     if not 1 <= int(jpeg_quality) <= 100:
         raise ConfigError(f"jpeg_quality must be in 1..100, got {jpeg_quality}")
+    if night_fraction is not None:  # else the renderer's default share
+        overrides["night_fraction"] = night_fraction
     renderer = SceneRenderer(seed, width=width, height=height, fps=fps, n_vehicles=n_vehicles,
-                             lighting=lighting, night_fraction=night_fraction, **overrides)
+                             lighting=lighting, **overrides)
     if n_frames is None:
         n_frames = int(round((10.0 if duration_s is None else float(duration_s)) * renderer.fps))
     if n_frames < 1:
@@ -213,3 +215,29 @@ def ground_truth_coverage(path: "str | os.PathLike[str]") -> Dict[str, Any]:
     out: Dict[str, Any] = {"frames": frames, "duration_s": duration, "tracks": len(tracks)}
     out.update({k: dict(sorted(c.items())) for k, c in counts.items()})
     return out
+
+
+#: What a test bag's ground truth must contain (``coverage_gaps``).
+REQUIRED_CLASSES: Dict[str, List[str]] = {
+    "views": [v.name for v in View],
+    "intents": [i.name for i in Intent],
+    "brake": [LightStatus.ON.name, LightStatus.OFF.name],
+}
+
+
+def coverage_gaps(coverage: Dict[str, Any], min_tracks: int = 4) -> List[str]:
+    """What a coverage dict (:func:`ground_truth_coverage`) lacks for a test bag.
+
+    Args:
+        coverage: Counts with at least ``tracks``, ``views``, ``intents`` and ``brake``.
+        min_tracks: Fewest distinct tracks required.
+
+    Returns:
+        One ``"key=NAME"`` entry per required class that never occurs, plus a note when
+        there are too few tracks; empty when the bag covers everything.
+    """
+    gaps = [f"{key}={name}" for key, names in REQUIRED_CLASSES.items() for name in names
+            if coverage[key].get(name, 0) == 0]
+    if coverage["tracks"] < min_tracks:
+        gaps.append(f"tracks={coverage['tracks']}<{min_tracks}")
+    return gaps

@@ -253,9 +253,11 @@ class SyntheticSequenceStream(IterableDataset):
 
         width, height = self.sizes[int(rng.choice(len(self.sizes), p=self.size_weights))]
         n_vehicles = int(rng.integers(self.vehicles[0], self.vehicles[1] + 1))
+        options = dict(self.renderer_overrides)
+        if self.night_fraction is not None:  # else the renderer's default share
+            options["night_fraction"] = self.night_fraction
         renderer = SceneRenderer(scene_seed, width=width, height=height, fps=self.fps,
-                                 n_vehicles=n_vehicles, lighting=self.lighting,
-                                 night_fraction=self.night_fraction, **self.renderer_overrides)
+                                 n_vehicles=n_vehicles, lighting=self.lighting, **options)
         tracks: Dict[str, _Track] = {}
         lighting = None
         for frame in renderer.frames(self.scene_frames):
