@@ -91,6 +91,27 @@ def _square_region(box: TrackBox, width: int, height: int, margin: float,
     return x0, y0, side_px
 
 
+def crop_region(box: TrackBox, width: int, height: int,
+                config: CropConfig = CropConfig()) -> Tuple[int, int, int]:
+    """The square that :func:`crop_vehicle` cuts for ``box``, in image pixels.
+
+    Useful to map something computed on the crop (an attention mask) back onto the frame.
+
+    Args:
+        box: The tracked box.
+        width: Image width.
+        height: Image height.
+        config: Crop size and margin.
+
+    Returns:
+        ``(x0, y0, side)``; the square may reach past the image border.
+
+    Raises:
+        CropError: For the boxes that :func:`crop_vehicle` rejects.
+    """
+    return _square_region(box, width, height, config.margin, config.size)
+
+
 def _cut(image: np.ndarray, x0: int, y0: int, side: int, size: int) -> np.ndarray:
     height, width = image.shape[:2]
     cx0, cy0 = max(x0, 0), max(y0, 0)

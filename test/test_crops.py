@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from signal_light_node.boxes import TrackBox
-from signal_light_node.crops import CropConfig, clip_roi, crop_vehicle, crop_vehicles
+from signal_light_node.crops import CropConfig, clip_roi, crop_region, crop_vehicle, crop_vehicles
 from signal_light_node.errors import ConfigError, CropError
 
 
@@ -49,6 +49,18 @@ def test_margin_and_squareness(image):
     tall = TrackBox("b", 95, 60, 105, 100)
     crop = crop_vehicle(image, tall, CropConfig(size=40, margin=0.0))
     np.testing.assert_array_equal(crop, image[60:100, 80:120])
+
+
+def test_crop_region_is_the_square_that_is_cut(image):
+    box = TrackBox("a", 80, 70, 120, 90)
+    assert crop_region(box, 300, 200, CropConfig(size=60, margin=0.25)) == (70, 50, 60)
+    x0, y0, side = crop_region(TrackBox("b", -10, -20, 30, 20), 300, 200, CropConfig(40, 0.0))
+    assert (x0, y0, side) == (-10, -20, 40)
+    # Large squares are rounded up so that they halve exactly down to [size, 2 size).
+    _, _, side = crop_region(TrackBox("c", 0, 0, 150, 150), 300, 200, CropConfig(32, 0.0))
+    assert side >= 150 and side % 4 == 0 and 32 <= side // 4 < 64
+    with pytest.raises(CropError):
+        crop_region(TrackBox("d", 400, 0, 420, 20), 300, 200)
 
 
 def test_border_is_zero_padded(image):
