@@ -89,13 +89,51 @@ def ellipse(img: np.ndarray, cx: float, cy: float, rx: float, ry: float, colour,
 
 
 def add_glow(layer: np.ndarray, cx: float, cy: float, radius: float, colour, gain: float) -> None:
-    """Add emission (image coordinates) to the quarter-resolution light layer."""
-    r = max(0.6, radius / GLOW_SCALE)
-    c = tuple(float(v) * gain for v in colour)
+    """Add emission of a light of ``radius`` image pixels to the quarter-resolution light layer.
+
+    The renderer blurs the layer at two scales, so the emission only has to carry the
+    light's energy: small lights get a one-pixel dot scaled down by their area.
+    """
+    r = radius / GLOW_SCALE
+    rr = max(0.7, r)
+    energy = gain * min(1.0, (r / rr) ** 2)
+    c = tuple(float(v) * energy for v in colour)
     x, y = cx / GLOW_SCALE, cy / GLOW_SCALE
     h, w = layer.shape[:2]
-    if -2 * r < x < w + 2 * r and -2 * r < y < h + 2 * r:
-        cv2.circle(layer, (int(round(x * _ONE)), int(round(y * _ONE))), max(1, int(round(r * _ONE))), c, -1, cv2.LINE_8, _SHIFT)
+    if -2 * rr < x < w + 2 * rr and -2 * rr < y < h + 2 * rr:
+        cv2.circle(layer, (int(round(x * _ONE)), int(round(y * _ONE))), max(1, int(round(rr * _ONE))), c, -1, cv2.LINE_8, _SHIFT)
+
+
+def blur_glow(layer: np.ndarray, width: int, height: int, wide: float) -> np.ndarray:
+    """Bloom from a light layer: a tight and a wide halo, upsampled to ``uint8`` image size."""
+    g = cv2.GaussianBlur(layer, (0, 0), 0.9)
+    if wide > 0:
+        g = cv2.addWeighted(g, 1.0, cv2.GaussianBlur(layer, (0, 0), 4.0), wide, 0.0)
+    g = cv2.resize(g, (layer.shape[1] * GLOW_SCALE, layer.shape[0] * GLOW_SCALE), interpolation=cv2.INTER_LINEAR)
+    return np.clip(g[:height, :width], 0, 255).astype(np.uint8)
+
+
+@dataclass
+class StreetGeometry:
+    """Pinhole camera over a straight road (metres and pixels).
+
+    Attributes:
+        focal: Focal length in pixels.
+        cam_h: Camera height above the road in metres.
+        horizon: Image row of the horizon.
+        vanish_x: Image column of the vanishing point.
+        x_left: Lateral position of the left kerb (metres, negative).
+        x_right: Lateral position of the right kerb.
+        lane_w: Lane width in metres.
+    """
+
+    focal: float
+    cam_h: float
+    horizon: float
+    vanish_x: float
+    x_left: float
+    x_right: float
+    lane_w: float
 
 
 # --------------------------------------------------------------------------- dynamic lights
@@ -176,19 +214,19 @@ class Environment:
         width: Image width.
         height: Image height.
         margin: Extra pixels on each side of the background for camera shake.
-        horizon: Image row of the horizon.
-        vanish_x: Image column of the road's vanishing point.
+        geo: Camera and road geometry.
         lighting: The scene illumination.
         distractors: Whether to add distractor lights and background traffic.
         weather: "clear", "rain" or "haze".
         n_poles: Number of moving foreground poles/signs (None = random).
     """
 
-    def __init__(self, rng: np.random.Generator, width: int, height: int, margin: int, horizon: float, vanish_x: float,
+    def __init__(self, rng: np.random.Generator, width: int, height: int, margin: int, geo: "StreetGeometry",
                  lighting: Lighting, distractors: bool = True, weather: str = "clear", n_poles: Optional[int] = None) -> None:
         self.rng = rng
         self.width, self.height, self.margin = width, height, margin
-        self.horizon, self.vanish_x = horizon, vanish_x
+        self.geo = geo
+        self.horizon, self.vanish_x = geo.horizon, geo.vanish_x
         self.lighting = lighting
         self.weather = weather
         self.lights: List[DistractorLight] = []
@@ -202,195 +240,252 @@ class Environment:
         self.rain = self._rain_layer() if weather == "rain" else None
 
     # ----------------------------------------------------------------- background
+    def _proj(self, X: float, Y: float, Z: float, m: float = 0.0) -> Tuple[float, float]:
+        """Image position of the world point (X right, Y up from the ground, Z ahead), plus margin ``m``."""
+        g = self.geo
+        return g.vanish_x + m + g.focal * X / Z, g.horizon + m + g.focal * (g.cam_h - Y) / Z
+
+    def _quad(self, img: np.ndarray, X0: float, X1: float, Y0: float, Y1: float, Z0: float, Z1: float, colour, m: float) -> None:
+        """Fill the projection of a world rectangle that is either vertical along Z (X0 == X1),
+        facing the camera (Z0 == Z1) or lying on the ground (Y0 == Y1)."""
+        if X0 == X1:
+            pts = [self._proj(X0, Y0, Z0, m), self._proj(X0, Y1, Z0, m), self._proj(X0, Y1, Z1, m), self._proj(X0, Y0, Z1, m)]
+        elif Z0 == Z1:
+            pts = [self._proj(X0, Y0, Z0, m), self._proj(X1, Y0, Z0, m), self._proj(X1, Y1, Z0, m), self._proj(X0, Y1, Z0, m)]
+        else:
+            pts = [self._proj(X0, Y0, Z0, m), self._proj(X1, Y0, Z0, m), self._proj(X1, Y0, Z1, m), self._proj(X0, Y0, Z1, m)]
+        fill(img, np.array(pts), colour)
+
     def _build_background(self, distractors: bool) -> np.ndarray:
-        rng, lt = self.rng, self.lighting
+        rng, lt, g = self.rng, self.lighting, self.geo
         m = self.margin
         W, H = self.width + 2 * m, self.height + 2 * m
-        hy, vx = self.horizon + m, self.vanish_x + m
+        hy = g.horizon + m
         bg = np.zeros((H, W, 3), np.uint8)
         glow = np.zeros(((H + GLOW_SCALE - 1) // GLOW_SCALE, (W + GLOW_SCALE - 1) // GLOW_SCALE, 3), np.float32)
+        amb = lambda c, e=1.0: shade(c, lt, e)  # noqa: E731
         # Sky: vertical gradient from zenith to horizon.
         if lt.name == "day":
-            top = np.array([rng.uniform(150, 220), rng.uniform(110, 170), rng.uniform(60, 110)])
+            top = np.array([rng.uniform(150, 225), rng.uniform(110, 175), rng.uniform(60, 115)])
             if rng.random() < 0.4:
-                g = rng.uniform(150, 215)
-                top = np.array([g + 8, g + 3, g])
-            hor = np.array([rng.uniform(200, 240), rng.uniform(195, 235), rng.uniform(185, 230)])
+                v = rng.uniform(150, 215)
+                top = np.array([v + 8, v + 3, v])
+            hor = np.array([rng.uniform(200, 245), rng.uniform(195, 240), rng.uniform(185, 235)])
         elif lt.name == "dusk":
             top = np.array([rng.uniform(70, 120), rng.uniform(40, 70), rng.uniform(40, 80)])
             hor = np.array([rng.uniform(60, 130), rng.uniform(110, 170), rng.uniform(170, 230)])
         else:
-            top = np.array([rng.uniform(10, 30), rng.uniform(5, 20), rng.uniform(3, 15)])
-            hor = np.array([rng.uniform(25, 50), rng.uniform(25, 50), rng.uniform(30, 60)])
-        rows = np.clip(np.arange(H) / max(hy, 1.0), 0, 1)[:, None]
+            top = np.array([rng.uniform(8, 30), rng.uniform(5, 20), rng.uniform(3, 15)])
+            hor = np.array([rng.uniform(25, 55), rng.uniform(25, 55), rng.uniform(30, 65)])
+        rows = np.clip(np.arange(H) / max(hy, 1.0), 0, 1)[:, None] ** 1.5
         bg[:] = (top[None, :] * (1 - rows) + hor[None, :] * rows).astype(np.uint8)[:, None, :]
-
         scene = str(rng.choice(["city", "city", "suburb", "open"]))
-        amb = lambda c, e=1.0: shade(c, lt, e)  # noqa: E731
-        # Far skyline around the horizon.
+        self.scene = scene
+        # Far skyline at the horizon.
         x = 0.0
         while x < W:
-            bw = rng.uniform(15, 70)
-            bh = rng.uniform(5, 60) if scene != "open" else rng.uniform(2, 14)
-            g = rng.uniform(70, 170)
-            col = amb((g * rng.uniform(0.9, 1.1), g, g * rng.uniform(0.9, 1.15)), 0.8)
-            if scene == "open":
-                col = amb((rng.uniform(40, 90), rng.uniform(80, 130), rng.uniform(60, 100)), 0.8)
-            fill(bg, np.array([[x, hy - bh], [x + bw, hy - bh], [x + bw, hy + 2], [x, hy + 2]]), col)
-            if lt.name != "day" and scene != "open":
-                for _ in range(int(bw * bh / 120)):
-                    if rng.random() < 0.5:
-                        wx, wy = x + rng.uniform(2, bw - 2), hy - rng.uniform(2, bh)
-                        c = (rng.uniform(60, 140), rng.uniform(150, 210), rng.uniform(200, 255))
-                        cv2.rectangle(bg, (int(wx), int(wy)), (int(wx) + 1, int(wy) + 1), c, -1)
-            x += bw
-        # Road: from the bottom corners (plus extra) to the vanishing point.
-        road_l, road_r = vx - rng.uniform(1.2, 2.2) * (H - hy), vx + rng.uniform(1.2, 2.2) * (H - hy)
-        asphalt = amb((rng.uniform(70, 110),) * 3, 1.0)
-        asphalt = (asphalt[0] * rng.uniform(0.95, 1.05), asphalt[1], asphalt[2] * rng.uniform(0.95, 1.05))
-        ground = amb((rng.uniform(90, 150), rng.uniform(110, 160), rng.uniform(110, 170)))
-        fill(bg, np.array([[0, hy], [W, hy], [W, H], [0, H]]), ground)
-        fill(bg, np.array([[vx - 2, hy], [vx + 2, hy], [road_r, H], [road_l, H]]), asphalt)
-        # Kerb lines and lane markings converging to the vanishing point.
-        mark = amb((rng.uniform(200, 240), rng.uniform(200, 240), rng.uniform(200, 245)))
-        yellow = amb((40, 190, 230))
-        n_lanes = int(rng.integers(2, 6))
-        for k in range(1, n_lanes):
-            f = k / n_lanes
-            xb = road_l + (road_r - road_l) * f
-            col = yellow if (k == n_lanes // 2 and rng.random() < 0.3) else mark
-            dashed = rng.random() < 0.7
-            s_vals = np.linspace(0.02, 1.0, 40) ** 2
-            for a, b in zip(s_vals[:-1], s_vals[1:]):
-                if dashed and int(round(math.log(a + 1e-3) * 7)) % 2:
-                    continue
-                ya, yb = hy + (H - hy) * a, hy + (H - hy) * b
-                xa, xb2 = vx + (xb - vx) * a, vx + (xb - vx) * b
-                wa, wb = 0.3 + 3.5 * a, 0.3 + 3.5 * b
-                fill(bg, np.array([[xa - wa, ya], [xa + wa, ya], [xb2 + wb, yb], [xb2 - wb, yb]]), col)
-        for edge in (road_l, road_r):
-            fill(bg, np.array([[vx - 1, hy], [vx + 1, hy], [edge + 4, H], [edge - 4, H]]), amb((170, 170, 170)))
-        if rng.random() < 0.25:  # pedestrian crossing
-            yc = hy + (H - hy) * rng.uniform(0.25, 0.7)
-            s = (yc - hy) / (H - hy)
-            xl, xr = vx + (road_l - vx) * s, vx + (road_r - vx) * s
-            n = 12
-            for i in range(0, n, 2):
-                u0, u1 = xl + (xr - xl) * i / n, xl + (xr - xl) * (i + 1) / n
-                fill(bg, np.array([[u0, yc - 4 * s - 1], [u1, yc - 4 * s - 1], [u1, yc + 4 * s + 1], [u0, yc + 4 * s + 1]]), mark)
-        # Building facades (city) or trees (suburb) along both sides.
-        for side in (-1, 1):
-            if scene == "open":
-                break
-            x_near = 0.0 if side < 0 else float(W)
-            top_near = hy - rng.uniform(0.6, 1.6) * hy if scene == "city" else hy - rng.uniform(0.15, 0.45) * hy
-            gap = rng.uniform(10, 40)
-            xf = vx + side * gap
-            ground_near = H * rng.uniform(0.7, 1.0)
-            col = amb((rng.uniform(90, 200), rng.uniform(90, 190), rng.uniform(90, 200)))
+            bw = rng.uniform(10, 60)
+            bh = (rng.uniform(4, 50) if scene == "city" else rng.uniform(2, 12))
             if scene == "city":
-                fill(bg, np.array([[x_near, top_near], [xf, hy - (hy - top_near) * 0.08], [xf, hy + 1], [x_near, ground_near]]), col)
-                # Window columns at geometric depth steps (perspective spacing).
-                s = 1.0
-                lit_p = 0.35 if lt.name != "day" else 0.0
-                while s > 0.1:
-                    s_next = s * rng.uniform(0.72, 0.85)
-                    for fl in np.linspace(0.1, 0.85, int(rng.integers(3, 7))):
-                        xa = xf + (x_near - xf) * s * 0.96
-                        xb = xf + (x_near - xf) * (s_next + (s - s_next) * 0.35)
-                        ya0 = (hy - (hy - top_near) * s) + (ground_near - top_near) * s * fl
-                        ya1 = ya0 + (ground_near - top_near) * s * 0.06
-                        yb0 = (hy - (hy - top_near) * (s_next + (s - s_next) * 0.35)) + (ground_near - top_near) * (s_next + (s - s_next) * 0.35) * fl
-                        yb1 = yb0 + (ground_near - top_near) * (s_next + (s - s_next) * 0.35) * 0.06
-                        lit = rng.random() < lit_p
-                        wc = (rng.uniform(80, 150), rng.uniform(170, 220), rng.uniform(210, 255)) if lit else amb((rng.uniform(40, 90),) * 3, 0.8)
-                        fill(bg, np.array([[xa, ya0], [xb, yb0], [xb, yb1], [xa, ya1]]), wc)
-                        if lit:
-                            add_glow(glow, (xa + xb) / 2, (ya0 + yb1) / 2, abs(xb - xa), wc, 0.15)
-                    # Shop signs at street level, lit after dark; some are amber or red.
-                    if distractors and rng.random() < 0.35 and s > 0.2:
-                        sc = [(40, 160, 255), (40, 40, 230), (230, 160, 40), (80, 220, 80), (200, 80, 220), (220, 220, 230)][int(rng.integers(0, 6))]
-                        xa, xb = xf + (x_near - xf) * s * 0.92, xf + (x_near - xf) * (s_next + (s - s_next) * 0.3)
-                        ya = ground_near * s + hy * (1 - s) - (ground_near - top_near) * s * 0.15
-                        hh = (ground_near - top_near) * s * 0.05
-                        if lt.name == "day":
-                            fill(bg, np.array([[xa, ya - hh], [xb, ya - hh * 0.8], [xb, ya + hh * 0.8], [xa, ya + hh]]), amb(sc, 0.9))
-                        else:
-                            fill(bg, np.array([[xa, ya - hh], [xb, ya - hh * 0.8], [xb, ya + hh * 0.8], [xa, ya + hh]]), sc)
-                            add_glow(glow, (xa + xb) / 2, ya, abs(xb - xa) * 0.7, sc, 0.5)
-                    s = s_next
+                v = rng.uniform(90, 190)
+                col = amb((v * rng.uniform(0.9, 1.1), v, v * rng.uniform(0.9, 1.15)), 0.75)
             else:
-                s = 1.0
-                while s > 0.08:
-                    xa = xf + (x_near - xf) * s
-                    yb = hy + (ground_near - hy) * s
-                    r = (hy - top_near) * s * rng.uniform(0.4, 0.9)
-                    fill(bg, np.array([[xa - r * 0.06, yb - r], [xa + r * 0.06, yb - r], [xa + r * 0.06, yb], [xa - r * 0.06, yb]]), amb((40, 55, 70)))
-                    tc = amb((rng.uniform(30, 70), rng.uniform(80, 130), rng.uniform(40, 80)))
-                    ellipse(bg, xa, yb - r * 1.2, r * rng.uniform(0.5, 0.9), r * rng.uniform(0.45, 0.8), tc)
-                    s *= rng.uniform(0.6, 0.8)
-        # Street lamps along the road edges.
-        if distractors or lt.name != "day":
-            head = [(80, 170, 255), (230, 235, 245), (160, 220, 255)][int(rng.integers(0, 3))]
-            for side, edge in ((-1, road_l), (1, road_r)):
-                s = rng.uniform(0.5, 1.0)
-                while s > 0.1:
-                    xb = vx + (edge - vx) * s + side * 12 * s
-                    yb = hy + (H - hy) * s
-                    top = yb - 9.0 * s * (H - hy) / 1.6 * 0.45
-                    fill(bg, np.array([[xb - 1.2 * s - 0.4, top], [xb + 1.2 * s + 0.4, top], [xb + 1.2 * s + 0.4, yb], [xb - 1.2 * s - 0.4, yb]]),
-                         amb((60, 60, 65)))
-                    hx = xb - side * 12 * s
-                    fill(bg, np.array([[xb, top], [hx, top - 2 * s], [hx, top + 1], [xb, top + 2]]), amb((60, 60, 65)))
-                    if lt.name != "day":
-                        ellipse(bg, hx, top + 1, 3 * s + 0.8, 1.4 * s + 0.6, head)
-                        add_glow(glow, hx, top + 2, 14 * s + 3, head, 0.8)
-                        add_glow(glow, hx, yb, 30 * s + 4, head, 0.05)  # pool of light on the ground
-                    s *= rng.uniform(0.55, 0.75)
+                col = amb((rng.uniform(40, 90), rng.uniform(80, 130), rng.uniform(60, 100)), 0.7)
+            fill(bg, np.array([[x, hy - bh], [x + bw, hy - bh], [x + bw, hy + 3], [x, hy + 3]]), col)
+            if lt.name != "day" and scene == "city":
+                for _ in range(int(bw * bh / 60)):
+                    if rng.random() < 0.4:
+                        wx, wy = int(x + rng.uniform(1, bw - 1)), int(hy - rng.uniform(1, bh))
+                        bg[max(wy, 0), min(max(wx, 0), W - 1)] = (rng.uniform(60, 140), rng.uniform(150, 210), rng.uniform(200, 255))
+            x += bw
+        z_near, z_far = 0.6, 400.0
+        xl, xr = g.x_left, g.x_right
+        # Ground, sidewalks, road, kerbs, lane markings.
+        ground = amb((rng.uniform(80, 140), rng.uniform(110, 165), rng.uniform(100, 160)) if scene != "city" else (rng.uniform(120, 170),) * 3)
+        fill(bg, np.array([[0, hy], [W, hy], [W, H], [0, H]]), ground)
+        walk = amb((rng.uniform(120, 180), rng.uniform(125, 180), rng.uniform(125, 190)))
+        sw = rng.uniform(2.0, 5.0)
+        if scene == "city":
+            self._quad(bg, xl - sw, xl, 0, 0, z_near, z_far, walk, m)
+            self._quad(bg, xr, xr + sw, 0, 0, z_near, z_far, walk, m)
+        asphalt = amb((rng.uniform(65, 115),) * 3)
+        asphalt = (asphalt[0] * rng.uniform(0.95, 1.06), asphalt[1], asphalt[2] * rng.uniform(0.94, 1.05))
+        self._quad(bg, xl, xr, 0, 0, z_near, z_far, asphalt, m)
+        # Darker wheel tracks and patches give the asphalt some structure.
+        for _ in range(int(rng.integers(2, 8))):
+            X = rng.uniform(xl, xr)
+            Z = rng.uniform(3, 60)
+            self._quad(bg, X, X + rng.uniform(0.5, 3), 0, 0, Z, Z + rng.uniform(2, 15), tuple(c * rng.uniform(0.85, 1.1) for c in asphalt), m)
+        kerb = amb((185, 185, 185))
+        for X in (xl, xr):
+            self._quad(bg, X - 0.12, X + 0.12, 0, 0, z_near, z_far, kerb, m)
+        mark = amb((rng.uniform(205, 240), rng.uniform(205, 240), rng.uniform(205, 245)))
+        yellow = amb((40, 185, 230))
+        n_lanes = max(1, int((xr - xl) / g.lane_w))
+        dash, gap = rng.uniform(2.5, 4.5), rng.uniform(4.0, 9.0)
+        for k in range(1, n_lanes):
+            X = xl + (xr - xl) * k / n_lanes
+            centre = abs(X) < g.lane_w * 0.5 and rng.random() < 0.35
+            col = yellow if centre else mark
+            if centre or rng.random() < 0.15:
+                self._quad(bg, X - 0.07, X + 0.07, 0, 0, 1.0, z_far, col, m)
+                continue
+            Z = 1.0 + rng.uniform(0, dash + gap)
+            while Z < 160:
+                self._quad(bg, X - 0.07, X + 0.07, 0, 0, Z, Z + dash, col, m)
+                Z += dash + gap
+        if rng.random() < 0.25:  # pedestrian crossing
+            Z = rng.uniform(6, 30)
+            X = xl
+            while X < xr:
+                self._quad(bg, X, X + 0.5, 0, 0, Z, Z + 3.0, mark, m)
+                X += 1.0
+        # Roadside: facades (city), houses and trees (suburb), guard rail (open).
+        lit_p = 0.35 if lt.name != "day" else 0.0
+        for side in (-1, 1):
+            Xf = (xl - sw) if side < 0 else (xr + sw)
+            if scene == "city":
+                Z = z_near
+                while Z < 220:
+                    length = rng.uniform(8, 30)
+                    height = rng.uniform(6, 28)
+                    v = rng.uniform(80, 210)
+                    col = amb((v * rng.uniform(0.8, 1.15), v * rng.uniform(0.85, 1.1), v * rng.uniform(0.85, 1.2)))
+                    if rng.random() < 0.12:  # side street: a gap
+                        Z += rng.uniform(8, 15)
+                        continue
+                    self._quad(bg, Xf, Xf, 0, height, Z, Z + length, col, m)
+                    # Front face of the next building block shows when it is taller.
+                    win_w, win_h = rng.uniform(0.9, 1.8), rng.uniform(1.0, 1.8)
+                    pitch = rng.uniform(2.4, 4.0)
+                    dark = amb((rng.uniform(30, 80),) * 3, 0.9)
+                    scale_px = g.focal / max(Z, 1.0)
+                    if scale_px * win_w > 0.7:
+                        for fl in np.arange(4.0, height - 1.5, 3.0):
+                            for zc in np.arange(Z + 1.0, Z + length - win_w, pitch):
+                                if g.focal * win_w / zc < 0.6:
+                                    break
+                                lit = rng.random() < lit_p
+                                wc = (rng.uniform(70, 150), rng.uniform(160, 220), rng.uniform(200, 255)) if lit else dark
+                                self._quad(bg, Xf, Xf, fl, fl + win_h, zc, zc + win_w, wc, m)
+                                if lit:
+                                    x, y = self._proj(Xf, fl + win_h / 2, zc + win_w / 2, m)
+                                    add_glow(glow, x, y, g.focal * win_w / zc, wc, 0.12)
+                    # Shop fronts at street level: windows and a sign, lit after dark.
+                    if rng.random() < 0.55:
+                        z0 = Z + rng.uniform(0.5, 3)
+                        z1 = min(Z + length - 0.5, z0 + rng.uniform(3, 10))
+                        shop_lit = lt.name != "day" and rng.random() < 0.7
+                        sc = (rng.uniform(110, 190), rng.uniform(170, 230), rng.uniform(200, 250)) if shop_lit else amb((rng.uniform(35, 70),) * 3)
+                        self._quad(bg, Xf, Xf, 0.3, 2.6, z0, z1, sc, m)
+                        if shop_lit:
+                            x, y = self._proj(Xf, 1.4, (z0 + z1) / 2, m)
+                            add_glow(glow, x, y, g.focal * (z1 - z0) / z0 * 0.5, sc, 0.25)
+                        if distractors and rng.random() < 0.7:
+                            palette = [(40, 160, 255), (40, 40, 230), (230, 160, 40), (80, 220, 80), (200, 80, 220), (230, 230, 235), (30, 200, 250)]
+                            sgc = palette[int(rng.integers(0, len(palette)))]
+                            self._quad(bg, Xf, Xf, 2.8, 3.5, z0, z1, sgc if lt.name != "day" else amb(sgc, 0.9), m)
+                            if lt.name != "day":
+                                x, y = self._proj(Xf, 3.15, (z0 + z1) / 2, m)
+                                add_glow(glow, x, y, g.focal * (z1 - z0) / z0 * 0.4, sgc, 0.5)
+                    Z += length
+            elif scene == "suburb":
+                Z = z_near + rng.uniform(0, 5)
+                while Z < 150:
+                    if rng.random() < 0.5:  # a house behind the trees
+                        Xh = Xf + side * rng.uniform(5, 12)
+                        hc = amb((rng.uniform(120, 220), rng.uniform(130, 220), rng.uniform(140, 230)))
+                        hh, hl = rng.uniform(3.5, 6), rng.uniform(6, 12)
+                        self._quad(bg, Xh, Xh, 0, hh, Z, Z + hl, hc, m)
+                        roof = [self._proj(Xh, hh, Z, m), self._proj(Xh, hh + rng.uniform(1.5, 3), Z + hl / 2, m), self._proj(Xh, hh, Z + hl, m)]
+                        fill(bg, np.array(roof), amb((rng.uniform(30, 80), rng.uniform(40, 80), rng.uniform(60, 140))))
+                        for zc in np.arange(Z + 1.0, Z + hl - 1.5, 3.0):
+                            self._quad(bg, Xh, Xh, 1.0, 2.2, zc, zc + 1.2, amb((50, 50, 55)) if lt.name == "day" or rng.random() < 0.5
+                                       else (90, 170, 230), m)
+                    Xt = Xf + side * rng.uniform(0.5, 2.0)
+                    r = rng.uniform(1.5, 4.0)
+                    x, y = self._proj(Xt, 0, Z, m)
+                    _, yt = self._proj(Xt, rng.uniform(2.0, 3.0), Z, m)
+                    px = g.focal / Z
+                    fill(bg, np.array([[x - 0.15 * px, yt], [x + 0.15 * px, yt], [x + 0.15 * px, y], [x - 0.15 * px, y]]), amb((40, 55, 70)))
+                    tc = amb((rng.uniform(30, 70), rng.uniform(80, 135), rng.uniform(40, 85)))
+                    ellipse(bg, x, yt - r * px * 0.6, r * px, r * px * rng.uniform(0.7, 1.0), tc)
+                    Z += rng.uniform(6, 20)
+            else:
+                rail = amb((170, 170, 175))
+                for Z in np.arange(2.0, 120.0, 4.0):
+                    x0, y0 = self._proj(Xf, 0, Z, m)
+                    x1, y1 = self._proj(Xf, 0.75, Z, m)
+                    fill(bg, np.array([[x0 - 0.4, y1], [x0 + 0.4, y1], [x0 + 0.4, y0], [x0 - 0.4, y0]]), amb((90, 90, 90)))
+                self._quad(bg, Xf, Xf, 0.55, 0.8, 1.0, 300, rail, m)
+        # Street lamps along the kerbs.
+        head = [(80, 170, 255), (230, 235, 245), (160, 220, 255)][int(rng.integers(0, 3))]
+        spacing = rng.uniform(20, 40)
+        pole = amb((70, 70, 75))
+        for side, X in ((-1, xl - 0.4), (1, xr + 0.4)):
+            Z = rng.uniform(3, spacing)
+            height = rng.uniform(7, 10)
+            while Z < 200:
+                x0, y0 = self._proj(X, 0, Z, m)
+                x1, y1 = self._proj(X, height, Z, m)
+                x2, y2 = self._proj(X - side * 2.0, height, Z, m)
+                hw = max(0.4, 0.12 * g.focal / Z)
+                fill(bg, np.array([[x0 - hw, y1], [x0 + hw, y1], [x0 + hw, y0], [x0 - hw, y0]]), pole)
+                fill(bg, np.array([[x1, y1 - hw], [x2, y2 - hw], [x2, y2 + hw], [x1, y1 + hw]]), pole)
+                if lt.name != "day":
+                    ellipse(bg, x2, y2 + hw, max(0.8, 0.35 * g.focal / Z), max(0.5, 0.12 * g.focal / Z), head)
+                    add_glow(glow, x2, y2 + hw, 1.2 * g.focal / Z + 2, head, 0.7)
+                    xg, yg = self._proj(X - side * 2.0, 0, Z, m)
+                    add_glow(glow, xg, yg, 4.0 * g.focal / Z, head, 0.04)  # pool of light on the road
+                Z += spacing
         # Low-frequency texture so that flat areas are not perfectly flat.
         tex = cv2.resize(rng.normal(0, 1, (H // 16 + 2, W // 16 + 2)).astype(np.float32), (W, H), interpolation=cv2.INTER_CUBIC)
         fine = rng.normal(0, 1, (H, W)).astype(np.float32)
-        t = (tex * rng.uniform(3, 9) * lt.ambient + cv2.GaussianBlur(fine, (3, 3), 0) * 3 * lt.ambient)
+        below = (np.arange(H, dtype=np.float32) > hy)[:, None]  # the sky stays smooth
+        t = (tex * rng.uniform(2, 6) * below + cv2.GaussianBlur(fine, (3, 3), 0) * 2.5) * lt.ambient
         out = bg.astype(np.float32) + t[:, :, None]
         if lt.name != "day":
-            g = cv2.GaussianBlur(glow, (0, 0), 2.5)
-            g = cv2.resize(g, (glow.shape[1] * GLOW_SCALE, glow.shape[0] * GLOW_SCALE), interpolation=cv2.INTER_LINEAR)[:H, :W]
-            out += g * lt.glow
+            out += blur_glow(glow * lt.glow, W, H, 1.5).astype(np.float32)
         return np.clip(out, 0, 255).astype(np.uint8)
 
     # ----------------------------------------------------------------- distractors
     def _add_dynamic_lights(self) -> None:
-        rng, lt = self.rng, self.lighting
-        W, H, hy, vx = self.width, self.height, self.horizon, self.vanish_x
+        rng, lt, g = self.rng, self.lighting, self.geo
+        W = self.width
         n = int(rng.integers(1, 5)) + (2 if lt.name != "day" else 0)
-        for i in range(n):
+        for _ in range(n):
             kind = rng.choice(["beacon", "sign", "pair", "pair", "traffic"])
             if kind == "pair":
-                # A far vehicle: two small red lights (or headlights) near the horizon.
-                x = vx + rng.uniform(-0.35, 0.35) * W
-                y = hy + rng.uniform(0.5, 6)
-                sep = rng.uniform(2.5, 6)
+                # A far vehicle: two small rear lights (or headlights) far down the road.
+                Z = rng.uniform(70, 220)
+                X = rng.uniform(g.x_left + 1, g.x_right - 1)
+                x, y = self._proj(X, 0.8, Z)
+                sep = 0.75 * g.focal / Z
                 head = rng.random() < 0.35
                 col = (240, 240, 250) if head else (30, 20, 235)
                 body = (rng.uniform(20, 200),) * 3
-                self.lights.append(DistractorLight(x, y, sep, rng.uniform(0.6, 1.4), col, "pair", period=1 / rng.uniform(1, 2.2),
-                                                   duty=rng.uniform(0.3, 0.7), phase=rng.uniform(0, 1), vx=rng.uniform(-6, 6),
+                self.lights.append(DistractorLight(x, y, sep, max(0.6, 0.12 * g.focal / Z), col, "pair", period=1 / rng.uniform(1, 2.2),
+                                                   duty=rng.uniform(0.3, 0.7), phase=rng.uniform(0, 1), vx=rng.uniform(-3, 3),
                                                    glow=rng.uniform(0.5, 1.2), seed=int(rng.integers(0, 1 << 30)), body=body))
             elif kind == "beacon":
-                x, y = rng.uniform(0, W), hy + rng.uniform(-0.25, 0.35) * (H - hy)
+                Z = rng.uniform(8, 80)
+                X = rng.choice([g.x_left, g.x_right]) + rng.uniform(-1.5, 1.5)
+                x, y = self._proj(X, rng.uniform(0.5, 2.5), Z)
                 col = (rng.uniform(0, 40), rng.uniform(130, 200), 255.0) if rng.random() < 0.7 else (30, 30, 240)
-                r = rng.uniform(1.2, 4)
+                r = max(0.8, 0.12 * g.focal / Z)
                 self.lights.append(DistractorLight(x, y, r, r, col, "blink", period=1 / rng.uniform(0.8, 2.5),
                                                    duty=rng.uniform(0.3, 0.7), phase=rng.uniform(0, 1), glow=rng.uniform(0.6, 1.5)))
             elif kind == "traffic":
-                x, y = vx + rng.uniform(-0.45, 0.45) * W, hy - rng.uniform(5, 45)
+                Z = rng.uniform(20, 90)
+                X = rng.choice([g.x_left, g.x_right]) + rng.uniform(-1, 1)
+                x, y = self._proj(X, rng.uniform(3.5, 5.5), Z)
                 col = [(40, 40, 240), (90, 230, 60), (20, 170, 255)][int(rng.integers(0, 3))]
                 mode = "blink" if col[2] == 255 and rng.random() < 0.6 else "steady"
-                r = rng.uniform(1.2, 3.0)
+                r = max(0.8, 0.12 * g.focal / Z)
                 self.lights.append(DistractorLight(x, y, r, r, col, mode, period=1 / rng.uniform(0.8, 1.5), duty=0.5,
                                                    phase=rng.uniform(0, 1), glow=1.0, body=(25, 25, 25)))
             else:
-                x, y = rng.uniform(0, W), rng.uniform(0.3, 1.0) * hy
+                x, y = rng.uniform(0, W), rng.uniform(0.3, 1.0) * g.horizon
                 col = [(40, 160, 255), (40, 40, 230), (230, 160, 40), (80, 220, 80), (200, 80, 220)][int(rng.integers(0, 5))]
                 self.lights.append(DistractorLight(x, y, rng.uniform(4, 18), rng.uniform(1.5, 5), col, "flicker",
                                                    period=rng.uniform(0.2, 2.0), glow=0.8, seed=int(rng.integers(0, 1 << 30))))
@@ -418,7 +513,7 @@ class Environment:
                     lev = level * (0.6 if night else 0.9)
                     c = tuple(v * lev for v in col)
                     ellipse(img, x + sgn * d.rx, y, d.ry, d.ry * 0.8, c)
-                    add_glow(layer, x + sgn * d.rx, y, d.ry * 4, col, 0.3 * d.glow * lev * self.lighting.glow)
+                    add_glow(layer, x + sgn * d.rx, y, d.ry * 1.5, col, d.glow * lev * self.lighting.glow)
                 continue
             if d.mode == "blink":
                 on = ((t / d.period + d.phase) % 1.0) < d.duty
@@ -441,7 +536,7 @@ class Environment:
                      tuple(c * lev for c in d.colour))
             else:
                 ellipse(img, x, y, d.rx, d.ry, tuple(c * lev for c in d.colour))
-            add_glow(layer, x, y, max(d.rx, d.ry) * 3, d.colour, 0.35 * d.glow * self.lighting.glow)
+            add_glow(layer, x, y, max(d.rx, d.ry) * 1.2, d.colour, d.glow * self.lighting.glow)
 
     # ----------------------------------------------------------------- foreground
     def _random_pole(self) -> Occluder:

@@ -22,8 +22,8 @@ from signal_light_node.errors import ConfigError
 from signal_light_node.labels import Intent, LightStatus, View, intent_from_lights
 from signal_light_node.synth import lamps as lamp_mod
 from signal_light_node.synth.camera import Camera, sample_camera
-from signal_light_node.synth.environment import (GLOW_SCALE, LIGHTINGS, Environment, Lighting, Occluder, add_glow, ellipse,
-                                                 sample_lighting, shade)
+from signal_light_node.synth.environment import (GLOW_SCALE, LIGHTINGS, Environment, Lighting, Occluder, StreetGeometry,
+                                                 add_glow, blur_glow, ellipse, sample_lighting, shade)
 from signal_light_node.synth.lamps import Lamp, LampStyle, blinker_timeline, brake_timeline, flasher_level, sample_lamp_style
 from signal_light_node.synth.truth import RenderedFrame, VehicleTruth
 from signal_light_node.synth.vehicles import CLASS_IDS, KIND_DIMS, KIND_WEIGHTS, KINDS, BodyShape, body_shape, face_size_m, sample_colour
@@ -188,11 +188,15 @@ class SceneRenderer:
         self._hy = H * float(o.get("horizon", rng.uniform(0.36, 0.5)))
         self._vx = W * rng.uniform(0.35, 0.65)
         self._cam_h = rng.uniform(1.2, 1.7)
+        lane_w = rng.uniform(2.9, 3.7)
+        n_left, n_right = int(rng.integers(1, 4)), int(rng.integers(1, 4))
+        self._geo = StreetGeometry(self._f, self._cam_h, self._hy, self._vx, -n_left * lane_w + rng.uniform(-0.5, 0.5),
+                                   n_right * lane_w + rng.uniform(-0.5, 0.5), lane_w)
         self._light: Lighting = sample_lighting(rng, self.lighting)
         weather = o.get("weather") or str(rng.choice(["clear", "clear", "clear", "rain", "haze"]))
         if weather not in ("clear", "rain", "haze"):
             raise ConfigError(f"weather must be clear, rain or haze, got {weather!r}")
-        self._env = Environment(np.random.default_rng([self.seed, 2]), W, H, _MARGIN, self._hy, self._vx, self._light,
+        self._env = Environment(np.random.default_rng([self.seed, 2]), W, H, _MARGIN, self._geo, self._light,
                                 distractors=bool(o.get("distractors", True)), weather=weather, n_poles=o.get("poles"))
         for rect in o.get("occluders") or []:
             x0, y0, x1, y1 = (float(v) for v in rect)
@@ -239,13 +243,21 @@ class SceneRenderer:
             Z = face_w * f / float(vo["width_px"])
         else:
             Z = float(math.exp(vrng.uniform(math.log(z_min), math.log(max(z_max, z_min * 1.01)))))
+        geo = self._geo
         if "center_x" in vo:
-            x_img = float(vo["center_x"])
-        elif entering and view in (View.LEFT, View.RIGHT):
-            x_img = -0.4 * face_w * f / Z if vrng.random() < 0.5 else W + 0.4 * face_w * f / Z
+            X = (float(vo["center_x"]) - self._vx) * Z / f
+        elif view in (View.LEFT, View.RIGHT):
+            # Crossing traffic anywhere across the image (entering ones start just outside).
+            x_img = vrng.uniform(-0.1, 1.1) * W
+            if entering:
+                x_img = -0.45 * face_w * f / Z if vrng.random() < 0.5 else W + 0.45 * face_w * f / Z
+            X = (x_img - self._vx) * Z / f
         else:
-            x_img = vrng.uniform(-0.08, 1.08) * W
-        X = (x_img - self._vx) * Z / f
+            # In a lane: near the lane centre with some offset.
+            n_lanes = max(1, int(round((geo.x_right - geo.x_left) / geo.lane_w)))
+            lane = int(vrng.integers(0, n_lanes))
+            X = geo.x_left + (lane + 0.5) * (geo.x_right - geo.x_left) / n_lanes + vrng.normal(0, 0.25)
+        x_img = self._vx + f * X / Z
         speed = vo.get("speed")
         if view in (View.LEFT, View.RIGHT):
             # Crossing traffic: moves towards its front (image left from the LEFT view).
@@ -424,9 +436,7 @@ class SceneRenderer:
         rain = self._env.rain_slice(t)
         if rain is not None:
             img = cv2.add(img, rain)
-        glow = cv2.GaussianBlur(layer, (0, 0), 1.6)
-        glow = cv2.resize(glow, (layer.shape[1] * GLOW_SCALE, layer.shape[0] * GLOW_SCALE), interpolation=cv2.INTER_LINEAR)[:H, :W]
-        img = cv2.add(img, np.clip(glow, 0, 255).astype(np.uint8))
+        img = cv2.add(img, blur_glow(layer, W, H, self._light.glow * 0.6))
         img = cam.apply(img, t, frng)
         # Listing order follows the vehicle list (stable), not depth.
         order = {v.track_id: i for i, v in enumerate(self._vehicles)}
@@ -575,8 +585,9 @@ class SceneRenderer:
                         hot = 0.35 + 0.4 * k
                         cc = tuple(e + (255 - e) * hot for e in lamp.emit)
                         cv2.fillPoly(d.canvas, [np.round(core * _ONE).astype(np.int32)], cc, cv2.LINE_AA, _SHIFT)
-                    radius = size * (0.9 + 0.6 * lamp.glow) * (1.8 if night else 1.0) * (2.2 if lamp.role == "head" else 1.0)
-                    add_glow(layer, c[0] + rx0, c[1] + ry0, radius, lamp.emit, 0.45 * k * lt.glow * max(frac, 0.0) * lamp.glow)
+                    radius = size * 0.5 * (1.3 if lamp.role == "head" else 1.0)
+                    glow_gain = k * lt.glow * frac * lamp.glow * (2.0 if lamp.role == "head" and night else 1.0)
+                    add_glow(layer, c[0] + rx0, c[1] + ry0, radius, lamp.emit, glow_gain)
         # Labels.
         ys, xs = np.nonzero(d.vis)
         if len(xs) == 0:
