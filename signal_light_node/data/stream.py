@@ -136,8 +136,10 @@ class SyntheticSequenceStream(IterableDataset):
         fps: Frame rate of every scene, or None for the renderer's random choice.
         lighting: "day", "dusk", "night", or None for the renderer's random choice.
         night_fraction: Passed to the renderer (share of dark scenes when lighting is None).
-        scene_frames: Frames rendered per scene; default ``seq_len + max(4, seq_len // 4)``,
-            or ``seq_len`` with ``full_tracks``. Longer scenes give several windows per track.
+        scene_frames: Frames rendered per scene; default ``2 seq_len + max(4, seq_len // 4)``
+            (up to two windows per track: a scene's set-up costs about as much as ten
+            frames, so longer scenes are cheaper per sequence), or ``seq_len`` with
+            ``full_tracks``.
         full_tracks: Emit each track's observations of the whole scene as one item (padded
             to ``seq_len`` with ``mask`` False) instead of windows; for evaluation splits.
         min_observations: Shortest track that is still emitted (padded); default
@@ -180,7 +182,7 @@ class SyntheticSequenceStream(IterableDataset):
         if not 1 <= lo <= hi:
             raise ConfigError(f"vehicles must be (min, max) with 1 <= min <= max, got {vehicles}")
         frames = scene_frames if scene_frames is not None else (
-            seq_len if full_tracks else seq_len + max(4, seq_len // 4))
+            seq_len if full_tracks else 2 * seq_len + max(4, seq_len // 4))
         if int(frames) < 1:
             raise ConfigError(f"scene_frames must be positive, got {scene_frames}")
         min_obs = min_observations if min_observations is not None else (
@@ -208,7 +210,12 @@ class SyntheticSequenceStream(IterableDataset):
 
     def __iter__(self) -> Iterator[Item]:
         info = get_worker_info()
-        return self.sequences(worker_id=info.id if info is not None else 0)
+        if info is None:
+            return self.sequences(worker_id=0)
+        # Inside a DataLoader worker: one OpenCV thread, as torch does for itself, so that
+        # the workers do not oversubscribe the cores.
+        cv2.setNumThreads(1)
+        return self.sequences(worker_id=info.id)
 
     def _resolve_rank(self) -> int:
         if self.rank is not None:
