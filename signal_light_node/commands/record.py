@@ -42,6 +42,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true", help="replace an existing bag")
 
 
+def _flush(executor: object, counts: Counter, quiet_s: float = 0.3) -> None:
+    """Write what has already arrived: spin until nothing came for ``quiet_s`` seconds."""
+    quiet_until = time.monotonic() + quiet_s
+    while time.monotonic() < quiet_until:
+        before = sum(counts.values())
+        executor.spin_once(timeout_sec=0.05)
+        if sum(counts.values()) != before:
+            quiet_until = time.monotonic() + quiet_s
+
+
 def run(args: argparse.Namespace) -> int:
     """Record until a stop condition; returns the exit code."""
     from signal_light_node.bagio import BagWriter, normalize_msgtype, typestore
@@ -107,6 +117,8 @@ def run(args: argparse.Namespace) -> int:
                     LOG.info("no message for %.1f s; stopping", args.idle_timeout)
                     break
                 executor.spin_once(timeout_sec=0.05)
+            if stop.is_set() and args.count is None:
+                _flush(executor, counts)
         finally:
             executor.remove_node(node)
             node.destroy_node()
