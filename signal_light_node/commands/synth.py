@@ -32,7 +32,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lighting", choices=LIGHTINGS, default="mix",
                         help="scene lighting; mix draws it from the seed (default mix)")
     parser.add_argument("--night-fraction", type=float, metavar="X",
-                        help="with --lighting mix: probability of a dark (dusk/night) scene")
+                        help="with --lighting mix: probability of a night scene "
+                             "(default: the renderer's)")
     parser.add_argument("--raw", action="store_true",
                         help="write sensor_msgs/Image bgr8 on /camera/image_raw instead of "
                              "JPEG CompressedImage on /camera/image_raw/compressed")
