@@ -89,7 +89,7 @@ class Camera:
         enabled: False turns every effect off (clean images for tests).
     """
 
-    _POOL = 3
+    _POOL = 1
     _PAD = 16
 
     def __init__(self, params: CameraParams, width: int, height: int, horizon: float, seed: int, enabled: bool = True) -> None:
@@ -102,21 +102,21 @@ class Camera:
         self._noise = []
         if params.noise > 0.2:
             for _ in range(self._POOL):
-                n = rng.normal(0, params.noise, (height + self._PAD, width + self._PAD, 3)).astype(np.float32)
-                n[..., :] += rng.normal(0, params.noise * 0.5, (height + self._PAD, width + self._PAD, 1)).astype(np.float32)
-                self._noise.append((np.clip(n, 0, 255).astype(np.uint8), np.clip(-n, 0, 255).astype(np.uint8)))
+                n = rng.standard_normal((height + self._PAD, width + self._PAD, 3), dtype=np.float32)
+                n += 0.5 * rng.standard_normal((height + self._PAD, width + self._PAD, 1), dtype=np.float32)  # luma part
+                n *= params.noise
+                self._noise.append((cv2.convertScaleAbs(np.maximum(n, 0)), cv2.convertScaleAbs(np.minimum(n, 0))))
         # Haze and vignette: out = img * mult / 255 + add.
-        ys = np.arange(height, dtype=np.float32)[:, None]
-        xs = np.arange(width, dtype=np.float32)[None, :]
-        haze = params.haze * np.exp(-np.abs(ys - horizon) / (0.35 * height)) + params.haze * 0.3
-        haze = np.clip(haze, 0, 0.9)
-        r2 = ((xs - width / 2) / (width / 2)) ** 2 + ((ys - height / 2) / (height / 2)) ** 2
-        vig = 1.0 - params.vignette * np.clip(r2 / 2.0, 0, 1)
-        mult = np.broadcast_to((1.0 - haze) * vig, (height, width))
-        self._mult = np.repeat((mult * 255.0)[:, :, None], 3, 2).clip(0, 255).astype(np.uint8)
-        add = np.broadcast_to(haze, (height, width))[:, :, None] * np.asarray(params.haze_colour, np.float32)[None, None, :]
-        self._add = add.clip(0, 255).astype(np.uint8)
         self._use_mult = params.haze > 0.005 or params.vignette > 0.02
+        if self._use_mult:
+            ys = np.arange(height, dtype=np.float32)[:, None]
+            xs = np.arange(width, dtype=np.float32)[None, :]
+            haze = np.clip(params.haze * np.exp(-np.abs(ys - horizon) / (0.35 * height)) + params.haze * 0.3, 0, 0.9)
+            r2 = ((xs - width / 2) / (width / 2)) ** 2 + ((ys - height / 2) / (height / 2)) ** 2
+            mult = cv2.convertScaleAbs((1.0 - haze) * (1.0 - params.vignette * np.minimum(r2 * 0.5, 1.0)), alpha=255.0)
+            self._mult = cv2.merge([mult, mult, mult])
+            add = (haze * np.asarray(params.haze_colour, np.float32)[None, :]).astype(np.uint8)  # (H, 3)
+            self._add = cv2.resize(add[:, None, :], (width, height), interpolation=cv2.INTER_NEAREST)
         # Exposure: a slow drift plus occasional jumps (auto-exposure reacting to the scene).
         self._drift_f = rng.uniform(0.05, 0.3)
         self._drift_ph = rng.uniform(0, 2 * np.pi)

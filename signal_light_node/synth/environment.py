@@ -370,7 +370,7 @@ class Environment:
                                 self._quad(bg, Xf, Xf, fl, fl + win_h, zc, zc + win_w, wc, m)
                                 if lit:
                                     x, y = self._proj(Xf, fl + win_h / 2, zc + win_w / 2, m)
-                                    add_glow(glow, x, y, g.focal * win_w / zc, wc, 0.12)
+                                    add_glow(glow, x, y, 0.5 * g.focal * win_w / zc, wc, 0.1)
                     # Shop fronts at street level: windows and a sign, lit after dark.
                     if rng.random() < 0.55:
                         z0 = Z + rng.uniform(0.5, 3)
@@ -380,14 +380,14 @@ class Environment:
                         self._quad(bg, Xf, Xf, 0.3, 2.6, z0, z1, sc, m)
                         if shop_lit:
                             x, y = self._proj(Xf, 1.4, (z0 + z1) / 2, m)
-                            add_glow(glow, x, y, g.focal * (z1 - z0) / z0 * 0.5, sc, 0.25)
+                            add_glow(glow, x, y, g.focal * 1.0 / z0, sc, 0.2)
                         if distractors and rng.random() < 0.7:
                             palette = [(40, 160, 255), (40, 40, 230), (230, 160, 40), (80, 220, 80), (200, 80, 220), (230, 230, 235), (30, 200, 250)]
                             sgc = palette[int(rng.integers(0, len(palette)))]
                             self._quad(bg, Xf, Xf, 2.8, 3.5, z0, z1, sgc if lt.name != "day" else amb(sgc, 0.9), m)
                             if lt.name != "day":
                                 x, y = self._proj(Xf, 3.15, (z0 + z1) / 2, m)
-                                add_glow(glow, x, y, g.focal * (z1 - z0) / z0 * 0.4, sgc, 0.5)
+                                add_glow(glow, x, y, g.focal * 0.5 / z0, sgc, 0.4)
                     Z += length
             elif scene == "suburb":
                 Z = z_near + rng.uniform(0, 5)
@@ -434,9 +434,9 @@ class Environment:
                 fill(bg, np.array([[x1, y1 - hw], [x2, y2 - hw], [x2, y2 + hw], [x1, y1 + hw]]), pole)
                 if lt.name != "day":
                     ellipse(bg, x2, y2 + hw, max(0.8, 0.35 * g.focal / Z), max(0.5, 0.12 * g.focal / Z), head)
-                    add_glow(glow, x2, y2 + hw, 1.2 * g.focal / Z + 2, head, 0.7)
+                    add_glow(glow, x2, y2 + hw, 0.25 * g.focal / Z + 1, head, 0.8)
                     xg, yg = self._proj(X - side * 2.0, 0, Z, m)
-                    add_glow(glow, xg, yg, 4.0 * g.focal / Z, head, 0.04)  # pool of light on the road
+                    add_glow(glow, xg, yg, 2.5 * g.focal / Z, head, 0.03)  # pool of light on the road
                 Z += spacing
         # Low-frequency texture so that flat areas are not perfectly flat.
         tex = cv2.resize(rng.normal(0, 1, (H // 16 + 2, W // 16 + 2)).astype(np.float32), (W, H), interpolation=cv2.INTER_CUBIC)
@@ -445,7 +445,7 @@ class Environment:
         t = (tex * rng.uniform(2, 6) * below + cv2.GaussianBlur(fine, (3, 3), 0) * 2.5) * lt.ambient
         out = bg.astype(np.float32) + t[:, :, None]
         if lt.name != "day":
-            out += blur_glow(glow * lt.glow, W, H, 1.5).astype(np.float32)
+            out += blur_glow(glow * lt.glow, W, H, 0.8).astype(np.float32)
         return np.clip(out, 0, 255).astype(np.uint8)
 
     # ----------------------------------------------------------------- distractors
@@ -513,7 +513,7 @@ class Environment:
                     lev = level * (0.6 if night else 0.9)
                     c = tuple(v * lev for v in col)
                     ellipse(img, x + sgn * d.rx, y, d.ry, d.ry * 0.8, c)
-                    add_glow(layer, x + sgn * d.rx, y, d.ry * 1.5, col, d.glow * lev * self.lighting.glow)
+                    add_glow(layer, x + sgn * d.rx, y, d.ry * 1.5, col, 0.6 * d.glow * lev * self.lighting.glow)
                 continue
             if d.mode == "blink":
                 on = ((t / d.period + d.phase) % 1.0) < d.duty
@@ -536,7 +536,7 @@ class Environment:
                      tuple(c * lev for c in d.colour))
             else:
                 ellipse(img, x, y, d.rx, d.ry, tuple(c * lev for c in d.colour))
-            add_glow(layer, x, y, max(d.rx, d.ry) * 1.2, d.colour, d.glow * self.lighting.glow)
+            add_glow(layer, x, y, max(d.rx, d.ry) * 1.0, d.colour, 0.5 * d.glow * self.lighting.glow)
 
     # ----------------------------------------------------------------- foreground
     def _random_pole(self) -> Occluder:

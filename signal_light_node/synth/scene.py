@@ -99,6 +99,11 @@ class _Vehicle:
     sil_splits: List[Tuple[int, int]] = field(default_factory=list)
     tracker_bias: Tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     tracker_sigma: float = 0.02
+    tracker_amodal: bool = False
+    lamp_pts: np.ndarray = field(default=None)
+    lamp_ranges: List[Tuple[int, int]] = field(default_factory=list)
+    lamp_ranges_poly: List[List[Tuple[int, int]]] = field(default_factory=list)
+    lens_cols: List[Tuple[float, float, float]] = field(default_factory=list)
 
 
 @dataclass
@@ -289,7 +294,7 @@ class SceneRenderer:
         spots = []
         if vo.get("specular", vrng.random() < (0.7 if self.lighting == "day" else 0.4)):
             for _ in range(int(vrng.integers(1, 4))):
-                spots.append((vrng.uniform(0.1, 0.9), vrng.uniform(0.05, 0.6), vrng.uniform(0.02, 0.1), vrng.uniform(0.01, 0.04),
+                spots.append((vrng.uniform(0.1, 0.9), vrng.uniform(0.05, 0.6), vrng.uniform(0.012, 0.045), vrng.uniform(0.008, 0.03),
                               vrng.uniform(0.4, 1.0)))
         v = _Vehicle(track_id=track_id, kind=kind, view=view, style=style, colour=colour, face_w=face_w, face_h=face_h,
                      shape=shape, lamps=lamps, lamp_polys=lamp_polys, X=X, Z=Z, vx=vx, vz=vz, lights_on=lights_on,
@@ -301,7 +306,7 @@ class SceneRenderer:
                      shear=float(vo.get("shear", vrng.uniform(-0.05, 0.05))),
                      roll=float(vo.get("roll", vrng.uniform(-1.5, 1.5))), spots=spots, paints=paints,
                      tracker_bias=tuple(float(b) for b in vrng.normal(0, 0.02, 4)),
-                     tracker_sigma=float(vrng.uniform(0.008, 0.035)))
+                     tracker_sigma=float(vrng.uniform(0.008, 0.035)), tracker_amodal=bool(vrng.random() < 0.3))
         pts, splits, sil = [], [], []
         n = 0
         for key, poly in shape.parts:
@@ -314,7 +319,27 @@ class SceneRenderer:
             n += len(poly)
         v.part_pts = np.concatenate(pts, 0).astype(np.float32)
         v.part_splits, v.sil_splits = splits, sil
+        self._prepare_lamps(v)
         return v
+
+    def _prepare_lamps(self, v: _Vehicle) -> None:
+        """Stack all lamp outlines so that one matrix product per frame maps them to pixels."""
+        pts, ranges, ranges_poly = [], [], []
+        n = 0
+        for polys in v.lamp_polys:
+            a0 = n
+            rp = []
+            for poly in polys:
+                pts.append(poly)
+                rp.append((n, n + len(poly)))
+                n += len(poly)
+            ranges.append((a0, n))
+            ranges_poly.append(rp)
+        v.lamp_pts = np.concatenate(pts, 0).astype(np.float64)
+        v.lamp_ranges, v.lamp_ranges_poly = ranges, ranges_poly
+        lt = self._light
+        night = self.lighting != "day"
+        v.lens_cols = [shade(l.lens, lt, 1.0 / max(lt.ambient, 0.35) * (0.7 if night else 1.0)) for l in v.lamps]
 
     def _paints(self, rng: np.random.Generator, colour, kind: str) -> Dict[str, Tuple[float, float, float]]:
         lt = self._light
@@ -407,7 +432,7 @@ class SceneRenderer:
         # Bodies first (in any order), then visibility near-to-far, then lamps, then compositing far-to-near.
         drawn: List[_Drawn] = []
         for v in self._vehicles:
-            d = self._draw_body(v, t, ddx, ddy)
+            d = self._draw_body(v, t, ddx, ddy, layer)
             if d is not None:
                 drawn.append(d)
         coverage = np.zeros((H, W), np.uint8)
@@ -436,7 +461,7 @@ class SceneRenderer:
         rain = self._env.rain_slice(t)
         if rain is not None:
             img = cv2.add(img, rain)
-        img = cv2.add(img, blur_glow(layer, W, H, self._light.glow * 0.6))
+        img = cv2.add(img, blur_glow(layer, W, H, 0.5 if self.lighting == "day" else 1.0))
         img = cam.apply(img, t, frng)
         # Listing order follows the vehicle list (stable), not depth.
         order = {v.track_id: i for i, v in enumerate(self._vehicles)}
@@ -444,7 +469,7 @@ class SceneRenderer:
         stamp = self.start_ns + int(round(index * 1e9 / self.fps))
         return RenderedFrame(index=index, stamp_ns=stamp, image=img, vehicles=truths, lighting=self.lighting)
 
-    def _draw_body(self, v: _Vehicle, t: float, ddx: float, ddy: float) -> Optional[_Drawn]:
+    def _draw_body(self, v: _Vehicle, t: float, ddx: float, ddy: float, layer: np.ndarray) -> Optional[_Drawn]:
         W, H = self.width, self.height
         box = self._project(v)
         box = (box[0] - ddx, box[1] - ddy, box[2] - ddx, box[3] - ddy)
@@ -470,19 +495,23 @@ class SceneRenderer:
         xs = (np.arange(ww, dtype=np.float32) + rx0 - box[0]) / bw
         gy = 1.12 - 0.35 * np.clip(ys, 0, 1)
         gx = 1.0 + 0.12 * self._light.sun_side * (np.clip(xs, 0, 1) - 0.5)
-        g = gy[:, None] * gx[None, :]
-        canvas = np.minimum(canvas * g[:, :, None], 255).astype(np.uint8)
-        # Specular spots move over the body as the vehicle moves through the image.
+        g = (gy[:, None] * gx[None, :]).astype(np.float32)
+        canvas = np.minimum(canvas.astype(np.float32) * g[:, :, None], 255.0).astype(np.uint8)
+        # Specular spots (sun or street-light reflections) slide over the body as the vehicle
+        # moves through the image and come and go; they are soft light, plus a sharp glint.
         cx_img = (box[0] + box[2]) / 2
         for (su, sv, sru, srv, strength) in v.spots:
             u = su + 0.25 * (cx_img / W - 0.5)
             flick = 0.5 + 0.5 * math.sin(cx_img * 0.05 + su * 10)
-            s = strength * flick * (1.0 if self.lighting == "day" else 0.5)
+            s = strength * flick * (1.0 if self.lighting == "day" else 0.6)
             if s < 0.15:
                 continue
             p = M @ np.array([u, sv, 1.0])
-            c = tuple(min(255.0, 200 + 55 * s) for _ in range(3))
-            ellipse(canvas, p[0], p[1], sru * bw, max(0.6, srv * bh), c, angle=-8.0)
+            if sv < 0.6 and 0 <= p[0] < ww and 0 <= p[1] < hh and alpha[int(p[1]), int(p[0])] > 127:
+                add_glow(layer, p[0] + rx0, p[1] + ry0, sru * bw, (255, 255, 255), 0.6 * s)
+                if s > 0.5:
+                    ellipse(canvas, p[0], p[1], max(0.6, sru * bw * 0.35), max(0.5, srv * bh * 0.3),
+                            (235, 240, 245), angle=-12.0)
         area_in = float(np.count_nonzero(alpha > 127))
         full_box_area = bw * bh
         in_box_area = max(0.0, (min(box[2], W) - max(box[0], 0))) * max(0.0, (min(box[3], H) - max(box[1], 0)))
@@ -540,54 +569,56 @@ class SceneRenderer:
 
     def _lamps_and_truth(self, d: _Drawn, t: float, layer: np.ndarray, frng: np.random.Generator) -> Optional[VehicleTruth]:
         v = d.v
-        W, H = self.width, self.height
         rx0, ry0, rx1, ry1 = d.roi
         levels, brake, left_on, right_on = self._lamp_levels(v, t)
         lt = self._light
         night = self.lighting != "day"
         visible = {"L": False, "R": False, "brake": False}
-        for lamp, polys, levs in zip(v.lamps, v.lamp_polys, levels):
-            # Visibility: fraction of the lamp's silhouette pixels that are not hidden.
-            allp = np.concatenate(polys, 0) @ d.M[:, :2].T + d.M[:, 2]
-            lx0, ly0 = allp.min(0)
-            lx1, ly1 = allp.max(0)
-            full = max((lx1 - lx0) * (ly1 - ly0), 1e-3)
-            ix0, iy0 = int(max(0, math.floor(lx0))), int(max(0, math.floor(ly0)))
-            ix1, iy1 = int(min(rx1 - rx0, math.ceil(lx1))), int(min(ry1 - ry0, math.ceil(ly1)))
+        # All lamp outlines in one transform; per-lamp pixel counts from integral images.
+        P = v.lamp_pts @ d.M[:, :2].T + d.M[:, 2]
+        IP = np.round(P * _ONE).astype(np.int32)
+        starts = [a for a, _ in v.lamp_ranges]
+        lo = np.minimum.reduceat(P, starts, axis=0)
+        hi = np.maximum.reduceat(P, starts, axis=0)
+        iv = cv2.integral(d.vis.view(np.uint8))
+        ia = cv2.integral((d.alpha > 127).view(np.uint8))
+        rw, rh = rx1 - rx0, ry1 - ry0
+        gain = v.style.brightness * lt.lamp_gain * (1.25 if night else 1.0)
+        for li, (lamp, polys, levs) in enumerate(zip(v.lamps, v.lamp_ranges_poly, levels)):
+            lx0, ly0 = lo[li]
+            lx1, ly1 = hi[li]
+            fx0, fy0, fx1, fy1 = math.floor(lx0), math.floor(ly0), math.ceil(lx1), math.ceil(ly1)
+            ix0, iy0, ix1, iy1 = max(0, fx0), max(0, fy0), min(rw, fx1), min(rh, fy1)
+            frac = 0.0
             if ix1 > ix0 and iy1 > iy0:
-                n_vis = float(np.count_nonzero(d.vis[iy0:iy1, ix0:ix1]))
-                n_sil = float(np.count_nonzero(d.alpha[iy0:iy1, ix0:ix1] > 127))
-                inside = (ix1 - ix0) * (iy1 - iy0)
-                outside = max(0.0, (math.ceil(lx1) - math.floor(lx0)) * (math.ceil(ly1) - math.floor(ly0)) - inside)
+                n_vis = float(iv[iy1, ix1] - iv[iy0, ix1] - iv[iy1, ix0] + iv[iy0, ix0])
+                n_sil = float(ia[iy1, ix1] - ia[iy0, ix1] - ia[iy1, ix0] + ia[iy0, ix0])
+                outside = max(0.0, (fx1 - fx0) * (fy1 - fy0) - (ix1 - ix0) * (iy1 - iy0))
                 frac = n_vis / max(1.0, n_sil + outside * 0.8)
-            else:
-                frac = 0.0
-            if frac >= LAMP_VISIBLE_FRACTION and full >= 1.5:
+            if frac >= LAMP_VISIBLE_FRACTION and (lx1 - lx0) * (ly1 - ly0) >= 1.5:
                 if lamp.role in ("turn", "turn_tail") and lamp.side in ("L", "R"):
                     visible[lamp.side] = True
                 if lamp.role in ("tail", "turn_tail", "chmsl") and lamp.side != "C":
                     visible["brake"] = True
-            # Drawing: unlit lens, then the lit colour blended in by the level.
-            lens = shade(lamp.lens, lt, 1.0 / max(lt.ambient, 0.35) * (0.7 if night else 1.0))
-            gain = v.style.brightness * lt.lamp_gain
-            for poly, lev in zip(polys, levs):
-                p = poly @ d.M[:, :2].T + d.M[:, 2]
-                ip = np.round(p * _ONE).astype(np.int32)
-                k = min(1.0, lev * gain * (1.25 if night else 1.0))
-                col = tuple(lc * (1 - k) + e * k for lc, e in zip(lens, lamp.emit))
-                cv2.fillPoly(d.canvas, [ip], col, cv2.LINE_AA, _SHIFT)
+            # Unlit lens, then the lit colour blended in by the level.
+            lens = v.lens_cols[li]
+            for (a, b), lev in zip(polys, levs):
+                k = min(1.0, lev * gain)
+                col = (lens[0] + (lamp.emit[0] - lens[0]) * k, lens[1] + (lamp.emit[1] - lens[1]) * k,
+                       lens[2] + (lamp.emit[2] - lens[2]) * k)
+                cv2.fillPoly(d.canvas, [IP[a:b]], col, cv2.LINE_AA, _SHIFT)
                 if k > 0.05:
+                    p = P[a:b]
                     c = p.mean(0)
-                    size = max(float(np.ptp(p[:, 0])), float(np.ptp(p[:, 1])))
+                    size = max(hi[li][0] - lo[li][0], hi[li][1] - lo[li][1]) if len(polys) == 1 else \
+                        max(float(np.ptp(p[:, 0])), float(np.ptp(p[:, 1])))
                     if night and k > 0.5:
                         # Over-exposed core: the centre of a bright lamp clips towards white.
                         core = (p - c) * 0.55 + c
                         hot = 0.35 + 0.4 * k
                         cc = tuple(e + (255 - e) * hot for e in lamp.emit)
                         cv2.fillPoly(d.canvas, [np.round(core * _ONE).astype(np.int32)], cc, cv2.LINE_AA, _SHIFT)
-                    radius = size * 0.5 * (1.3 if lamp.role == "head" else 1.0)
-                    glow_gain = k * lt.glow * frac * lamp.glow * (2.0 if lamp.role == "head" and night else 1.0)
-                    add_glow(layer, c[0] + rx0, c[1] + ry0, radius, lamp.emit, glow_gain)
+                    add_glow(layer, c[0] + rx0, c[1] + ry0, size * 0.5, lamp.emit, 0.5 * k * lt.glow * frac * lamp.glow)
         # Labels.
         ys, xs = np.nonzero(d.vis)
         if len(xs) == 0:
@@ -617,7 +648,7 @@ class SceneRenderer:
         if r < 0.03:
             return None
         x0, y0, x1, y1 = box
-        if mode < 0.25:
+        if v.tracker_amodal:
             # Amodal box: the tracker keeps the full extent behind an occluder (clipped to the image).
             fx0, fy0, fx1, fy1 = d.box
             x0, y0 = max(0.0, fx0), max(0.0, fy0)
@@ -629,10 +660,10 @@ class SceneRenderer:
         x1 += (b[1] + s * jit[1]) * w
         y0 += (b[2] + s * jit[2]) * h
         y1 += (b[3] + s * jit[3]) * h
-        if 0.25 <= mode < 0.33:  # too large
+        if mode < 0.08:  # too large
             x0, x1 = x0 - amount * w * 0.5, x1 + amount * w * 0.5
             y0, y1 = y0 - amount * h * 0.5, y1 + amount * h * 0.5
-        elif 0.33 <= mode < 0.39:  # cut off on one side
+        elif mode < 0.14:  # cut off on one side
             if side == 0:
                 x0 += amount * w
             elif side == 1:
