@@ -212,6 +212,9 @@ class LightStateNet(nn.Module):
         x = features
         new_state = []
         for cell, (h, c) in zip(self.cells, state):
+            # States may come back NCHW (e.g. via a flat state bank); the convs want channels-last.
+            h = h.contiguous(memory_format=MEMORY_FORMAT)
+            c = c.contiguous(memory_format=MEMORY_FORMAT)
             h, c = cell(x, h, c)
             new_state.append((h, c))
             x = self.lstm_dropout(h)  # dropout on the output only, never on the carried state
