@@ -131,11 +131,18 @@ def test_occluded_lamp_turns_unknown():
 
 
 def test_vehicle_mostly_outside_the_image_is_not_listed():
-    (f,) = list(_one_vehicle(View.BEHIND, Intent.OFF, center_x=-95, width_px=200).frames(1))
+    # Side view, 300 px long, pointing to the image left: its front end is cut off first.
+    (f,) = list(_one_vehicle(View.LEFT, Intent.LEFT, center_x=-142, width_px=300).frames(1))
     assert f.vehicles == []
-    (g,) = list(_one_vehicle(View.BEHIND, Intent.OFF, center_x=-40, width_px=200).frames(1))
+    (g,) = list(_one_vehicle(View.LEFT, Intent.LEFT, center_x=-60, width_px=300).frames(1))
     (v,) = g.vehicles
-    assert v.box[0] == 0.0 and v.left == LightStatus.UNKNOWN and v.occlusion > 0.3
+    assert v.box[0] == 0.0 and 0.5 < v.occlusion < 0.9
+    # Front lamps and repeater are outside the image, the rear indicator at the rear end is not.
+    assert (v.left, v.right, v.intent) == (LightStatus.ON, LightStatus.UNKNOWN, Intent.LEFT)
+    # Cut at the rear instead, with a red combined rear lamp: the front indicator still shows.
+    (h,) = list(_one_vehicle(View.LEFT, Intent.LEFT, center_x=700, width_px=300, design="red_combined").frames(1))
+    (w,) = h.vehicles
+    assert w.left == LightStatus.ON and w.brake == LightStatus.UNKNOWN
 
 
 def test_random_scenes_keep_their_invariants():

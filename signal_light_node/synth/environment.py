@@ -88,11 +88,12 @@ def ellipse(img: np.ndarray, cx: float, cy: float, rx: float, ry: float, colour,
                 cv2.LINE_AA if aa else cv2.LINE_8, _SHIFT)
 
 
-def add_glow(layer: np.ndarray, cx: float, cy: float, radius: float, colour, gain: float) -> None:
+def add_glow(layer: np.ndarray, cx: float, cy: float, radius: float, colour, gain: float, stretch: float = 1.0) -> None:
     """Add emission of a light of ``radius`` image pixels to the quarter-resolution light layer.
 
     The renderer blurs the layer at two scales, so the emission only has to carry the
     light's energy: small lights get a one-pixel dot scaled down by their area.
+    ``stretch`` > 1 makes a vertical streak (reflections on a wet road).
     """
     r = radius / GLOW_SCALE
     rr = max(0.7, r)
@@ -100,8 +101,12 @@ def add_glow(layer: np.ndarray, cx: float, cy: float, radius: float, colour, gai
     c = tuple(float(v) * energy for v in colour)
     x, y = cx / GLOW_SCALE, cy / GLOW_SCALE
     h, w = layer.shape[:2]
-    if -2 * rr < x < w + 2 * rr and -2 * rr < y < h + 2 * rr:
-        cv2.circle(layer, (int(round(x * _ONE)), int(round(y * _ONE))), max(1, int(round(rr * _ONE))), c, -1, cv2.LINE_8, _SHIFT)
+    if -2 * rr < x < w + 2 * rr and -2 * rr * stretch < y < h + 2 * rr * stretch:
+        if stretch == 1.0:
+            cv2.circle(layer, (int(round(x * _ONE)), int(round(y * _ONE))), max(1, int(round(rr * _ONE))), c, -1, cv2.LINE_8, _SHIFT)
+        else:
+            cv2.ellipse(layer, (int(round(x * _ONE)), int(round(y * _ONE))),
+                        (max(1, int(round(rr * _ONE))), max(1, int(round(rr * stretch * _ONE)))), 0, 0, 360, c, -1, cv2.LINE_8, _SHIFT)
 
 
 def blur_glow(layer: np.ndarray, width: int, height: int, wide: float) -> np.ndarray:
@@ -234,7 +239,7 @@ class Environment:
         self.background = self._build_background(distractors)
         if distractors:
             self._add_dynamic_lights()
-        n = int(rng.choice([0, 0, 1, 1, 2, 3])) if n_poles is None else n_poles
+        n = int(rng.choice([0, 0, 0, 1, 1, 2])) if n_poles is None else n_poles
         for _ in range(n):
             self.occluders.append(self._random_pole())
         self.rain = self._rain_layer() if weather == "rain" else None
@@ -542,7 +547,7 @@ class Environment:
     def _random_pole(self) -> Occluder:
         rng, lt = self.rng, self.lighting
         W, H = self.width, self.height
-        width = rng.uniform(5, 28)
+        width = rng.uniform(4, 20)
         vx = rng.choice([-1, 1]) * rng.uniform(10, 90) if rng.random() < 0.7 else 0.0
         g = rng.uniform(40, 150)
         colour = shade((g, g * rng.uniform(0.95, 1.05), g * rng.uniform(0.9, 1.1)), lt)

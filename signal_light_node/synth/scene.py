@@ -206,6 +206,7 @@ class SceneRenderer:
         for rect in o.get("occluders") or []:
             x0, y0, x1, y1 = (float(v) for v in rect)
             self._env.occluders.append(Occluder(0, 0, 0, 0, 0, (90, 90, 90), rect=(x0, y0, x1, y1)))
+        self._wet = weather == "rain" or (self.lighting != "day" and rng.random() < 0.3)
         cam_params = sample_camera(rng, self._light.noise, self.lighting, weather)
         if not o.get("shake", True):
             cam_params.shake = 0.0
@@ -215,6 +216,66 @@ class SceneRenderer:
         vo = o.get("vehicles") or []
         for i in range(self.n_vehicles):
             self._vehicles.append(self._spawn(vo[i] if i < len(vo) else {}, entering=False))
+
+    def _place(self, vo: Dict[str, Any], view: View, face_w: float, face_h: float, entering: bool,
+               vrng: np.random.Generator, z_min: float, z_max: float) -> Tuple[float, float]:
+        """Depth and lateral position of a new vehicle.
+
+        Sizes run from ~22 px to half the frame wide; front/rear views sit in a lane,
+        crossing traffic anywhere. Random placements that would mostly hide behind (or
+        hide) a vehicle already there are drawn again, so that occlusion stays partial.
+        """
+        f, W = self._f, self.width
+        geo = self._geo
+        best = None
+        for attempt in range(8):
+            if "width_px" in vo:
+                Z = face_w * f / float(vo["width_px"])
+            elif entering and view == View.FRONT:
+                Z = z_max * vrng.uniform(0.6, 1.0)  # oncoming: appears far away
+            elif entering and view == View.BEHIND:
+                # Either far ahead (we catch up) or close, overtaking us from the image bottom.
+                Z = z_max * vrng.uniform(0.6, 1.0) if vrng.random() < 0.6 else z_min * vrng.uniform(1.0, 1.3)
+            else:
+                Z = float(math.exp(vrng.uniform(math.log(z_min), math.log(max(z_max, z_min * 1.01)))))
+            if "center_x" in vo:
+                X = (float(vo["center_x"]) - self._vx) * Z / f
+            elif view in (View.LEFT, View.RIGHT):
+                x_img = vrng.uniform(-0.1, 1.1) * W
+                if entering:
+                    x_img = -0.45 * face_w * f / Z if vrng.random() < 0.5 else W + 0.45 * face_w * f / Z
+                X = (x_img - self._vx) * Z / f
+            else:
+                n_lanes = max(1, int(round((geo.x_right - geo.x_left) / geo.lane_w)))
+                lane = int(vrng.integers(0, n_lanes))
+                X = geo.x_left + (lane + 0.5) * (geo.x_right - geo.x_left) / n_lanes + vrng.normal(0, 0.25)
+            if "width_px" in vo or "center_x" in vo:
+                return Z, X
+            overlap = self._overlap(Z, X, face_w, face_h)
+            if best is None or overlap < best[0]:
+                best = (overlap, Z, X)
+            if overlap < 0.35:
+                break
+        return best[1], best[2]
+
+    def _overlap(self, Z: float, X: float, face_w: float, face_h: float) -> float:
+        """Largest fraction of either box that a candidate and an existing vehicle share."""
+        f = self._f
+        bottom = self._hy + f * self._cam_h / Z
+        w, h = face_w * f / Z, face_h * f / Z
+        cx = self._vx + f * X / Z
+        a = (cx - w / 2, bottom - h, cx + w / 2, bottom)
+        worst = 0.0
+        for other in self._vehicles:
+            b = self._project(other)
+            iw = min(a[2], b[2]) - max(a[0], b[0])
+            ih = min(a[3], b[3]) - max(a[1], b[1])
+            if iw <= 0 or ih <= 0:
+                continue
+            inter = iw * ih
+            smaller = min((a[2] - a[0]) * (a[3] - a[1]), (b[2] - b[0]) * (b[3] - b[1]))
+            worst = max(worst, inter / max(smaller, 1e-6))
+        return worst
 
     def _spawn(self, vo: Dict[str, Any], entering: bool) -> _Vehicle:
         rng = self._rng
@@ -241,27 +302,9 @@ class SceneRenderer:
             lamps = lamp_mod.side_lamps(style, kind, vrng, view)
         lamp_polys = [_segment_polys(l) if l.segments > 1 else [_lamp_poly(l)] for l in lamps]
         W, f = self.width, self._f
-        # Depth from the wanted size: between ~24 px and half the frame wide.
         z_min = face_w * f / (0.5 * W)
         z_max = min(70.0, face_w * f / 22.0)
-        if "width_px" in vo:
-            Z = face_w * f / float(vo["width_px"])
-        else:
-            Z = float(math.exp(vrng.uniform(math.log(z_min), math.log(max(z_max, z_min * 1.01)))))
-        geo = self._geo
-        if "center_x" in vo:
-            X = (float(vo["center_x"]) - self._vx) * Z / f
-        elif view in (View.LEFT, View.RIGHT):
-            # Crossing traffic anywhere across the image (entering ones start just outside).
-            x_img = vrng.uniform(-0.1, 1.1) * W
-            if entering:
-                x_img = -0.45 * face_w * f / Z if vrng.random() < 0.5 else W + 0.45 * face_w * f / Z
-            X = (x_img - self._vx) * Z / f
-        else:
-            # In a lane: near the lane centre with some offset.
-            n_lanes = max(1, int(round((geo.x_right - geo.x_left) / geo.lane_w)))
-            lane = int(vrng.integers(0, n_lanes))
-            X = geo.x_left + (lane + 0.5) * (geo.x_right - geo.x_left) / n_lanes + vrng.normal(0, 0.25)
+        Z, X = self._place(vo, view, face_w, face_h, entering, vrng, z_min, z_max)
         x_img = self._vx + f * X / Z
         speed = vo.get("speed")
         if view in (View.LEFT, View.RIGHT):
@@ -282,6 +325,8 @@ class SceneRenderer:
             s = float(speed) if speed is not None else None
             if view == View.BEHIND:
                 vz = s if s is not None else vrng.uniform(-1.5, 1.5)
+                if entering and s is None:
+                    vz = -vrng.uniform(0.5, 3.0) if Z > z_max * 0.5 else vrng.uniform(1.0, 4.0)
             else:
                 vz = -(s if s is not None else vrng.uniform(0.0, 4.0))
             vx = 0.0 if s is not None else vrng.uniform(-0.25, 0.25)
@@ -353,6 +398,9 @@ class SceneRenderer:
             "dark": shade((22, 22, 24), lt), "trim": shade(trim, lt), "plate": shade(plate, lt, 1.0 if lt.name == "day" else 2.0),
             "grille": shade((rng.uniform(20, 60),) * 3 if rng.random() < 0.8 else (160, 160, 165), lt),
             "sign": (20, 150, 250) if lt.name != "day" else shade((20, 120, 220), lt, 1.3), "box": shade(box, lt),
+            "arch": shade((18, 18, 20), lt), "tyre": shade((rng.uniform(25, 40),) * 3, lt),
+            "hub": shade((rng.uniform(60, 190),) * 3, lt), "flank": shade(colour, lt, rng.uniform(0.6, 0.85)),
+            "flank_glass": shade(glass, lt, 0.8 / max(lt.ambient, 0.5)),
         }
 
     # ------------------------------------------------------------------ per-frame geometry
@@ -453,6 +501,7 @@ class SceneRenderer:
                 truths.append(tr)
         for d in reversed(drawn):
             x0, y0, x1, y1 = d.roi
+            self._shadow(img, d)
             a = d.alpha.astype(np.float32) * (1.0 / 255.0)
             roi = img[y0:y1, x0:x1]
             img[y0:y1, x0:x1] = cv2.blendLinear(d.canvas, roi, a, 1.0 - a)
@@ -469,6 +518,52 @@ class SceneRenderer:
         stamp = self.start_ns + int(round(index * 1e9 / self.fps))
         return RenderedFrame(index=index, stamp_ns=stamp, image=img, vehicles=truths, lighting=self.lighting)
 
+    def _flank(self, v: _Vehicle, ddx: float, ddy: float) -> Optional[Tuple[np.ndarray, Optional[np.ndarray]]]:
+        """Outline (and side windows) of the flank that a front or rear view shows when the
+        vehicle is off the camera axis, in image coordinates; None when none shows."""
+        if v.view in (View.LEFT, View.RIGHT):
+            return None
+        w_m, h_m, length = KIND_DIMS[v.kind]
+        w_m = v.face_w
+        near_x = v.X + w_m / 2 if v.X < 0 else v.X - w_m / 2
+        if near_x * v.X <= 0:
+            return None  # straight ahead: no flank visible
+        f, hy, vx, ch = self._f, self._hy - ddy, self._vx - ddx, self._cam_h
+        Zn, Zf = v.Z, v.Z + length * (v.face_h / KIND_DIMS[v.kind][1])
+        xn, xf = vx + f * near_x / Zn, vx + f * near_x / Zf
+        if abs(xn - xf) < 1.0:
+            return None
+        top_far = h_m * (0.62 if v.kind in ("car", "suv") else 1.0) * v.face_h / KIND_DIMS[v.kind][1]
+        ground = 0.2 * v.face_h / KIND_DIMS[v.kind][1]
+        yn = lambda hgt: hy + f * (ch - hgt) / Zn  # noqa: E731
+        yf = lambda hgt: hy + f * (ch - hgt) / Zf  # noqa: E731
+        top_near = v.face_h * (0.62 if v.kind in ("car", "suv") else 1.0)
+        outline = np.array([[xn, yn(top_near)], [xf, yf(top_far)], [xf, yf(ground)], [xn, yn(ground)]], np.float64)
+        glass = None
+        if v.kind in ("car", "suv", "van", "bus"):
+            # Side windows: a band under the roof line, shorter than the body.
+            g_lo, g_hi = v.face_h * 0.62, v.face_h * (0.92 if v.kind in ("car", "suv") else 0.85)
+            za, zb = Zn + (Zf - Zn) * 0.12, Zn + (Zf - Zn) * 0.8
+            xa, xb = vx + f * near_x / za, vx + f * near_x / zb
+            ya = lambda hgt: hy + f * (ch - hgt) / za  # noqa: E731
+            yb = lambda hgt: hy + f * (ch - hgt) / zb  # noqa: E731
+            glass = np.array([[xa, ya(g_hi)], [xb, yb(g_hi)], [xb, yb(g_lo)], [xa, ya(g_lo)]], np.float64)
+            if v.kind in ("car", "suv"):
+                # The cabin sits on top of the body: extend the outline up to the roof.
+                roof_n = np.array([[xn, yn(v.face_h * 0.97)], [xb, yb(v.face_h * 0.95)], [xb, yb(top_far)]])
+                outline = np.vstack([outline[:1], roof_n, outline[1:]])
+        return outline, glass
+
+    def _shadow(self, img: np.ndarray, d: _Drawn) -> None:
+        """Contact shadow on the road under a vehicle (darker in daylight)."""
+        x0, y0, x1, y1 = d.box
+        cx, cy = (x0 + x1) / 2, y1 - (y1 - y0) * 0.02
+        H, W = img.shape[:2]
+        sx, sy = int(min(max(cx, 0), W - 1)), int(min(max(cy + 2, 0), H - 1))
+        under = img[sy, sx].astype(np.float32)
+        dark = tuple(float(c) * (0.45 if self.lighting == "day" else 0.7) for c in under)
+        ellipse(img, cx, cy, (x1 - x0) * 0.53, max(1.0, (y1 - y0) * 0.06), dark)
+
     def _draw_body(self, v: _Vehicle, t: float, ddx: float, ddy: float, layer: np.ndarray) -> Optional[_Drawn]:
         W, H = self.width, self.height
         box = self._project(v)
@@ -477,8 +572,13 @@ class SceneRenderer:
         if bw < 2 or bh < 2:
             return None
         pad = abs(v.shear) * bh + abs(math.radians(v.roll)) * max(bw, bh) + 2
-        rx0, ry0 = int(max(0, math.floor(box[0] - pad))), int(max(0, math.floor(box[1] - pad)))
-        rx1, ry1 = int(min(W, math.ceil(box[2] + pad))), int(min(H, math.ceil(box[3] + pad)))
+        ext = [box[0] - pad, box[1] - pad, box[2] + pad, box[3] + pad]
+        flank = self._flank(v, ddx, ddy)
+        if flank is not None:
+            ext = [min(ext[0], flank[0][:, 0].min()), min(ext[1], flank[0][:, 1].min()),
+                   max(ext[2], flank[0][:, 0].max()), max(ext[3], flank[0][:, 1].max())]
+        rx0, ry0 = int(max(0, math.floor(ext[0]))), int(max(0, math.floor(ext[1])))
+        rx1, ry1 = int(min(W, math.ceil(ext[2]))), int(min(H, math.ceil(ext[3])))
         if rx1 - rx0 < 1 or ry1 - ry0 < 1:
             return None
         M = self._affine(v, box, rx0, ry0)
@@ -486,6 +586,14 @@ class SceneRenderer:
         ipts = np.round(pts * _ONE).astype(np.int32)
         canvas = np.zeros((ry1 - ry0, rx1 - rx0, 3), np.uint8)
         alpha = np.zeros((ry1 - ry0, rx1 - rx0), np.uint8)
+        if flank is not None:
+            # The flank is drawn first; the face drawn over it hides the seam.
+            outline, glass = flank
+            io = np.round((outline - (rx0, ry0)) * _ONE).astype(np.int32)
+            cv2.fillPoly(alpha, [io], 255, cv2.LINE_AA, _SHIFT)
+            cv2.fillPoly(canvas, [io], v.paints["flank"], cv2.LINE_AA, _SHIFT)
+            if glass is not None:
+                cv2.fillPoly(canvas, [np.round((glass - (rx0, ry0)) * _ONE).astype(np.int32)], v.paints["flank_glass"], cv2.LINE_AA, _SHIFT)
         cv2.fillPoly(alpha, [ipts[a:b] for a, b in v.sil_splits], 255, cv2.LINE_AA, _SHIFT)
         for key, a, b in v.part_splits:
             cv2.fillPoly(canvas, [ipts[a:b]], v.paints.get(key, v.paints["body"]), cv2.LINE_AA, _SHIFT)
@@ -619,6 +727,11 @@ class SceneRenderer:
                         cc = tuple(e + (255 - e) * hot for e in lamp.emit)
                         cv2.fillPoly(d.canvas, [np.round(core * _ONE).astype(np.int32)], cc, cv2.LINE_AA, _SHIFT)
                     add_glow(layer, c[0] + rx0, c[1] + ry0, size * 0.5, lamp.emit, 0.5 * k * lt.glow * frac * lamp.glow)
+                    if self._wet:
+                        # Reflection on the wet road, mirrored about the vehicle's ground line.
+                        gy = d.box[3]
+                        ry = gy + (gy - (c[1] + ry0)) * 0.9
+                        add_glow(layer, c[0] + rx0, ry, size * 0.5, lamp.emit, 0.3 * k * lt.glow * frac, stretch=3.0)
         # Labels.
         ys, xs = np.nonzero(d.vis)
         if len(xs) == 0:

@@ -56,7 +56,7 @@ class BodyShape:
     Attributes:
         silhouette: Polygons whose union is the vehicle's outline.
         parts: (paint key, polygon) in draw order; keys: body, shade, glass, dark, trim,
-            plate, grille, sign.
+            plate, grille, sign, box, arch, tyre, hub.
         fill_ratio: Fraction of the box the silhouette covers (for occlusion bookkeeping).
         chmsl_v: Vertical position for a centre brake lamp.
     """
@@ -110,7 +110,7 @@ def _rear(kind: str, rng: np.random.Generator) -> BodyShape:
     j = lambda s: float(rng.uniform(-s, s))  # noqa: E731 - tiny jitter helper
     tyre_w = 0.13 + j(0.02)
     tyres = [_rrect(0.06, 0.8, 0.06 + tyre_w, 1.0, 0.02, 0.02), _rrect(0.94 - tyre_w, 0.8, 0.94, 1.0, 0.02, 0.02)]
-    parts: List[Tuple[str, Poly]] = [("dark", t) for t in tyres]
+    parts: List[Tuple[str, Poly]] = [("tyre", t) for t in tyres]
     if kind in ("car", "suv"):
         roof_in = 0.15 + j(0.04)
         belt = (0.4 if kind == "car" else 0.44) + j(0.04)
@@ -152,7 +152,7 @@ def _front(kind: str, rng: np.random.Generator) -> BodyShape:
     j = lambda s: float(rng.uniform(-s, s))  # noqa: E731
     tyre_w = 0.12 + j(0.02)
     tyres = [_rrect(0.07, 0.82, 0.07 + tyre_w, 1.0, 0.02, 0.02), _rrect(0.93 - tyre_w, 0.82, 0.93, 1.0, 0.02, 0.02)]
-    parts: List[Tuple[str, Poly]] = [("dark", t) for t in tyres]
+    parts: List[Tuple[str, Poly]] = [("tyre", t) for t in tyres]
     mirrors = [_rrect(0.0, 0.3, 0.05, 0.4, 0.01, 0.01), _rrect(0.95, 0.3, 1.0, 0.4, 0.01, 0.01)]
     if kind in ("car", "suv", "van"):
         roof_in = {"car": 0.16, "suv": 0.13, "van": 0.08}[kind] + j(0.03)
@@ -186,7 +186,8 @@ def _side(kind: str, rng: np.random.Generator) -> BodyShape:
     wheel_v = 1.0 - rv
     front_u, rear_u = (0.17 + j(0.02), 0.82 + j(0.02)) if kind != "bus" else (0.13, 0.76)
     wheels = [_ellipse(front_u, wheel_v, ru, rv), _ellipse(rear_u, wheel_v, ru, rv)]
-    hubs = [_ellipse(front_u, wheel_v, ru * 0.55, rv * 0.55), _ellipse(rear_u, wheel_v, ru * 0.55, rv * 0.55)]
+    hubs = [_ellipse(front_u, wheel_v, ru * 0.5, rv * 0.5), _ellipse(rear_u, wheel_v, ru * 0.5, rv * 0.5)]
+    arches = [_ellipse(front_u, wheel_v, ru * 1.12, rv * 1.12), _ellipse(rear_u, wheel_v, ru * 1.12, rv * 1.12)]
     if kind in ("car", "suv"):
         low = 0.38 if kind == "car" else 0.36
         roof = 0.0
@@ -198,8 +199,8 @@ def _side(kind: str, rng: np.random.Generator) -> BodyShape:
         glass = _p((a - 0.08, hood - 0.03), (a + 0.01, roof + 0.06), (a + 0.05, roof + 0.04), (b - 0.03, roof + 0.04),
                    (b + 0.04, low - 0.07 if kind == "car" else roof + 0.08), (b + 0.04, hood - 0.02))
         pillar = _p((0.56 + j(0.03), roof + 0.03), (0.59 + j(0.0), roof + 0.03), (0.59, hood), (0.56, hood))
-        parts = [("body", outline), ("glass", glass), ("body", pillar), ("dark", wheels[0]), ("dark", wheels[1]),
-                 ("trim", hubs[0]), ("trim", hubs[1]),
+        parts = [("body", outline), ("glass", glass), ("body", pillar), ("arch", arches[0]), ("arch", arches[1]), ("tyre", wheels[0]), ("tyre", wheels[1]),
+                 ("hub", hubs[0]), ("hub", hubs[1]),
                  ("shade", _p((0.02, 0.78), (0.98, 0.78), (0.98, 0.82), (0.02, 0.82))),
                  ("shade", _p((0.57, hood + 0.02), (0.575, hood + 0.02), (0.575, 0.8), (0.57, 0.8)))]
         return BodyShape([outline] + wheels, parts, 0.78, 0.0)
@@ -207,7 +208,8 @@ def _side(kind: str, rng: np.random.Generator) -> BodyShape:
         outline = _p((0.0, 0.5), (0.03, 0.38), (0.13, 0.3), (0.22, 0.02), (0.26, 0.0), (1.0, 0.0), (1.0, 1.0 - rv * 0.4), (0.0, 1.0 - rv * 0.4))
         parts = [("body", outline), ("glass", _p((0.14, 0.3), (0.23, 0.05), (0.32, 0.05), (0.32, 0.3))),
                  ("glass", _rrect(0.36, 0.06, 0.62, 0.3, 0.01, 0.02)),
-                 ("dark", wheels[0]), ("dark", wheels[1]), ("trim", hubs[0]), ("trim", hubs[1]),
+                 ("arch", arches[0]), ("arch", arches[1]), ("tyre", wheels[0]), ("tyre", wheels[1]),
+                 ("hub", hubs[0]), ("hub", hubs[1]),
                  ("shade", _p((0.34, 0.05), (0.345, 0.05), (0.345, 0.85), (0.34, 0.85)))]
         return BodyShape([outline] + wheels, parts, 0.88, 0.0)
     if kind == "truck":
@@ -215,7 +217,8 @@ def _side(kind: str, rng: np.random.Generator) -> BodyShape:
         box = _p((0.22, 0.0), (1.0, 0.0), (1.0, 0.8), (0.22, 0.8))
         chassis = _p((0.18, 0.8), (1.0, 0.8), (1.0, 0.86), (0.18, 0.86))
         parts = [("box", box), ("body", cab), ("glass", _p((0.03, 0.14), (0.06, 0.1), (0.16, 0.1), (0.16, 0.38), (0.02, 0.38))),
-                 ("dark", chassis), ("dark", wheels[0]), ("dark", wheels[1]), ("trim", hubs[0]), ("trim", hubs[1]),
+                 ("dark", chassis), ("arch", arches[0]), ("arch", arches[1]), ("tyre", wheels[0]), ("tyre", wheels[1]),
+                 ("hub", hubs[0]), ("hub", hubs[1]),
                  ("shade", _p((0.22, 0.77), (1.0, 0.77), (1.0, 0.8), (0.22, 0.8)))]
         return BodyShape([cab, box, chassis] + wheels, parts, 0.82, 0.0)
     body = _rrect(0.0, 0.0, 1.0, 1.0 - rv * 0.35, 0.01, 0.04)
@@ -224,7 +227,7 @@ def _side(kind: str, rng: np.random.Generator) -> BodyShape:
              ("glass", _p((0.03, 0.6), (0.06, 0.6), (0.06, 0.92), (0.03, 0.92))),
              ("sign", _p((0.015, 0.03), (0.09, 0.03), (0.09, 0.09), (0.015, 0.09))),
              ("shade", _p((0.0, 0.5), (1.0, 0.5), (1.0, 0.53), (0.0, 0.53))),
-             ("dark", wheels[0]), ("dark", wheels[1]), ("trim", hubs[0]), ("trim", hubs[1])]
+             ("arch", arches[0]), ("arch", arches[1]), ("tyre", wheels[0]), ("tyre", wheels[1]), ("hub", hubs[0]), ("hub", hubs[1])]
     for k in range(1, 7):
         u = 0.14 + k * 0.12
         parts.append(("shade", _p((u, 0.12), (u + 0.006, 0.12), (u + 0.006, 0.42), (u, 0.42))))
