@@ -23,7 +23,7 @@ from signal_light_node.synth import RenderedFrame, SceneRenderer, VehicleTruth  
 from signal_light_node.synth.lamps import LAMP_DESIGNS  # noqa: E402
 
 LOG = logging.getLogger("make_contact_sheet")
-TILE_W, TILE_H = 320, 180
+TILE_W, TILE_H = 256, 144
 CAPTION_H = 14
 SHORT = {0: "OFF", 1: "ON", 2: "UNK"}
 
