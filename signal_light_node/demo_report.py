@@ -207,7 +207,8 @@ class DemoReport:
                 f"ms, max {d.get('latency_max_ms', 'nan')} ms (over {d.get('latency_frames', '?')}"
                 " frames)",
                 f"            pair complete -> published: mean {d.get('processing_mean_ms')} "
-                f"ms, p95 {d.get('processing_p95_ms')} ms",
+                f"ms, p95 {d.get('processing_p95_ms')} ms (engine alone: mean "
+                f"{d.get('engine_mean_ms')} ms, p95 {d.get('engine_p95_ms')} ms)",
                 "node:       received {images} images, {detections} detection arrays, paired "
                 "{paired}, published {outputs}; dropped: pairing timeouts {t}, overflow {o}, "
                 "work queue {q}, bad images {b}; unjudged boxes {u}; model {m}".format(

@@ -74,12 +74,16 @@ def test_every_problem_is_named_at_once():
 
 def test_runtime_updates_only_for_dynamic_parameters():
     params = DetectorParams()
-    assert updated(params, {"threshold_brake": 0.7}).threshold_brake == 0.7
     assert updated(params, {"sync_slop_s": 0.02}).sync_slop_s == 0.02
-    with pytest.raises(ConfigError, match="read-only"):
-        updated(params, {"model_path": "/tmp/other.pt"})
+    assert updated(params, {"sync_timeout_s": 3}).sync_timeout_s == 3.0
+    for name, value in (("model_path", "/tmp/other.pt"), ("threshold_brake", 0.7),
+                        ("max_tracks", 3)):
+        with pytest.raises(ConfigError, match="read-only"):
+            updated(params, {name: value})
     with pytest.raises(ConfigError, match="<= 1.0"):
-        updated(params, {"threshold_brake": 2.0})
+        updated(params, {"sync_slop_s": 2.0})
+    with pytest.raises(ConfigError, match="exceed sync_slop_s"):
+        updated(params, {"sync_slop_s": 0.5, "sync_timeout_s": 0.4})
 
 
 def test_descriptors_on_a_real_node():
@@ -97,15 +101,19 @@ def test_descriptors_on_a_real_node():
             params = read_parameters(node)
             assert params.threshold_brake == 0.25 and params.device == "cpu"
             (desc,) = node.describe_parameters(["threshold_brake"])
-            assert desc.type == ParameterType.PARAMETER_DOUBLE and not desc.read_only
+            assert desc.type == ParameterType.PARAMETER_DOUBLE and desc.read_only
             assert desc.floating_point_range[0].to_value == 1.0
+            (desc,) = node.describe_parameters(["sync_slop_s"])
+            assert not desc.read_only and desc.floating_point_range[0].from_value == 0.0
             (desc,) = node.describe_parameters(["model_path"])
             assert desc.read_only and "shipped" in desc.description
             (desc,) = node.describe_parameters(["max_tracks"])
             assert desc.integer_range[0].from_value == 1
-            # rclpy itself enforces the declared range at run time.
-            result = node.set_parameters([Parameter("threshold_brake", value=3.0)])[0]
+            # rclpy itself enforces the declared range and read-only flag at run time.
+            result = node.set_parameters([Parameter("sync_slop_s", value=3.0)])[0]
             assert not result.successful
+            result = node.set_parameters([Parameter("threshold_brake", value=0.3)])[0]
+            assert not result.successful and "read-only" in result.reason.lower()
         finally:
             node.destroy_node()
     finally:
@@ -134,3 +142,15 @@ def test_bad_values_on_a_real_node_become_config_errors(args, words):
             node.destroy_node()
     finally:
         rclpy.try_shutdown(context=context)
+
+
+def test_node_defaults_equal_the_engine_and_crop_defaults():
+    # The live node and `signal-light replay` must behave alike out of the box.
+    from signal_light_node.crops import CropConfig
+    from signal_light_node.engine import EngineConfig
+
+    engine, params = EngineConfig(), DetectorParams()
+    assert params.thresholds == dict(engine.thresholds)
+    assert (params.track_timeout_s, params.max_tracks, params.max_gap_s, params.device) == (
+        engine.track_timeout_s, engine.max_tracks, engine.max_gap_s, engine.device)
+    assert params.crop_margin == CropConfig().margin

@@ -67,6 +67,7 @@ class SignalLightDetector(Node):
         self._counts: Dict[str, int] = {"outputs": 0, "bad_images": 0, "debug_images": 0}
         self._latency = LatencyWindow()
         self._processing = LatencyWindow()
+        self._engine_time = LatencyWindow()
         self._last_snapshot: Optional[Snapshot] = None
         self._last_engine: Dict[str, int] = {}
 
@@ -165,6 +166,7 @@ class SignalLightDetector(Node):
         self._latency.add((done - pair.image_received_ns) / _NS)
         self._processing.add(
             (done - max(pair.image_received_ns, pair.detections_received_ns)) / _NS)
+        self._engine_time.add(frame.latency_s)
         if frame.warnings:
             self.get_logger().warning(f"stamp {pair.stamp_ns}: {'; '.join(frame.warnings)}",
                                       throttle_duration_sec=5.0)
@@ -212,7 +214,8 @@ class SignalLightDetector(Node):
             "device": self.params.device,
         }
         level, message, values = health(self._last_snapshot, now, self._latency.summary(),
-                                        self._processing.summary(), extra)
+                                        self._processing.summary(),
+                                        self._engine_time.summary(), extra)
         self._last_snapshot = now
         KeyValue = message_class("diagnostic_msgs/msg/KeyValue")
         status = rclpy_make("diagnostic_msgs/msg/DiagnosticStatus", level=_LEVEL_BYTES[level],

@@ -62,8 +62,8 @@ class DetectorParams:
     threshold_brake: float = 0.5
     threshold_left_blinker: float = 0.5
     threshold_right_blinker: float = 0.5
-    track_timeout_s: float = 2.0
-    max_tracks: int = 256
+    track_timeout_s: float = 1.0
+    max_tracks: int = 128
     max_gap_s: float = 2.0
     crop_margin: float = 0.15
     publish_debug_image: bool = False
@@ -122,11 +122,11 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
     "work_queue_size": ParamSpec("Paired frames waiting for inference; when full the oldest is "
                                  "dropped (counted).", low=1, high=100),
     "threshold_brake": ParamSpec("ON probability from which the brake light (code 100) is "
-                                 "reported in classification.", low=0.0, high=1.0, read_only=False),
+                                 "reported in classification.", low=0.0, high=1.0),
     "threshold_left_blinker": ParamSpec("ON probability from which the left blinker (code 101) "
-                                        "is reported.", low=0.0, high=1.0, read_only=False),
+                                        "is reported.", low=0.0, high=1.0),
     "threshold_right_blinker": ParamSpec("ON probability from which the right blinker (code 102) "
-                                         "is reported.", low=0.0, high=1.0, read_only=False),
+                                         "is reported.", low=0.0, high=1.0),
     "track_timeout_s": ParamSpec("A track not seen for this many seconds (stamp time) starts "
                                  "fresh when it returns.", low=0.01, high=3600.0),
     "max_tracks": ParamSpec("Most track states kept; the longest unseen is evicted first.",

@@ -73,7 +73,8 @@ def _ms(seconds: float) -> str:
 def health(previous: Optional[Snapshot], current: Snapshot,
            latency: Tuple[int, float, float, float],
            processing: Tuple[int, float, float, float],
-           extra: Mapping[str, str]) -> Tuple[int, str, List[Tuple[str, str]]]:
+           engine: Tuple[int, float, float, float],
+           extra: Mapping[str, object]) -> Tuple[int, str, List[Tuple[str, str]]]:
     """The node's status for one diagnostics period.
 
     Args:
@@ -81,6 +82,7 @@ def health(previous: Optional[Snapshot], current: Snapshot,
         current: The snapshot now.
         latency: ``LatencyWindow.summary()`` of image receipt -> output published.
         processing: Same for pair complete -> output published.
+        engine: Same for the engine's ``process`` alone (crops, model step, results).
         extra: Further key/values to append (model path, device, active tracks...).
 
     Returns:
@@ -107,6 +109,8 @@ def health(previous: Optional[Snapshot], current: Snapshot,
                ("latency_p95_ms", _ms(p95)), ("latency_max_ms", _ms(worst))]
     _, pmean, pp95, _ = processing
     values += [("processing_mean_ms", _ms(pmean)), ("processing_p95_ms", _ms(pp95))]
+    _, emean, ep95, _ = engine
+    values += [("engine_mean_ms", _ms(emean)), ("engine_p95_ms", _ms(ep95))]
     values += [(k, str(v)) for k, v in extra.items()]
 
     new_drops = {k: now.get(k, 0) - before.get(k, 0) for k in DROP_COUNTERS}
