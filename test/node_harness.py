@@ -21,6 +21,7 @@ COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
 RAW_TYPE = "sensor_msgs/msg/Image"
 DETECTIONS_TYPE = "vision_msgs/msg/Detection2DArray"
 OUTPUT_TOPIC = "/signal_light_detector/output/vehicle_lights"
+DEBUG_TOPIC = "/signal_light_detector/output/debug/image"
 
 
 def tiny_checkpoint(path: Path) -> Path:
@@ -78,6 +79,7 @@ class Frame:
     image: bytes
     detections: bytes
     track_ids: List[str]
+    size: Tuple[int, int] = (0, 0)
     truth: Optional[object] = None
 
 
@@ -85,6 +87,7 @@ def load_frames(bag_path: Path, max_frames: int) -> Tuple[str, List[Frame]]:
     """``(image type, frames)``: the first ``max_frames`` frames with image and detections."""
     from signal_light_node.bagio import open_bag, typestore
     from signal_light_node.conversions import detections_to_boxes, stamp_to_ns
+    from signal_light_node.image_codec import msg_to_bgr
     from signal_light_node.node.bag_player import choose_topics
 
     store = typestore()
@@ -104,11 +107,13 @@ def load_frames(bag_path: Path, max_frames: int) -> Tuple[str, List[Frame]]:
             else:
                 entry["image"] = bytes(store.serialize_cdr(m.msg, m.msgtype))
                 entry["frame_id"] = m.msg.header.frame_id
+                entry["size"] = msg_to_bgr(m.msg).shape[:2]
             complete = [s for s, e in by_stamp.items() if "image" in e and "detections" in e]
             if len(complete) >= max_frames and (gt not in wanted or all(
                     "truth" in by_stamp[s] for s in complete)):
                 break
-    frames = [Frame(s, e["frame_id"], e["image"], e["detections"], e["ids"], e.get("truth"))
+    frames = [Frame(s, e["frame_id"], e["image"], e["detections"], e["ids"], e["size"],
+                    e.get("truth"))
               for s, e in sorted(by_stamp.items()) if "image" in e and "detections" in e]
     return image_type, frames[:max_frames]
 
@@ -167,6 +172,7 @@ class LiveClient:
     image_type: str
     outputs: Dict[int, List[object]] = field(default_factory=lambda: defaultdict(list))
     diagnostics: List[object] = field(default_factory=list)
+    debug_images: List[object] = field(default_factory=list)
 
     def __enter__(self) -> "LiveClient":
         import rclpy
@@ -197,6 +203,8 @@ class LiveClient:
         self.node.create_subscription(
             message_class("signal_light_msgs/msg/VehicleLightStateArray"), OUTPUT_TOPIC,
             on_output, qos("reliable", 100))
+        self.node.create_subscription(message_class(RAW_TYPE), DEBUG_TOPIC,
+                                      self.debug_images.append, qos("reliable", 100))
         self.node.create_subscription(message_class("diagnostic_msgs/msg/DiagnosticArray"),
                                       "/diagnostics", self.diagnostics.append,
                                       qos("reliable", 100))
@@ -235,6 +243,22 @@ class LiveClient:
             assert self.spin_until(future.done, timeout), "parameter service did not answer"
             return {n: parameter_value_to_python(v)
                     for n, v in zip(names, future.result().values)}
+        finally:
+            self.node.destroy_client(client)
+
+    def set_parameters(self, values: Dict[str, object], timeout: float = 20.0) -> List[object]:
+        """Set parameters through the node's service; returns the SetParametersResults."""
+        from rcl_interfaces.srv import SetParameters
+        from rclpy.parameter import Parameter
+
+        client = self.node.create_client(SetParameters, "/signal_light_detector/set_parameters")
+        try:
+            assert self.spin_until(client.service_is_ready, timeout), "no parameter service"
+            request = SetParameters.Request(
+                parameters=[Parameter(n, value=v).to_parameter_msg() for n, v in values.items()])
+            future = client.call_async(request)
+            assert self.spin_until(future.done, timeout), "parameter service did not answer"
+            return list(future.result().results)
         finally:
             self.node.destroy_client(client)
 

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 import yaml
 
-from node_harness import (COMPRESSED_TYPE, RAW_TYPE, REPO, DetectorProcess, LiveClient,
-                          load_frames, model_args, scene_bag)
+from node_harness import (COMPRESSED_TYPE, DEBUG_TOPIC, RAW_TYPE, REPO, DetectorProcess,
+                          LiveClient, load_frames, model_args, scene_bag)
 from signal_light_node.node.params import NODE_NAME
 
 rclpy = pytest.importorskip("rclpy")
@@ -54,6 +54,29 @@ def _check_outputs(client: LiveClient, frames) -> None:
             assert v.frames_observed >= 1 or v.intent_probability == 0.0
     assert codes <= {100, 101, 102}
     assert sum(len(f.track_ids) for f in frames) > 0, "the bag fed no detections at all"
+
+
+def _check_dynamic_parameters(client: LiveClient) -> None:
+    ok, = client.set_parameters({"sync_slop_s": 0.02})
+    assert ok.successful, ok.reason
+    assert client.get_parameters(["sync_slop_s"]) == {"sync_slop_s": 0.02}
+    refused, = client.set_parameters({"model_path": "/elsewhere.pt"})
+    assert not refused.successful
+    refused, = client.set_parameters({"sync_timeout_s": 0.015})  # below the slop of 0.02
+    assert not refused.successful and "exceed sync_slop_s" in refused.reason
+    assert client.get_parameters(["sync_timeout_s"]) == {"sync_timeout_s": 1.0}
+
+
+def _check_debug_images(client: LiveClient, frames) -> None:
+    from signal_light_node.conversions import stamp_to_ns
+
+    sizes = {f.stamp_ns: f.size for f in frames}
+    assert client.spin_until(lambda: len(client.debug_images) >= len(frames) // 2, 20.0), \
+        f"only {len(client.debug_images)} debug images for {len(frames)} frames"
+    for img in client.debug_images:
+        stamp = stamp_to_ns(img.header.stamp)
+        assert stamp in sizes and (img.height, img.width) == sizes[stamp]
+        assert img.encoding == "bgr8" and len(img.data) == img.height * img.step
 
 
 def _light_accuracy(client: LiveClient, frames) -> float:
@@ -102,7 +125,8 @@ def _extra_frames(last_stamp_ns: int, frame_id: str, compressed: bool):
     return (bad_stamp, bad, box), (empty_stamp, good, empty)
 
 
-def _run_live(tmp_path: Path, env: dict, raw: bool, extra_args, expect_params=None) -> None:
+def _run_live(tmp_path: Path, env: dict, raw: bool, extra_args, expect_params=None,
+              debug_image: bool = False) -> None:
     bag = scene_bag(tmp_path, raw=raw)
     image_type, frames = load_frames(bag, N_FRAMES)
     assert image_type == (RAW_TYPE if raw else COMPRESSED_TYPE)
@@ -114,8 +138,15 @@ def _run_live(tmp_path: Path, env: dict, raw: bool, extra_args, expect_params=No
             client.wait_connected()
             if expect_params:
                 assert client.get_parameters(list(expect_params)) == expect_params
+            if debug_image:
+                assert client.spin_until(
+                    lambda: client.node.count_publishers(DEBUG_TOPIC) > 0, 20.0)
+            else:
+                _check_dynamic_parameters(client)
             client.feed(frames)
             _check_outputs(client, frames)
+            if debug_image:
+                _check_debug_images(client, frames)
             if shipped and LIVE_MIN_LIGHT_ACCURACY is not None:
                 assert _light_accuracy(client, frames) >= LIVE_MIN_LIGHT_ACCURACY
 
@@ -157,12 +188,14 @@ def test_compressed_images_with_the_params_file(tmp_path, rclpy_isolated_env):
 def test_raw_images_with_an_edited_params_file(tmp_path, rclpy_isolated_env):
     config = yaml.safe_load((REPO / "config" / "detector.yaml").read_text())
     params = config[NODE_NAME]["ros__parameters"]
-    params.update(sync_timeout_s=2.5, max_tracks=77, threshold_brake=0.6)
+    params.update(sync_timeout_s=2.5, max_tracks=77, threshold_brake=0.6,
+                  publish_debug_image=True)
     path = tmp_path / "edited.yaml"
     path.write_text(yaml.safe_dump(config))
     _run_live(tmp_path, rclpy_isolated_env(), raw=True, extra_args=["--params-file", str(path)],
               expect_params={"sync_timeout_s": 2.5, "max_tracks": 77, "threshold_brake": 0.6,
-                             "image_transport": "raw"})
+                             "image_transport": "raw", "publish_debug_image": True},
+              debug_image=True)
 
 
 def test_missing_model_stops_with_one_clear_line(tmp_path, rclpy_isolated_env):
