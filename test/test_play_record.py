@@ -170,3 +170,30 @@ def test_play_gives_up_when_nobody_listens(bag, tmp_path, rclpy_isolated_env):
                           capture_output=True, text=True, timeout=60)
     assert play.returncode == 1
     assert "no 1 subscriber(s)" in play.stderr
+
+
+def test_loop_plays_again_until_interrupted(bag, tmp_path, rclpy_isolated_env):
+    env = rclpy_isolated_env()
+    out = tmp_path / "looped"
+    wanted = N_FRAMES + N_FRAMES // 2  # more than one pass holds
+    rec = _start(["record", "-o", str(out), "--topics", DETECTIONS, "--count", str(wanted)],
+                 env, tmp_path / "rec.log")
+    player = _start(["play", str(bag), "--loop", "--rate", "4", "--topics", DETECTIONS,
+                     "--wait-for-subscribers", "1", "--wait-timeout", "60"], env,
+                    tmp_path / "play.log")
+    try:
+        assert rec.wait(90) == 0, (tmp_path / "rec.log").read_text()
+        assert player.poll() is None, (tmp_path / "play.log").read_text()
+        player.send_signal(signal.SIGINT)
+        assert player.wait(30) == 0
+    finally:
+        for proc in (rec, player):
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(10)
+    assert "stopped by signal" in (tmp_path / "play.log").read_text()
+    msgs = _read_mcap(out)[DETECTIONS]
+    assert len(msgs) == wanted
+    stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in msgs]
+    # The second pass starts over: the stamps jump back to the first frame's.
+    assert stamps[N_FRAMES] == stamps[0] and stamps[N_FRAMES - 1] > stamps[0]
