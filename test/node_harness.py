@@ -231,6 +231,33 @@ class LiveClient:
                              and self.node.count_publishers(OUTPUT_TOPIC) > 0, timeout)
         assert ok, "the detector and the test client did not discover each other"
 
+    def warm_up(self, before_stamp_ns: int, frame_id: str, timeout: float = 30.0) -> int:
+        """Publish small empty frames, stamped 100 s before ``before_stamp_ns``, until one
+        comes back: then the node's output publisher surely knows our subscription.
+
+        Returns:
+            How many warm-up frames were published (each is an input image for the node).
+        """
+        import numpy as np
+
+        from signal_light_node.conversions import make_header, rclpy_make
+        from signal_light_node.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
+
+        image = np.full((48, 64, 3), 60, np.uint8)
+        fields = (bgr_to_compressed_fields(image) if self.image_type == COMPRESSED_TYPE
+                  else bgr_to_image_fields(image))
+        deadline = time.monotonic() + timeout
+        sent = 0
+        while True:
+            stamp = before_stamp_ns - 100_000_000_000 + sent * 100_000_000
+            header = make_header(stamp, frame_id, rclpy_make)
+            self.image_pub.publish(rclpy_make(self.image_type, header=header, **fields))
+            self.det_pub.publish(rclpy_make(DETECTIONS_TYPE, header=header))
+            sent += 1
+            if self.spin_until(lambda: stamp in self.outputs, 1.0):
+                return sent
+            assert time.monotonic() < deadline, "no output for any warm-up frame"
+
     def get_parameters(self, names: Sequence[str], timeout: float = 20.0) -> Dict[str, object]:
         """The node's current values of ``names`` through its parameter service."""
         from rcl_interfaces.srv import GetParameters

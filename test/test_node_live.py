@@ -71,11 +71,15 @@ def _check_debug_images(client: LiveClient, frames) -> None:
     from signal_light_node.conversions import stamp_to_ns
 
     sizes = {f.stamp_ns: f.size for f in frames}
-    assert client.spin_until(lambda: len(client.debug_images) >= len(frames) // 2, 20.0), \
-        f"only {len(client.debug_images)} debug images for {len(frames)} frames"
-    for img in client.debug_images:
-        stamp = stamp_to_ns(img.header.stamp)
-        assert stamp in sizes and (img.height, img.width) == sizes[stamp]
+
+    def of_frames():
+        return [i for i in client.debug_images if stamp_to_ns(i.header.stamp) in sizes]
+
+    # Debug images are published only while watched; after the warm-up they all are.
+    assert client.spin_until(lambda: len(of_frames()) == len(frames), 20.0), \
+        f"only {len(of_frames())} debug images for {len(frames)} frames"
+    for img in of_frames():
+        assert (img.height, img.width) == sizes[stamp_to_ns(img.header.stamp)]
         assert img.encoding == "bgr8" and len(img.data) == img.height * img.step
 
 
@@ -143,6 +147,7 @@ def _run_live(tmp_path: Path, env: dict, raw: bool, extra_args, expect_params=No
                     lambda: client.node.count_publishers(DEBUG_TOPIC) > 0, 20.0)
             else:
                 _check_dynamic_parameters(client)
+            warm = client.warm_up(frames[0].stamp_ns, frames[0].frame_id)
             client.feed(frames)
             _check_outputs(client, frames)
             if debug_image:
@@ -163,8 +168,8 @@ def _run_live(tmp_path: Path, env: dict, raw: bool, extra_args, expect_params=No
             assert client.spin_until(
                 lambda: client.diagnostics and _diag_values(client)["bad_images"] == "1", 10.0)
             values = _diag_values(client)
-            assert int(values["outputs"]) == len(frames) + 1
-            assert int(values["images"]) == len(frames) + 2
+            assert int(values["outputs"]) == warm + len(frames) + 1
+            assert int(values["images"]) == warm + len(frames) + 2
             assert float(values["latency_p95_ms"]) > 0
             assert values["model_path"].endswith(".pt")
             assert node.proc.poll() is None
