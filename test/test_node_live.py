@@ -203,8 +203,12 @@ def test_raw_images_with_an_edited_params_file(tmp_path, rclpy_isolated_env):
               debug_image=True)
 
 
-def test_missing_model_stops_with_one_clear_line(tmp_path, rclpy_isolated_env):
+@pytest.mark.parametrize("content", [None, b"not a torch checkpoint"],
+                         ids=["missing", "incompatible"])
+def test_missing_or_bad_model_stops_with_one_clear_line(tmp_path, rclpy_isolated_env, content):
     missing = tmp_path / "no_such_model.pt"
+    if content is not None:
+        missing.write_bytes(content)
     node = DetectorProcess(["-p", f"model_path:={missing}"], rclpy_isolated_env(),
                            tmp_path / "detector.log")
     deadline = time.monotonic() + 60
