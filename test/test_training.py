@@ -21,7 +21,13 @@ from signal_light_node.training.sampling import (
     stratum_weights,
 )
 from signal_light_node.training.sources import WindowDataset, load_ucm_tracks
-from signal_light_node.training.train import TrainOptions, Trainer, multitask_loss, validate
+from signal_light_node.training.train import (
+    TrainOptions,
+    Trainer,
+    multitask_loss,
+    validate,
+    warmup_frames,
+)
 
 from test_ucm_loader import make_ucm
 
@@ -37,7 +43,7 @@ def tiny_options(out: Path, ucm: Path, **changes) -> TrainOptions:
     opts = dict(out=out, max_steps=10, batch=6, seq_len=8, lr=1e-2, model=dict(TINY),
                 ucm=[ucm], val_fraction=0.0, val_every=1000, workers=0, progress=False,
                 threads=1, jitter=False, mirror_prob=0.0, class_weight_power=0.0,
-                loss_warmup=2, seed=1)
+                loss_warmup=2, loss_warmup_seconds=0.0, seed=1)
     opts.update(changes)
     return TrainOptions(**opts)
 
@@ -54,6 +60,8 @@ def test_loss_ignores_masked_frames_and_weights_tasks():
     # intent skips the warm-up frame: with only frame 0 valid nothing is left (loss 0)
     loss, parts = multitask_loss(logits, labels, mask, {"intent": 1.0}, loss_warmup=1)
     assert loss.item() == 0.0
+    # per-sequence warm-up from the frame rate: max(2 frames, ceil(0.4 s * fps))
+    assert warmup_frames([10.0, 30.0, None], 2, 0.4).tolist() == [4, 12, 4]
 
 
 def test_sampling_strata_and_weights():

@@ -83,7 +83,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--no-mirror", action="store_true", help="no mirroring augmentation")
     g.add_argument("--no-jitter", action="store_true", help="no colour jitter")
     g.add_argument("--no-balance", action="store_true",
-                   help="do not thin the synthetic stream towards equal rare-class strata")
+                   help="replay synthetic sequences in natural shares, not stratified")
+    g.add_argument("--balance-drop", type=float, default=0.0,
+                   help="also drop up to this share of fresh sequences of common strata")
+    g.add_argument("--reuse", type=float, default=2.0,
+                   help="average times a rendered synthetic sequence is served (replay)")
     g.add_argument("--stream", default="", metavar="K=V,...",
                    help="extra SyntheticSequenceStream options, e.g. 'vehicles=[2,5]'")
 
@@ -94,8 +98,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="loss weight per head, e.g. 'intent=1,brake=1,left=0.5,right=0.5,view=0.5'")
     g.add_argument("--class-weight-power", type=float, default=0.5,
                    help="class weights (share)^-power; 0 disables")
-    g.add_argument("--loss-warmup", type=int, default=3,
+    g.add_argument("--loss-warmup", type=int, default=2,
                    help="leading frames per window without intent/left/right loss")
+    g.add_argument("--loss-warmup-seconds", type=float, default=0.4,
+                   help="the same in seconds; the larger of the two applies")
     g.add_argument("--model", default="", metavar="K=V,...",
                    help="ModelConfig fields, e.g. 'use_attention=false' (ignored with --init-from)")
 
@@ -126,7 +132,9 @@ def options_from_args(args: argparse.Namespace) -> "Any":
         out=args.out, max_steps=args.steps, max_minutes=args.max_minutes, batch=args.batch,
         seq_len=args.seq_len, lr=args.lr, weight_decay=args.weight_decay,
         task_weights=task_weights, class_weight_power=args.class_weight_power,
-        balance=not args.no_balance, loss_warmup=args.loss_warmup, val_split=args.val_split,
+        balance=not args.no_balance, balance_max_drop=args.balance_drop, reuse=args.reuse,
+        loss_warmup=args.loss_warmup, loss_warmup_seconds=args.loss_warmup_seconds,
+        val_split=args.val_split,
         val_sequences=args.val_sequences, val_every=args.val_every,
         val_fraction=args.val_fraction, plateau_patience=args.patience, device=args.device,
         seed=args.seed, threads=args.threads, workers=args.workers, resume=resume,

@@ -4,19 +4,23 @@ Recipe (after the research the model follows, scaled to a CPU):
 
 * **Loss**: the sum over heads of ``task_weight * cross-entropy``, each averaged over
   the valid frames of the batch (``mask`` True and a label >= 0). The blinker-driven
-  heads (intent, left, right) skip the first ``loss_warmup`` frames of every window:
-  a window starts from a blank state and a blink cannot be told from a dark lamp before
-  about one cycle has been seen.
+  heads (intent, left, right) skip the first ``max(loss_warmup, loss_warmup_seconds *
+  fps)`` frames of every window: a window starts from a blank state and a blink cannot
+  be told from a dark lamp before part of a cycle has been seen.
 * **Class imbalance**: class-weighted cross-entropy with weights ``share^-power`` from
-  running label counts (:class:`.sampling.ClassFrequency`), plus stratified windows:
-  the synthetic stream is thinned towards equal shares of the strata HAZARD /
-  brake-with-blinker / blinker / brake / plain (:class:`.sampling.StratumBalancer`),
-  finite sources draw windows stratum-balanced (:class:`.sources.WindowDataset`).
+  running label counts (:class:`.sampling.ClassFrequency`), plus stratified sequences
+  over the strata HAZARD / brake-with-blinker / blinker / brake / plain: replayed
+  synthetic sequences are drawn uniformly over the strata (:class:`ReplayStream`;
+  optionally fresh ones are thinned too, :class:`.sampling.StratumBalancer`), finite
+  sources draw windows stratum-balanced (:class:`.sources.WindowDataset`).
 * **Optimiser**: Adam; L2 weight decay on the dense layers' weights (the ``nn.Linear``
   of the shared layer and of the heads), dropout as configured in the model;
   ``ReduceLROnPlateau`` on the validation loss.
 * **Augmentation**: mirroring (crops flipped, left/right labels and LEFT/RIGHT views
-  swapped) and per-sequence colour/brightness jitter, both from the data stream.
+  swapped) and per-sequence colour/brightness jitter, both from the data stream. A
+  rendered synthetic sequence is served ``reuse`` times on average from a replay buffer
+  (:class:`ReplayStream`), each time augmented anew: on a 2-core CPU rendering is
+  slower than training, so this doubles the steps per minute.
 * **Validation** every ``val_every`` steps on a fixed split: loss and the metrics of
   :mod:`signal_light_node.metrics` on frames after ``val_warmup`` frames of each
   sequence; the best checkpoint by :func:`signal_light_node.metrics.selection_score`
@@ -68,7 +72,12 @@ from signal_light_node.model import (
     save_checkpoint,
     to_input,
 )
-from signal_light_node.training.sampling import ClassFrequency, StratumBalancer
+from signal_light_node.training.sampling import (
+    STRATA,
+    ClassFrequency,
+    StratumBalancer,
+    sequence_stratum,
+)
 from signal_light_node.training.sources import (
     TrackSequence,
     WindowDataset,
@@ -78,13 +87,16 @@ from signal_light_node.training.sources import (
 
 logger = logging.getLogger(__name__)
 
-#: Tasks whose label needs time to be seen (skipped in the first ``loss_warmup`` frames).
+#: Tasks whose label needs time to be seen (no loss during a window's warm-up).
 TEMPORAL_TASKS = ("intent", "left", "right")
 
 DEFAULT_TASK_WEIGHTS: Dict[str, float] = {"intent": 1.0, "brake": 1.0, "left": 0.5,
                                           "right": 0.5, "view": 0.5}
 
 STATE_SUFFIX = ".state.pt"
+
+#: Windows cut from each track of a rendered training scene (scene length / seq_len).
+SCENE_WINDOWS = 4
 
 
 @dataclass
@@ -101,15 +113,21 @@ class TrainOptions:
         weight_decay: L2 weight decay of the dense layers' weights.
         task_weights: Loss weight per head (0 drops a head from the loss).
         class_weight_power: Exponent of the class weights (0: unweighted).
-        balance: Thin the synthetic stream towards equal stratum shares.
-        balance_max_drop: Highest share of a stratum's windows the balancer drops.
+        balance: Stratified sampling: replayed synthetic sequences are drawn uniformly
+            over the strata (see :class:`ReplayStream`).
+        balance_max_drop: Also thin fresh synthetic sequences of common strata with a
+            :class:`.sampling.StratumBalancer` dropping at most this share (0: off; it
+            throws rendering away, so it only pays where rendering is cheap).
         loss_warmup: Frames at the start of each window without intent/left/right loss.
+        loss_warmup_seconds: The same in seconds (the larger of the two applies).
         grad_clip: Max gradient norm (0: no clipping).
         val_split: Materialised validation split (None: see ``val_sequences``).
         val_sequences: Size of the split materialised under ``out/val_split`` when no
             split is given and the data is synthetic.
         val_every: Steps between validations.
         val_warmup: Frames at the start of each validation sequence not scored.
+        val_warmup_seconds: The same in seconds (the larger of the two applies).
+        val_seq_len: Length of the sequences of a materialised validation split.
         val_fraction: Share of bag/UCM tracks held out for validation (no val_split).
         plateau_patience: Validations without improvement before the LR drops.
         plateau_factor: LR multiplier on a plateau.
@@ -126,6 +144,9 @@ class TrainOptions:
             without bags/UCM and 0 with them.
         mirror_prob: Probability that a sequence is mirrored.
         jitter: Colour/brightness jitter per sequence.
+        reuse: Average number of times a rendered synthetic sequence is served
+            (:class:`ReplayStream`; rendering costs more than a training step).
+        replay_capacity: Rendered sequences kept for reuse, per data worker.
         model: ``ModelConfig`` fields that differ from the defaults (ignored with init_from).
         stream: Extra ``SyntheticSequenceStream`` options (vehicles, sizes, ...).
         log_every: Steps between progress-bar metric updates.
@@ -143,13 +164,16 @@ class TrainOptions:
     task_weights: Dict[str, float] = field(default_factory=lambda: dict(DEFAULT_TASK_WEIGHTS))
     class_weight_power: float = 0.5
     balance: bool = True
-    balance_max_drop: float = 0.6
-    loss_warmup: int = 3
+    balance_max_drop: float = 0.0
+    loss_warmup: int = 2
+    loss_warmup_seconds: float = 0.4
     grad_clip: float = 5.0
     val_split: Optional[Path] = None
     val_sequences: int = 96
     val_every: int = 200
-    val_warmup: int = 6
+    val_warmup: int = 8
+    val_warmup_seconds: float = 0.75
+    val_seq_len: int = 48
     val_fraction: float = 0.1
     plateau_patience: int = 3
     plateau_factor: float = 0.3
@@ -165,6 +189,8 @@ class TrainOptions:
     synthetic_fraction: Optional[float] = None
     mirror_prob: float = 0.5
     jitter: bool = True
+    reuse: float = 2.0
+    replay_capacity: int = 1500
     model: Dict[str, Any] = field(default_factory=dict)
     stream: Dict[str, Any] = field(default_factory=dict)
     log_every: int = 10
@@ -263,6 +289,14 @@ def _broadcast_float(value: float, dist_info: DistInfo, device: torch.device) ->
 # ------------------------------------------------------------------------------- data
 
 
+def _worker_init(worker_id: int) -> None:
+    """Data workers render on one core each; OpenCV's own pool would fight the trainer."""
+    import cv2
+
+    cv2.setNumThreads(1)
+    torch.set_num_threads(1)
+
+
 class _Augment:
     """Mirroring and colour jitter of a sequence item, the stream's own functions."""
 
@@ -280,36 +314,104 @@ class _Augment:
         return item
 
 
+class ReplayStream(torch.utils.data.IterableDataset):
+    """Serves every item of an expensive stream ``reuse`` times on average.
+
+    Rendering a synthetic sequence costs more CPU than a training step uses it for, so
+    each fresh (un-augmented) item is served once and kept in a buffer, and after every
+    fresh item ``reuse - 1`` items (on average) drawn from the buffer follow. With
+    ``stratified`` the buffer keeps one pool per stratum (:data:`.sampling.STRATA`) and a
+    replayed item comes from a stratum chosen uniformly among the non-empty pools, so
+    rare sequences (HAZARD, brake with a blinker) are replayed more often than common
+    ones without throwing any rendering away. Every item served is augmented anew
+    (mirroring, colour jitter), so a reused sequence is rarely seen twice in one form.
+
+    Args:
+        stream: The source; it must not augment itself.
+        reuse: Average number of times an item is served (1 = no replay).
+        capacity: Items kept per worker (split evenly over the strata when stratified).
+        augment: Augmentation applied to every served item.
+        seed: Seed of the draws (combined with rank and worker).
+        rank: Process rank.
+        stratified: Replay strata uniformly instead of in their natural shares.
+        shuffle: Size of the queue that shuffles fresh items before they are served.
+    """
+
+    def __init__(self, stream: torch.utils.data.IterableDataset, reuse: float, capacity: int,
+                 augment: "_Augment", seed: int, rank: int = 0, stratified: bool = True,
+                 shuffle: int = 32) -> None:
+        super().__init__()
+        if reuse < 1:
+            raise ConfigError(f"reuse must be >= 1, got {reuse}")
+        self.stream, self.reuse, self.capacity = stream, float(reuse), max(1, int(capacity))
+        self.augment, self.seed, self.rank = augment, int(seed), int(rank)
+        self.stratified = bool(stratified)
+        self.shuffle = max(1, int(shuffle))
+
+    def __iter__(self) -> Iterator[Dict[str, Any]]:
+        info = torch.utils.data.get_worker_info()
+        worker = info.id if info is not None else 0
+        rng = np.random.default_rng(np.random.SeedSequence([self.seed, self.rank, worker, 29]))
+        keys = STRATA if self.stratified else ("all",)
+        pools: Dict[str, List[Dict[str, Any]]] = {k: [] for k in keys}
+        per_pool = max(1, self.capacity // len(keys))
+        # Fresh items wait in a small shuffle queue: a long scene gives several
+        # consecutive windows of each track, which should not share one batch.
+        queue: List[Dict[str, Any]] = []
+        for fresh in self.stream:
+            queue.append(fresh)
+            if len(queue) < self.shuffle:
+                continue
+            item = queue.pop(int(rng.integers(len(queue))))
+            key = sequence_stratum(item["labels"], item["mask"]) if self.stratified else "all"
+            pool = pools[key]
+            if len(pool) < per_pool:
+                pool.append(item)
+            else:
+                pool[int(rng.integers(len(pool)))] = item
+            yield self.augment(item, rng)
+            extra = self.reuse - 1.0
+            n_extra = int(extra) + int(rng.random() < extra - int(extra))
+            filled = [p for p in pools.values() if p]
+            for _ in range(n_extra):
+                pool = filled[int(rng.integers(len(filled)))]
+                yield self.augment(pool[int(rng.integers(len(pool)))], rng)
+
+
+class _Balanced(torch.utils.data.IterableDataset):
+    """A stream thinned by a :class:`StratumBalancer` seeded per rank and worker."""
+
+    def __init__(self, stream: torch.utils.data.IterableDataset, seed: int, rank: int,
+                 max_drop: float) -> None:
+        super().__init__()
+        self.stream, self.seed, self.rank, self.max_drop = stream, int(seed), int(rank), max_drop
+
+    def __iter__(self) -> Iterator[Dict[str, Any]]:
+        info = torch.utils.data.get_worker_info()
+        worker = info.id if info is not None else 0
+        seed = int(np.random.SeedSequence([self.seed, self.rank, worker, 31]).generate_state(1)[0])
+        return StratumBalancer(seed, max_drop=self.max_drop).filter(iter(self.stream))
+
+
 class _MixedStream(torch.utils.data.IterableDataset):
-    """Draws each item from one of several infinite datasets with fixed probabilities,
-    optionally thinning the synthetic one with a :class:`StratumBalancer`."""
+    """Draws each item from one of several infinite datasets with fixed probabilities."""
 
     def __init__(self, parts: Sequence[torch.utils.data.IterableDataset],
-                 probabilities: Sequence[float], seed: int, rank: int,
-                 balance: Sequence[bool], max_drop: float) -> None:
+                 probabilities: Sequence[float], seed: int, rank: int) -> None:
         super().__init__()
         self.parts = list(parts)
         p = np.asarray(probabilities, dtype=np.float64)
         self.probabilities = p / p.sum()
         self.seed, self.rank = int(seed), int(rank)
-        self.balance = list(balance)
-        self.max_drop = float(max_drop)
 
     def __iter__(self) -> Iterator[Dict[str, Any]]:
-        info = torch.utils.data.get_worker_info()
-        worker = info.id if info is not None else 0
-        seq = np.random.SeedSequence([self.seed, self.rank, worker, 17])
-        rng = np.random.default_rng(seq)
-        iters = []
-        for part, bal in zip(self.parts, self.balance):
-            it = iter(part)
-            if bal:
-                balancer = StratumBalancer(int(rng.integers(2**31)), max_drop=self.max_drop)
-                it = balancer.filter(it)
-            iters.append(it)
+        iters = [iter(part) for part in self.parts]
         if len(iters) == 1:
             yield from iters[0]
             return
+        info = torch.utils.data.get_worker_info()
+        worker = info.id if info is not None else 0
+        rng = np.random.default_rng(np.random.SeedSequence([self.seed, self.rank, worker, 17]))
         while True:
             k = int(rng.choice(len(iters), p=self.probabilities))
             yield next(iters[k])
@@ -360,7 +462,7 @@ def batch_input(crops: torch.Tensor, device: torch.device) -> torch.Tensor:
 def multitask_loss(logits: Mapping[str, torch.Tensor], labels: torch.Tensor, mask: torch.Tensor,
                    task_weights: Mapping[str, float],
                    class_weights: Optional[Mapping[str, torch.Tensor]] = None,
-                   loss_warmup: int = 0) -> Tuple[torch.Tensor, Dict[str, float]]:
+                   loss_warmup: "int | torch.Tensor" = 0) -> Tuple[torch.Tensor, Dict[str, float]]:
     """Weighted sum of per-head cross-entropies over the valid frames.
 
     Args:
@@ -369,7 +471,8 @@ def multitask_loss(logits: Mapping[str, torch.Tensor], labels: torch.Tensor, mas
         mask: bool ``[B, T]``; False frames are ignored.
         task_weights: Task -> weight (missing or 0: not in the loss).
         class_weights: Task -> ``[K]`` class weights, or None.
-        loss_warmup: Leading frames without loss for :data:`TEMPORAL_TASKS`.
+        loss_warmup: Leading frames without loss for :data:`TEMPORAL_TASKS`: one number
+            for all sequences, or an int64 ``[B]`` tensor per sequence.
 
     Returns:
         ``(total loss, {task: its mean cross-entropy})``.
@@ -383,8 +486,9 @@ def multitask_loss(logits: Mapping[str, torch.Tensor], labels: torch.Tensor, mas
             continue
         y = labels[..., i]
         valid = mask & (y >= 0)
-        if task in TEMPORAL_TASKS and loss_warmup > 0:
-            valid = valid & (t_idx >= loss_warmup)[None, :]
+        if task in TEMPORAL_TASKS:
+            warm = torch.as_tensor(loss_warmup, device=labels.device).reshape(-1, 1)
+            valid = valid & (t_idx[None, :] >= warm)
         k = logits[task].shape[-1]
         ce = F.cross_entropy(logits[task].reshape(-1, k), y.clamp(min=0).reshape(-1),
                              weight=None if class_weights is None else class_weights.get(task),
@@ -394,6 +498,12 @@ def multitask_loss(logits: Mapping[str, torch.Tensor], labels: torch.Tensor, mas
         parts[task] = float(loss.detach())
         total = total + w * loss
     return total, parts
+
+
+def warmup_frames(fps: Sequence[float], frames: int, seconds: float) -> torch.Tensor:
+    """Per-sequence warm-up length: ``max(frames, ceil(seconds * fps))``, int64 ``[B]``."""
+    rates = torch.as_tensor([float(f) if f else 10.0 for f in fps], dtype=torch.float64)
+    return torch.clamp(torch.ceil(rates * float(seconds)), min=float(frames)).to(torch.int64)
 
 
 def _batch_accuracy(logits: Mapping[str, torch.Tensor], labels: torch.Tensor,
@@ -409,12 +519,12 @@ def _batch_accuracy(logits: Mapping[str, torch.Tensor], labels: torch.Tensor,
 
 @torch.no_grad()
 def validate(model: nn.Module, items: Sequence[Mapping[str, Any]], device: torch.device,
-             task_weights: Mapping[str, float], warmup: int, batch: int = 16
-             ) -> Dict[str, Any]:
+             task_weights: Mapping[str, float], warmup: int, batch: int = 16,
+             warmup_seconds: float = 0.0) -> Dict[str, Any]:
     """Loss and metrics of ``model`` on fixed sequence items (eval mode, no class weights).
 
-    Frames before ``warmup`` in each sequence are left out of the metrics (not of the
-    loss of brake/view, which are visible from the first frame).
+    The first ``max(warmup, warmup_seconds * fps)`` frames of each sequence are left out
+    of the metrics and of the intent/left/right loss.
 
     Returns:
         ``{"loss": float, "summary": metrics summary, "accuracy": {task: acc}, "score": float}``.
@@ -429,13 +539,15 @@ def validate(model: nn.Module, items: Sequence[Mapping[str, Any]], device: torch
             x = batch_input(chunk["crops"], device)
             labels = chunk["labels"].to(device)
             mask = chunk["mask"].to(device)
+            warm = warmup_frames(chunk["meta"].get("fps", [None] * len(x)), warmup,
+                                 warmup_seconds).to(device)
             logits, _ = model(x)
-            loss, _ = multitask_loss(logits, labels, mask, task_weights, None, warmup)
+            loss, _ = multitask_loss(logits, labels, mask, task_weights, None, warm)
             n = float(mask.sum())
             losses.append(float(loss) * n)
             weights.append(n)
-            scored = mask.clone()
-            scored[:, :warmup] = False
+            t_idx = torch.arange(mask.shape[1], device=device)
+            scored = mask & (t_idx[None, :] >= warm[:, None])
             sel = scored.cpu().numpy()
             y = labels.cpu().numpy()[sel]
             p = np.stack([logits[t].argmax(-1).cpu().numpy()[sel] for t in TASKS], axis=1)
@@ -519,6 +631,7 @@ class Trainer:
             patience=opts.plateau_patience, threshold=1e-3, min_lr=opts.min_lr)
         self.freq = ClassFrequency(self.config.num_classes, power=opts.class_weight_power)
         self.train_seconds = 0.0
+        self.data_wait = 0.0  # seconds this invocation waited for batches
         if state is not None:
             self.optimizer.load_state_dict(state["optimizer"])
             self.scheduler.load_state_dict(state["scheduler"])
@@ -558,29 +671,42 @@ class Trainer:
 
     def _loader(self) -> torch.utils.data.DataLoader:
         opts = self.opts
-        parts, probs, balance = [], [], []
+        parts, probs = [], []
         frac = self._synthetic_fraction()
         augment = _Augment(opts.mirror_prob, opts.jitter)
         if frac > 0:
-            parts.append(SyntheticSequenceStream(
+            stream_opts = dict(opts.stream)
+            # Setting up a scene costs about as much as rendering 10 frames: render
+            # longer scenes and cut several windows from each track.
+            stream_opts.setdefault("scene_frames", SCENE_WINDOWS * opts.seq_len)
+            stream: torch.utils.data.IterableDataset = SyntheticSequenceStream(
                 self._data_seed() % (2**31), opts.seq_len, self.crop,
-                mirror_prob=opts.mirror_prob, jitter=opts.jitter, rank=self.dist.rank,
-                **opts.stream))
+                mirror_prob=0.0, jitter=False, rank=self.dist.rank, **stream_opts)
+            if opts.balance and opts.balance_max_drop > 0:
+                stream = _Balanced(stream, self._data_seed(), self.dist.rank,
+                                   opts.balance_max_drop)
+            # Augmentation comes after the balancer and the replay buffer, so that every
+            # served copy of a sequence is augmented on its own.
+            parts.append(ReplayStream(stream, opts.reuse, opts.replay_capacity, augment,
+                                      self._data_seed(), self.dist.rank,
+                                      stratified=opts.balance))
             probs.append(frac)
-            balance.append(opts.balance)
         if frac < 1:
             if not self.train_tracks:
                 raise ConfigError("no training tracks: --bags / --ucm gave nothing to train on")
+            # WindowDataset draws stratum-balanced windows itself.
             parts.append(WindowDataset(self.train_tracks, opts.seq_len, seed=self._data_seed(),
                                        augment=augment, rank=self.dist.rank))
             probs.append(1.0 - frac)
-            balance.append(False)  # WindowDataset draws stratum-balanced itself
-        mixed = _MixedStream(parts, probs, self._data_seed(), self.dist.rank, balance,
-                             opts.balance_max_drop)
+        mixed = _MixedStream(parts, probs, self._data_seed(), self.dist.rank)
         workers = int(opts.workers)
+        # "spawn", not fork: a child forked after OpenCV or OpenMP ran their thread pools
+        # in this process can deadlock on a lock copied in the held state.
         return torch.utils.data.DataLoader(
             mixed, batch_size=opts.batch, collate_fn=collate_sequences, num_workers=workers,
-            persistent_workers=workers > 0, prefetch_factor=4 if workers > 0 else None)
+            persistent_workers=workers > 0, prefetch_factor=4 if workers > 0 else None,
+            multiprocessing_context="spawn" if workers > 0 else None,
+            worker_init_fn=_worker_init if workers > 0 else None)
 
     def _validation_items(self, held_out: List[TrackSequence]) -> List[Dict[str, Any]]:
         opts = self.opts
@@ -593,8 +719,7 @@ class Trainer:
                                   f"{split.crop}, the model uses {self.crop}")
             return [split[i] for i in range(len(split))]
         if held_out:
-            win = WindowDataset(held_out, max(opts.seq_len, 2 * opts.val_warmup + 8),
-                                seed=opts.seed)
+            win = WindowDataset(held_out, max(opts.seq_len, opts.val_seq_len), seed=opts.seed)
             return [win.window(i) for i in range(len(win.windows))]
         if self._synthetic_fraction() > 0:
             from signal_light_node.data.split import SequenceSplit, write_split
@@ -604,7 +729,8 @@ class Trainer:
                 logger.info("materialising a validation split of %d sequences in %s",
                             opts.val_sequences, val_dir)
                 write_split(val_dir, seed=(opts.seed + 1_000_003) % (2**31),
-                            n_sequences=opts.val_sequences, seq_len=max(opts.seq_len, 24),
+                            n_sequences=opts.val_sequences,
+                            seq_len=max(opts.seq_len, opts.val_seq_len),
                             crop=self.crop, progress=opts.progress, **opts.stream)
             split = SequenceSplit(val_dir)
             return [split[i] for i in range(len(split))]
@@ -661,7 +787,7 @@ class Trainer:
         loss = math.nan
         if self.dist.main and self.val_items:
             val = validate(self.model, self.val_items, self.device, self.opts.task_weights,
-                           self.opts.val_warmup)
+                           self.opts.val_warmup, warmup_seconds=self.opts.val_warmup_seconds)
             loss = val["loss"]
         loss = _broadcast_float(loss, self.dist, self.device)
         if not math.isnan(loss):
@@ -711,13 +837,17 @@ class Trainer:
                     break
                 t0 = time.monotonic()
                 batch = next(data_iter)
+                t_data = time.monotonic()
+                self.data_wait += t_data - t0
                 labels = batch["labels"].to(self.device)
                 mask = batch["mask"].to(self.device)
                 self.freq.update(batch["labels"].numpy(), batch["mask"].numpy())
                 x = batch_input(batch["crops"], self.device)
                 logits, _ = self.net(x)
+                warm = warmup_frames(batch["meta"].get("fps", [None] * len(labels)),
+                                     opts.loss_warmup, opts.loss_warmup_seconds).to(self.device)
                 loss, parts = multitask_loss(logits, labels, mask, opts.task_weights,
-                                             self.freq.tensors(self.device), opts.loss_warmup)
+                                             self.freq.tensors(self.device), warm)
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 if opts.grad_clip > 0:
@@ -754,6 +884,7 @@ class Trainer:
         summary = {"steps": step, "steps_this_run": step - self.start_step,
                    "wall_seconds": round(wall, 1),
                    "seconds_per_step": round(wall / max(1, step - self.start_step), 3),
+                   "data_wait_seconds": round(self.data_wait, 1),
                    "best_score": self.best_score if self.best_step >= 0 else None,
                    "best_step": self.best_step, "out": str(self.out),
                    "last_validation": None if last_val is None else {
