@@ -237,3 +237,14 @@ def test_split_of_full_tracks_and_guards(tmp_path):
         write_split(tmp_path / "aug", seed=4, n_sequences=2, seq_len=8, mirror_prob=0.5)
     with pytest.raises(Exception, match="not a sequence split"):
         SequenceSplit(tmp_path / "missing")
+
+
+def test_split_command_line(tmp_path, capsys):
+    from signal_light_node.data.split import main
+
+    assert main([str(tmp_path / "cli"), "--seed", "3", "--sequences", "2", "--seq-len", "6",
+                 "--crop-size", "32", "--lighting", "night"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["n_sequences"] == 2 and summary["lighting"] == {"night": 2}
+    assert len(SequenceSplit(tmp_path / "cli")) == 2
+    assert main([str(tmp_path / "cli"), "--seed", "3", "--sequences", "2"]) == 2  # not empty

@@ -6,13 +6,20 @@ long evaluation tracks padded to ``seq_len`` cost no disk or memory for the padd
 ``SequenceSplit`` gives back exactly the items that
 ``SyntheticSequenceStream(seed, seq_len, crop, mirror_prob=0, jitter=False, ...)`` yields,
 in the same order.
+
+From the shell::
+
+    python -m signal_light_node.data.split OUT --seed 900001 --sequences 400 --seq-len 24
+    python -m signal_light_node.data.split OUT --seed 900002 --sequences 200 --seq-len 90 --full-tracks
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import os
+import sys
 from collections import OrderedDict
 from itertools import islice
 from pathlib import Path
@@ -252,3 +259,37 @@ class SequenceSplit(Dataset):
         """The manifest's counts and label histogram."""
         return {k: self.manifest[k] for k in ("seed", "seq_len", "full_tracks", "n_sequences",
                                                "n_observations", "label_histogram", "lighting")}
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    """Write a split from the command line (``python -m signal_light_node.data.split``)."""
+    parser = argparse.ArgumentParser(prog="python -m signal_light_node.data.split",
+                                     description="materialise a fixed synthetic split")
+    parser.add_argument("out", help="directory to write")
+    parser.add_argument("--seed", type=int, required=True, help="stream seed (never trained on)")
+    parser.add_argument("--sequences", type=int, required=True, help="number of items")
+    parser.add_argument("--seq-len", type=int, default=16, help="T, or frames per scene "
+                        "with --full-tracks (default 16)")
+    parser.add_argument("--full-tracks", action="store_true",
+                        help="whole tracks of each scene instead of windows")
+    parser.add_argument("--crop-size", type=int, default=CropConfig.size)
+    parser.add_argument("--crop-margin", type=float, default=CropConfig.margin)
+    parser.add_argument("--lighting", choices=("day", "dusk", "night"), default=None,
+                        help="one lighting for every scene (default: drawn per scene)")
+    parser.add_argument("--overwrite", action="store_true")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        path = write_split(args.out, args.seed, args.sequences, args.seq_len,
+                           CropConfig(args.crop_size, args.crop_margin),
+                           full_tracks=args.full_tracks, overwrite=args.overwrite,
+                           lighting=args.lighting)
+    except SignalLightError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(SequenceSplit(path.parent).summary(), indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
