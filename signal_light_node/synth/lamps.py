@@ -94,10 +94,10 @@ def sample_lamp_style(rng: np.random.Generator, kind: str, design: Optional[str]
     white = (rng.uniform(225, 255), rng.uniform(235, 255), rng.uniform(235, 255))
     lens_kind = rng.random()
     if lens_kind < 0.35:  # clear / silver indicator lens
-        g = rng.uniform(120, 200)
+        g = rng.uniform(100, 180)
         amber_lens = (g, g * rng.uniform(0.97, 1.03), g * rng.uniform(0.98, 1.05))
     elif lens_kind < 0.7:  # amber lens
-        amber_lens = (rng.uniform(20, 60), rng.uniform(90, 140), rng.uniform(150, 210))
+        amber_lens = (rng.uniform(15, 50), rng.uniform(65, 110), rng.uniform(115, 170))
     else:  # smoked
         g = rng.uniform(30, 70)
         amber_lens = (g, g, g * 1.1)
@@ -142,37 +142,60 @@ def _rear_band(kind: str, rng: np.random.Generator) -> Tuple[float, float]:
 
 
 def rear_lamps(style: LampStyle, kind: str, rng: np.random.Generator, chmsl_v: float) -> List[Lamp]:
-    """Lamps on the rear face (view BEHIND)."""
+    """Lamps on the rear face (view BEHIND).
+
+    Bulb-era families come as a horizontal cluster, a tall lamp at each corner or two
+    round lamps side by side; LED families as thin strips.
+    """
     vc, h = _rear_band(kind, rng)
     inset = rng.uniform(0.02, 0.06)
     width = rng.uniform(0.13, 0.24) if kind not in ("truck", "bus") else rng.uniform(0.07, 0.13)
     lamps: List[Lamp] = []
-    shape = str(rng.choice(["rect", "round", "ellipse"])) if kind not in ("van",) else "rect"
     d = style.design
+    layout = "horizontal"
+    if d in ("amber", "red_combined"):
+        layout = str(rng.choice(["horizontal", "vertical", "double"], p=[0.6, 0.2, 0.2]))
+    if layout == "vertical":
+        inset, width = rng.uniform(0.005, 0.03), rng.uniform(0.06, 0.1)
+        h = rng.uniform(0.16, 0.3) if kind not in ("truck", "bus") else rng.uniform(0.08, 0.14)
+        vc = min(vc, 0.9 - h / 2)
+    shape = str(rng.choice(["rect", "round", "ellipse"])) if kind != "van" and layout == "horizontal" else "rect"
     # Drawn once so that both sides of the vehicle match.
-    where = str(rng.choice(["below", "above", "inner"]))
+    where = str(rng.choice(["below", "above", "inner"] if layout == "horizontal" else ["below", "above"]))
+    split_below, split_above = rng.uniform(0.55, 0.7), rng.uniform(0.3, 0.45)
+    cut_frac = rng.uniform(0.3, 0.45)
     strip_frac = rng.uniform(0.3, 0.45)
+    amber_outer = bool(rng.random() < 0.5)
+    red = lambda role, side, r, shp=shape: Lamp(role, side, r, shp, style.red, style.red_lens, glow=style.glow)  # noqa: E731
+    amb = lambda side, r, shp="rect": Lamp("turn", side, r, shp, style.amber, style.amber_lens, glow=style.glow)  # noqa: E731
     for side, (u0, v0, u1, v1), out in _pair((inset, vc - h / 2, inset + width, vc + h / 2), False):
-        if d == "red_combined":
-            lamps.append(Lamp("turn_tail", side, (u0, v0, u1, v1), shape, style.red, style.red_lens, glow=style.glow))
+        if layout == "double":
+            # Two round lamps: outer and inner (outward < 0: the outer one is at smaller u).
+            mid = (u0 + u1) / 2
+            gap = (u1 - u0) * 0.05
+            outer, inner = ((u0, v0, mid - gap, v1), (mid + gap, v0, u1, v1)) if out < 0 else ((mid + gap, v0, u1, v1), (u0, v0, mid - gap, v1))
+            if d == "red_combined":
+                lamps += [red("turn_tail", side, outer, "ellipse"), red("tail", side, inner, "ellipse")]
+            elif amber_outer:
+                lamps += [amb(side, outer, "ellipse"), red("tail", side, inner, "ellipse")]
+            else:
+                lamps += [red("tail", side, outer, "ellipse"), amb(side, inner, "ellipse")]
+        elif d == "red_combined":
+            lamps.append(red("turn_tail", side, (u0, v0, u1, v1)))
         elif d == "amber":
             # Separate amber segment: below, above or on the inner end of the tail lamp.
             if where == "below":
-                split = v0 + (v1 - v0) * rng.uniform(0.55, 0.7)
-                lamps.append(Lamp("tail", side, (u0, v0, u1, split), shape, style.red, style.red_lens, glow=style.glow))
-                lamps.append(Lamp("turn", side, (u0, split, u1, v1), "rect", style.amber, style.amber_lens, glow=style.glow))
+                split = v0 + (v1 - v0) * split_below
+                lamps += [red("tail", side, (u0, v0, u1, split)), amb(side, (u0, split, u1, v1))]
             elif where == "above":
-                split = v0 + (v1 - v0) * rng.uniform(0.3, 0.45)
-                lamps.append(Lamp("turn", side, (u0, v0, u1, split), "rect", style.amber, style.amber_lens, glow=style.glow))
-                lamps.append(Lamp("tail", side, (u0, split, u1, v1), shape, style.red, style.red_lens, glow=style.glow))
+                split = v0 + (v1 - v0) * split_above
+                lamps += [amb(side, (u0, v0, u1, split)), red("tail", side, (u0, split, u1, v1))]
             else:
-                cut = (u1 - u0) * rng.uniform(0.3, 0.45)
+                cut = (u1 - u0) * cut_frac
                 if out < 0:  # image-left lamp: inner end is at larger u
-                    lamps.append(Lamp("tail", side, (u0, v0, u1 - cut, v1), shape, style.red, style.red_lens, glow=style.glow))
-                    lamps.append(Lamp("turn", side, (u1 - cut, v0, u1, v1), "rect", style.amber, style.amber_lens, glow=style.glow))
+                    lamps += [red("tail", side, (u0, v0, u1 - cut, v1)), amb(side, (u1 - cut, v0, u1, v1))]
                 else:
-                    lamps.append(Lamp("turn", side, (u0, v0, u0 + cut, v1), "rect", style.amber, style.amber_lens, glow=style.glow))
-                    lamps.append(Lamp("tail", side, (u0 + cut, v0, u1, v1), shape, style.red, style.red_lens, glow=style.glow))
+                    lamps += [amb(side, (u0, v0, u0 + cut, v1)), red("tail", side, (u0 + cut, v0, u1, v1))]
         else:  # LED strip / sequential: thin red strip above a thin amber strip
             sh = (v1 - v0) * strip_frac
             lamps.append(Lamp("tail", side, (u0, v0, u1, v0 + sh), "strip", style.red, style.red_lens, glow=style.glow))

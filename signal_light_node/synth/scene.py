@@ -720,10 +720,10 @@ class SceneRenderer:
                     c = p.mean(0)
                     size = max(hi[li][0] - lo[li][0], hi[li][1] - lo[li][1]) if len(polys) == 1 else \
                         max(float(np.ptp(p[:, 0])), float(np.ptp(p[:, 1])))
-                    if night and k > 0.5:
+                    if (night and k > 0.5) or k > 0.8:
                         # Over-exposed core: the centre of a bright lamp clips towards white.
                         core = (p - c) * 0.55 + c
-                        hot = 0.35 + 0.4 * k
+                        hot = (0.35 + 0.4 * k) if night else 0.2 * v.style.brightness
                         cc = tuple(e + (255 - e) * hot for e in lamp.emit)
                         cv2.fillPoly(d.canvas, [np.round(core * _ONE).astype(np.int32)], cc, cv2.LINE_AA, _SHIFT)
                     add_glow(layer, c[0] + rx0, c[1] + ry0, size * 0.5, lamp.emit, 0.5 * k * lt.glow * frac * lamp.glow)
