@@ -21,27 +21,35 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
-import json
-import logging
-import math
 import os
-import sys
-import tempfile
-import time
-from pathlib import Path
-from typing import Any, Dict, List, Sequence
 
-import numpy as np
-import torch
+# OpenMP threads that spin while they wait (libgomp's default) stall every parallel op
+# when another process holds one of the two cores: a 1-track step went from 3 ms to
+# 170-270 ms at load 3. Sleeping waiters avoid that; set before torch loads libgomp.
+# Compare with OMP_WAIT_POLICY=ACTIVE in the environment.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from signal_light_node import bagio
-from signal_light_node.boxes import TrackBox
-from signal_light_node.conversions import boxes_to_detections, make_header
-from signal_light_node.engine import EngineConfig, LightStateEngine
-from signal_light_node.image_codec import bgr_to_compressed_fields
-from signal_light_node.model import DEFAULT_WEIGHTS, ModelConfig, build_model, load_checkpoint
-from signal_light_node.replay import replay_bag
+import argparse  # noqa: E402
+import json  # noqa: E402
+import logging  # noqa: E402
+import math  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any, Dict, List, Sequence  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from signal_light_node import bagio  # noqa: E402
+from signal_light_node.boxes import TrackBox  # noqa: E402
+from signal_light_node.conversions import boxes_to_detections, make_header  # noqa: E402
+from signal_light_node.engine import EngineConfig, LightStateEngine  # noqa: E402
+from signal_light_node.image_codec import bgr_to_compressed_fields  # noqa: E402
+from signal_light_node.model import (DEFAULT_WEIGHTS, ModelConfig, build_model,  # noqa: E402
+                                     load_checkpoint)
+from signal_light_node.replay import replay_bag  # noqa: E402
 
 IMAGE_TOPIC = "/camera/image/compressed"
 DET_TOPIC = "/tracker/detections"
@@ -121,7 +129,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     model, source = load_model(args.weights)
     config = model.config
     print(f"model: {source}; input {config.input_size}px, ConvLSTM {config.lstm_hidden}")
-    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, "
+    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, OMP_WAIT_POLICY "
+          f"{os.environ.get('OMP_WAIT_POLICY')}, "
           f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}; frames "
           f"{args.width}x{args.height} JPEG, {args.frames} per run")
     frames = make_frames(args.frames, args.width, args.height)
@@ -155,6 +164,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                   f"100 ms target (engine only; end-to-end node latency is measured separately)")
     if args.json:
         args.json.write_text(json.dumps({"model": source, "threads": args.threads,
+                                         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
                                          "width": args.width, "height": args.height,
                                          "runs": rows}, indent=2))
     return 0
