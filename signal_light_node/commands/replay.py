@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 from pathlib import Path
 from typing import Dict
 
@@ -56,6 +57,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Replay the bag, print the summary and, with ground truth, the metrics."""
+    # Spinning OpenMP waiters (libgomp's default) stall every parallel op when another
+    # process holds a core; read when torch loads libgomp, so set before importing it.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     import torch
 
     from signal_light_node.engine import engine_from_checkpoint
