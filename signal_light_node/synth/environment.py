@@ -9,8 +9,7 @@ renderer blurs into glow.
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import List, Optional, Tuple
 
 import cv2
@@ -443,14 +442,21 @@ class Environment:
                     xg, yg = self._proj(X - side * 2.0, 0, Z, m)
                     add_glow(glow, xg, yg, 2.5 * g.focal / Z, head, 0.03)  # pool of light on the road
                 Z += spacing
+        sun = lt.name != "night" and rng.random() < (0.25 if lt.name == "day" else 0.35)
+        if sun:
+            # Low sun in the sky: a white-hot disk and a wide warm halo (glare).
+            sx, sy = rng.uniform(0, W), hy * rng.uniform(0.1, 0.9)
+            r = rng.uniform(6, 14)
+            ellipse(bg, sx, sy, r, r, (235, 250, 255))
+            add_glow(glow, sx, sy, r * 4, (200, 235, 255), rng.uniform(0.4, 0.9))
         # Low-frequency texture so that flat areas are not perfectly flat.
         tex = cv2.resize(rng.normal(0, 1, (H // 16 + 2, W // 16 + 2)).astype(np.float32), (W, H), interpolation=cv2.INTER_CUBIC)
         fine = rng.normal(0, 1, (H, W)).astype(np.float32)
         below = (np.arange(H, dtype=np.float32) > hy)[:, None]  # the sky stays smooth
         t = (tex * rng.uniform(2, 6) * below + cv2.GaussianBlur(fine, (3, 3), 0) * 2.5) * lt.ambient
         out = bg.astype(np.float32) + t[:, :, None]
-        if lt.name != "day":
-            out += blur_glow(glow * lt.glow, W, H, 0.8).astype(np.float32)
+        if lt.name != "day" or sun:
+            out += blur_glow(glow * lt.glow, W, H, 2.0 if sun else 0.8).astype(np.float32)
         return np.clip(out, 0, 255).astype(np.uint8)
 
     # ----------------------------------------------------------------- distractors

@@ -9,7 +9,7 @@ label code never has to reason about mirroring again.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -288,7 +288,8 @@ class Timeline:
 
     Args:
         rng: Generator owned by this timeline (keeps results independent of query order).
-        states: Possible values.
+        states: Possible values; the first is the rest state that active values mostly
+            return to.
         weights: Probability of each value when a new segment starts.
         durations: Per value, (mean, min, max) seconds of a segment.
         fixed: When given, the signal holds this value forever.
@@ -310,6 +311,8 @@ class Timeline:
     def _draw_state(self, previous: Optional[int]) -> int:
         w = self._weights.copy()
         if previous is not None:
+            if previous != self._states[0] and self._rng.random() < 0.85:
+                return int(self._states[0])  # signals mostly switch off before switching to another
             w[self._states.index(previous)] = 0.0  # a new segment always changes the value
             w /= w.sum()
         return int(self._states[int(self._rng.choice(len(self._states), p=w))])

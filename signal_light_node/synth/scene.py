@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import Any, Dict, Iterator, List, Optional, Sequence, Tuple
+from typing import Any, Dict, Iterator, List, Optional, Tuple
 
 import cv2
 import numpy as np
@@ -633,9 +633,9 @@ class SceneRenderer:
         brake = bool(v.brake.segment(t)[0])
         left_on = state in (Intent.LEFT, Intent.HAZARD)
         right_on = state in (Intent.RIGHT, Intent.HAZARD)
-        t_act = t - start + (v.phase if start < -1e8 else 0.0)
-        if start < -1e8:
-            t_act = t + v.phase
+        # A flasher starts lit when switched on; a signal held for the whole sequence
+        # (override) runs with the vehicle's phase instead.
+        t_act = t + v.phase if start < -1e8 else t - start
         exp_s = self._light.exposure_s
         tail = st.tail_level if v.lights_on else 0.0
         night = self.lighting != "day"

@@ -7,8 +7,8 @@ transform (scale, slight shear and roll) and fills them anti-aliased.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Tuple
+from dataclasses import dataclass
+from typing import Dict, List, Tuple
 
 import numpy as np
 
