@@ -207,3 +207,29 @@ def test_bad_overrides_are_reported():
         SceneRenderer(seed=1, vehicles=[{"wheels": 3}])
     with pytest.raises(ConfigError, match="lighting"):
         SceneRenderer(seed=1, lighting="noon")
+
+
+def test_lighting_choice_follows_night_fraction():
+    assert all(SceneRenderer(seed=s, night_fraction=1.0).lighting == "night" for s in range(5))
+    assert all(SceneRenderer(seed=s, night_fraction=0.0).lighting != "night" for s in range(5))
+    assert SceneRenderer(seed=1, lighting="dusk").lighting == "dusk"
+    assert SceneRenderer(seed=1, fps=12.5).fps == 12.5
+
+
+def test_tracker_boxes_are_jittered_and_sometimes_missing():
+    rel, missing, total = [], 0, 0
+    for seed in range(4):
+        for f in SceneRenderer(seed=200 + seed, width=320, height=180, fps=10.0, effects=False).frames(40):
+            for v in f.vehicles:
+                total += 1
+                if v.tracker_box is None:
+                    missing += 1
+                    continue
+                t = v.tracker_box
+                w, h = v.box[2] - v.box[0], v.box[3] - v.box[1]
+                rel.append(max(abs(t.x0 - v.box[0]) / w, abs(t.x1 - v.box[2]) / w))
+    assert total > 200
+    assert 0 < missing / total < 0.1
+    rel = np.asarray(rel)
+    assert np.median(rel) < 0.1  # usually a few percent off
+    assert np.mean(rel > 0.005) > 0.5  # but rarely exact

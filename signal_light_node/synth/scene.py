@@ -211,6 +211,8 @@ class SceneRenderer:
         if not o.get("shake", True):
             cam_params.shake = 0.0
         self._camera = Camera(cam_params, W, H, self._hy, self.seed * 7 + 3, enabled=bool(o.get("effects", True)))
+        LOG.debug("scene seed=%d %dx%d fps=%.1f lighting=%s weather=%s focal=%.0f horizon=%.0f vehicles=%d",
+                  self.seed, W, H, self.fps, self.lighting, weather, self._f, self._hy, self.n_vehicles)
         self._next_id = int(rng.integers(1, 50))
         self._vehicles: List[_Vehicle] = []
         vo = o.get("vehicles") or []
