@@ -20,7 +20,7 @@ from fake_light_model import FakeLightModel
 from signal_light_node import bagio
 from signal_light_node.boxes import TrackBox
 from signal_light_node.cli import main
-from signal_light_node.conversions import (boxes_to_detections, detections_to_boxes, make_header,
+from signal_light_node.conversions import (boxes_to_detections, make_header,
                                            stamp_to_ns, vehicle_light_array,
                                            vehicle_light_array_to_results)
 from signal_light_node.engine import EngineConfig, LightStateEngine
