@@ -20,7 +20,10 @@ from signal_light_node.labels import Intent, View
 LAMP_DESIGNS: Tuple[str, ...] = ("amber", "red_combined", "led_strip", "sequential")
 
 #: Roles a lamp can play; ``turn_tail`` is the US-style red lamp that is tail, brake and blinker.
-ROLES = ("tail", "turn", "turn_tail", "chmsl", "head", "drl", "position")
+#: ``marker`` (steady side marker lamps) and ``reflector`` (retro-reflectors) look like
+#: signal lamps but never signal: they are there so that a lit amber or red patch is not
+#: automatically a blinker or a brake light.
+ROLES = ("tail", "turn", "turn_tail", "chmsl", "head", "drl", "position", "marker", "reflector")
 
 Colour = Tuple[float, float, float]
 
@@ -202,6 +205,12 @@ def rear_lamps(style: LampStyle, kind: str, rng: np.random.Generator, chmsl_v: f
             segs = style.seq_segments if d == "sequential" else 1
             lamps.append(Lamp("turn", side, (u0, v1 - sh, u1, v1), "strip", style.amber, style.amber_lens,
                               segments=segs, outward=out, glow=style.glow))
+    if rng.random() < 0.6:
+        # Red retro-reflectors low on the bumper corners.
+        rv0 = rng.uniform(0.74, 0.84) if kind not in ("truck", "bus") else rng.uniform(0.87, 0.9)
+        rw, rh = rng.uniform(0.04, 0.08), rng.uniform(0.02, 0.035)
+        for side, r, _ in _pair((0.03, rv0, 0.03 + rw, rv0 + rh), False):
+            lamps.append(Lamp("reflector", side, r, "rect", style.red, (35, 30, 120), glow=0.3))
     if d == "led_strip" and kind in ("car", "suv") and rng.random() < 0.5:
         # Full-width light bar joining the two tail lamps (tail only, never blinks).
         lamps.append(Lamp("tail", "C", (inset + width, vc - h / 2, 1 - inset - width, vc - h / 2 + h * 0.25),
@@ -226,8 +235,8 @@ def front_lamps(style: LampStyle, kind: str, rng: np.random.Generator) -> List[L
     d = style.design
     lamps: List[Lamp] = []
     place = str(rng.choice(["outer", "below", "strip"])) if d in ("amber", "red_combined") else "strip"
+    shape = str(rng.choice(["ellipse", "rect", "round"])) if d in ("amber", "red_combined") else str(rng.choice(["rect", "round"]))
     for side, (u0, v0, u1, v1), out in _pair((inset, vc - h / 2, inset + width, vc + h / 2), True):
-        shape = "ellipse" if d in ("amber", "red_combined") else "rect"
         lamps.append(Lamp("head", side, (u0, v0, u1, v1), shape, style.white, (150, 150, 150), glow=style.glow * 1.6))
         if place == "outer":
             cw = (u1 - u0) * 0.3
@@ -267,6 +276,17 @@ def side_lamps(style: LampStyle, kind: str, rng: np.random.Generator, view: View
     lamps.append(Lamp(rear_role, side, (1.0 - ew, v_rear - h / 2, 1.0, v_rear + h / 2), "rect", style.red, style.red_lens, glow=style.glow))
     if style.design != "red_combined":
         lamps.append(Lamp("turn", side, (1.0 - ew, v_rear + h / 2, 1.0, v_rear + h), "rect", style.amber, style.amber_lens, glow=style.glow))
+    if style.design == "red_combined" or kind in ("truck", "bus") or rng.random() < 0.15:
+        # Steady side-marker lamps (amber at the front, red at the rear; amber along long bodies).
+        mw = rng.uniform(0.015, 0.03) if kind not in ("truck", "bus") else rng.uniform(0.006, 0.012)
+        mh = rng.uniform(0.025, 0.045)
+        lamps.append(Lamp("marker", side, (ew * 1.8, v_front - mh / 2, ew * 1.8 + mw, v_front + mh / 2), "rect",
+                          style.amber, style.amber_lens, glow=0.6))
+        lamps.append(Lamp("marker", side, (1.0 - ew * 1.8 - mw, v_rear - mh / 2, 1.0 - ew * 1.8, v_rear + mh / 2), "rect",
+                          style.red, style.red_lens, glow=0.6))
+        if kind in ("truck", "bus"):
+            for u in np.linspace(0.25, 0.85, int(rng.integers(2, 6))):
+                lamps.append(Lamp("marker", side, (u, 0.8, u + mw, 0.8 + mh), "rect", style.amber, style.amber_lens, glow=0.5))
     if view == View.RIGHT:  # the vehicle points to the image right: mirror
         for lamp in lamps:
             u0, v0, u1, v1 = lamp.rect

@@ -673,6 +673,10 @@ class SceneRenderer:
                 if on and active and st.drl_dims_on_turn:
                     lev *= 1.0 - 0.85 * flasher_level(t_act, st, exp_s)
                 levels.append([lev])
+            elif role == "marker":
+                levels.append([0.6 if v.lights_on else 0.0])
+            elif role == "reflector":
+                levels.append([0.12 if night else 0.0])  # catches other vehicles' headlights
             else:
                 levels.append([0.0])
         return levels, brake, left_on, right_on
