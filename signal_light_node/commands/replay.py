@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 from pathlib import Path
 from typing import Dict
 
@@ -57,10 +56,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Replay the bag, print the summary and, with ground truth, the metrics."""
-    # Spinning OpenMP waiters (libgomp's default) stall every parallel op when another
-    # process holds a core; read when torch loads libgomp, so set before importing it.
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    import torch
+    import torch  # OMP_WAIT_POLICY is already set by importing signal_light_node
 
     from signal_light_node.engine import engine_from_checkpoint
     from signal_light_node.replay import replay_bag, score_summary
