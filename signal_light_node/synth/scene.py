@@ -551,9 +551,13 @@ class SceneRenderer:
             yb = lambda hgt: hy + f * (ch - hgt) / zb  # noqa: E731
             glass = np.array([[xa, ya(g_hi)], [xb, yb(g_hi)], [xb, yb(g_lo)], [xa, ya(g_lo)]], np.float64)
             if v.kind in ("car", "suv"):
-                # The cabin sits on top of the body: extend the outline up to the roof.
-                roof_n = np.array([[xn, yn(v.face_h * 0.97)], [xb, yb(v.face_h * 0.95)], [xb, yb(top_far)]])
+                # The cabin sits on top of the body and is narrower: its roof edge is set
+                # in from the body side, so the roof line starts inside the face outline.
+                roof_x = near_x + (v.X - near_x) * 0.3
+                xr_n, xr_b = vx + f * roof_x / Zn, vx + f * roof_x / zb
+                roof_n = np.array([[xr_n, yn(v.face_h * 0.97)], [xr_b, yb(v.face_h * 0.95)], [xb, yb(top_far)]])
                 outline = np.vstack([outline[:1], roof_n, outline[1:]])
+                glass[0, 0], glass[1, 0] = vx + f * (near_x + (v.X - near_x) * 0.2) / za, vx + f * (near_x + (v.X - near_x) * 0.2) / zb
         return outline, glass
 
     def _shadow(self, img: np.ndarray, d: _Drawn) -> None:
