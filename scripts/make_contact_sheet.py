@@ -99,7 +99,7 @@ def build(seed: int) -> np.ndarray:
             spec = dict(view=view, lamp_design=design, intent=intent, brake=bool((i + j) % 2), speed=0.0, phase=0.0,
                         width_px=float(rng.uniform(120, 220)) * (2.2 if view in (View.LEFT, View.RIGHT) else 1.0),
                         center_x=320.0 + float(rng.uniform(-60, 60)))
-            r = SceneRenderer(seed=s, lighting=lighting, fps=20.0, vehicles=[spec], n_vehicles=3, poles=0, respawn=False)
+            r = SceneRenderer(seed=s, lighting=lighting, fps=20.0, vehicles=[spec], n_vehicles=2, poles=0, respawn=False)
             f = find_frame(r, 3, 2)  # 0.1 s after switch-on: the lit half
             target = [v for v in f.vehicles if v.view == view and v.lamp_design == design]
             tiles.append(vehicle_tile(f, target[0]) if target else scene_tile(f, f"{design} {view.name}: not visible"))
