@@ -103,8 +103,9 @@ def test_same_seed_and_worker_repeat_others_differ():
 
 def test_dataloader_workers_draw_their_own_series():
     stream = SyntheticSequenceStream(11, T, CROP, mirror_prob=0.0, **SMALL)
+    # spawn: a forked worker can deadlock in OpenCV's thread pool if the parent used it.
     loader = DataLoader(stream, batch_size=2, num_workers=2, collate_fn=collate_sequences,
-                        multiprocessing_context="fork")
+                        multiprocessing_context="spawn")
     got = list(islice(iter(loader), 2))
     # DataLoader takes whole batches from its workers in turn.
     for batch, worker in zip(got, (0, 1)):

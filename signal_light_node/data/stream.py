@@ -7,6 +7,10 @@ into windows of ``seq_len`` consecutive observations. A frame in which the track
 misses a vehicle, or its box cannot be cropped, is left out of that track's sequence,
 exactly as the node never sees it. One render thus serves several sequences.
 
+Use it with ``DataLoader(stream, batch_size=B, collate_fn=collate_sequences,
+num_workers=N, multiprocessing_context="spawn")``: a worker *forked* from a process that
+has used OpenCV's thread pool can deadlock in it.
+
 Items are dicts of numpy arrays (``collate_sequences`` turns a batch into tensors)::
 
     crops   uint8 [T, S, S, 3]  BGR crops
