@@ -200,7 +200,7 @@ def test_collate_stacks_and_pads():
 def test_bad_options_raise_config_error():
     for bad in (dict(seq_len=0), dict(mirror_prob=1.5), dict(vehicles=(3, 2)),
                 dict(sizes=()), dict(size_weights=(1.0,)), dict(seed=-1),
-                dict(min_observations=99)):
+                dict(min_observations=99), dict(scene_frames=5)):
         with pytest.raises(ConfigError):
             SyntheticSequenceStream(**{"seed": 0, "seq_len": T, **bad})
 
@@ -249,3 +249,13 @@ def test_split_command_line(tmp_path, capsys):
     assert summary["n_sequences"] == 2 and summary["lighting"] == {"night": 2}
     assert len(SequenceSplit(tmp_path / "cli")) == 2
     assert main([str(tmp_path / "cli"), "--seed", "3", "--sequences", "2"]) == 2  # not empty
+
+
+def test_options_that_never_give_a_sequence_fail_instead_of_looping(monkeypatch):
+    import signal_light_node.data.stream as stream_module
+
+    monkeypatch.setattr(stream_module, "MAX_EMPTY_SCENES", 2)
+    hidden = SyntheticSequenceStream(0, 4, CROP, scene_frames=4, sizes=((320, 180),),
+                                     renderer_overrides={"occluders": [(0, 0, 320, 180)]})
+    with pytest.raises(ConfigError, match="2 scenes in a row"):
+        take(hidden, 1)

@@ -48,6 +48,9 @@ PAD_LABEL = -100
 DEFAULT_SIZES: Tuple[Tuple[int, int], ...] = ((640, 360), (960, 540), (1280, 720))
 DEFAULT_SIZE_WEIGHTS: Tuple[float, ...] = (0.5, 0.35, 0.15)
 
+#: Consecutive scenes without a single sequence after which the options are deemed unusable.
+MAX_EMPTY_SCENES = 50
+
 Item = Dict[str, Any]
 
 
@@ -193,6 +196,9 @@ class SyntheticSequenceStream(IterableDataset):
             1 if full_tracks else seq_len)
         if not 1 <= int(min_obs) <= seq_len:
             raise ConfigError(f"min_observations must be in 1..seq_len ({seq_len}), got {min_obs}")
+        if int(min_obs) > int(frames):
+            raise ConfigError(f"scenes of {frames} frames can never give {min_obs} observations "
+                              "of a track; raise scene_frames or lower min_observations")
         if rank is not None and int(rank) < 0:
             raise ConfigError(f"rank must be non-negative, got {rank}")
         self.seed = int(seed)
@@ -239,9 +245,16 @@ class SyntheticSequenceStream(IterableDataset):
         """
         rng = np.random.default_rng(np.random.SeedSequence(
             [self.seed, self._resolve_rank(), int(worker_id)]))
+        empty = 0
         while True:
             scene_seed = int(rng.integers(0, 2**31 - 1))
-            for item in self.scene_sequences(scene_seed, rng):
+            items = self.scene_sequences(scene_seed, rng)
+            empty = 0 if items else empty + 1
+            if empty == MAX_EMPTY_SCENES:
+                raise ConfigError(f"{empty} scenes in a row gave no track with "
+                                  f"{self.min_observations} observations; raise scene_frames "
+                                  "or vehicles, or lower min_observations")
+            for item in items:
                 if self.mirror_prob > 0 and rng.random() < self.mirror_prob:
                     item = mirror_sequence(item)
                 if self.jitter:
