@@ -632,6 +632,7 @@ class Trainer:
         self.freq = ClassFrequency(self.config.num_classes, power=opts.class_weight_power)
         self.train_seconds = 0.0
         self.data_wait = 0.0  # seconds this invocation waited for batches
+        self._ema: Dict[str, float] = {}  # running training loss and batch accuracies
         if state is not None:
             self.optimizer.load_state_dict(state["optimizer"])
             self.scheduler.load_state_dict(state["scheduler"])
@@ -800,7 +801,8 @@ class Trainer:
             if improved or (val is None and step > 0):
                 self._save("best.pt", step, val)
             record = {"step": step, "time_s": round(self.train_seconds, 1),
-                      "lr": self.optimizer.param_groups[0]["lr"]}
+                      "lr": self.optimizer.param_groups[0]["lr"],
+                      "train": {k: round(v, 4) for k, v in self._ema.items()}}
             if val is not None:
                 record.update(val_loss=round(val["loss"], 5), score=round(val["score"], 5),
                               summary=val["summary"], accuracy=val["accuracy"],
@@ -825,7 +827,7 @@ class Trainer:
         bar = tqdm(total=max_steps, initial=step, desc="train", unit="step",
                    disable=not (opts.progress and self.dist.main), dynamic_ncols=True,
                    mininterval=1.0)
-        ema: Dict[str, float] = {}
+        ema = self._ema
         data_iter = iter(self.loader)
         last_val: Optional[Dict[str, Any]] = None
         try:
@@ -861,6 +863,11 @@ class Trainer:
                     if value is not None:
                         ema[key] = value if key not in ema else 0.9 * ema[key] + 0.1 * value
                 bar.update(1)
+                if bar.disable and self.dist.main and step % (opts.log_every * 10) == 0:
+                    logger.info("step %d: train loss %.3f, intent %s, brake %s, %.2f s/step",
+                                step, ema.get("loss", math.nan), _pct(ema.get("intent")),
+                                _pct(ema.get("brake")),
+                                (time.monotonic() - started) / max(1, step - self.start_step))
                 if step % opts.log_every == 0:
                     bar.set_postfix(loss=f"{ema.get('loss', math.nan):.3f}",
                                     intent=_pct(ema.get("intent")), brake=_pct(ema.get("brake")),
