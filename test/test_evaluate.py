@@ -140,3 +140,37 @@ def test_evaluate_command_needs_one_data_source(tmp_path, capsys):
     rc = main(["evaluate", "--checkpoint", str(ckpt), "--out", str(tmp_path / "e")])
     assert rc == 2
     assert "choose exactly one" in capsys.readouterr().err
+
+
+def test_bag_tracks_and_evaluate_on_bags(tmp_path, capsys):
+    from signal_light_node.bagio import open_bag
+    from signal_light_node.synth_bag import write_scene_bag
+    from signal_light_node.training.sources import load_bag_tracks
+
+    bag = tmp_path / "scene"
+    write_scene_bag(bag, seed=3, n_frames=15, width=160, height=96, n_vehicles=2)
+    config = ModelConfig().replace(**TINY)
+    tracks = load_bag_tracks(bag, config.crop_config(), lighting="dusk")
+    # Ground truth straight from the bag: track -> list of label rows in stamp order.
+    truth = {}
+    with open_bag(bag) as reader:
+        for m in reader.messages(["/ground_truth/vehicle_lights"]):
+            for v in m.msg.vehicles:
+                truth.setdefault(str(v.track_id), []).append(
+                    [int(v.intent), int(v.brake.state), int(v.left_blinker.state),
+                     int(v.right_blinker.state), int(v.view)])
+    assert tracks and all(t.lighting == "dusk" for t in tracks)
+    for t in tracks:
+        rows = truth[t.track_id.split(":", 1)[1]]
+        # every frame with a detection has its ground truth (the tracker may miss frames)
+        assert 0 < len(t) <= len(rows)
+        assert all(row in rows for row in t.labels.tolist())
+        assert t.crops.shape == (len(t), 16, 16, 3) and np.all(np.diff(t.stamps_ns) > 0)
+    ckpt = save_checkpoint(tmp_path / "tiny.pt", build_model(config), config)
+    out = tmp_path / "eval"
+    assert main(["evaluate", "--checkpoint", str(ckpt), "--bags", str(bag), "--out", str(out),
+                 "--warmup-frames", "0", "--warmup-seconds", "0", "--no-progress"]) == 0
+    result = json.loads((out / "metrics.json").read_text())
+    assert result["counts"]["stepped"] == sum(int(t.mask.sum()) for t in tracks)
+    assert result["counts"]["scored"] == result["counts"]["stepped"]
+    assert set(result["no_grace"]["groups"]["lighting"]) == {"unknown"}
