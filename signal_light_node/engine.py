@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from signal_light_node.boxes import TrackBox
-from signal_light_node.crops import CropConfig, _square_region, clip_roi, crop_vehicles
+from signal_light_node.crops import CropConfig, clip_roi, crop_region, crop_vehicles
 from signal_light_node.errors import ConfigError
 from signal_light_node.labels import LIGHT_CODES, LIGHT_TASKS, TASKS, Intent, LightStatus, View
 from signal_light_node.model.interface import to_input
@@ -343,9 +343,8 @@ class LightStateEngine:
         masks = masks.detach().float().cpu().numpy().reshape(len(valid), *masks.shape[-2:])
         masks = np.ascontiguousarray(masks, dtype=np.float32)
         for mask, k in zip(masks, valid):
-            # The crop's own square (private in crops.py) so the mask lands where it was cut.
-            x0, y0, side = _square_region(boxes[k], width, height, self.crop.margin,
-                                          self.crop.size)
+            # The crop's own square, so the mask lands where it was cut.
+            x0, y0, side = crop_region(boxes[k], width, height, self.crop)
             resized = cv2.resize(mask, (side, side), interpolation=cv2.INTER_LINEAR)
             cx0, cy0 = max(x0, 0), max(y0, 0)
             cx1, cy1 = min(x0 + side, width), min(y0 + side, height)
