@@ -37,9 +37,12 @@ from signal_light_node.boxes import TrackBox
 from signal_light_node.conversions import (boxes_to_detections, make_header, rclpy_make,
                                            stamp_to_ns)
 from signal_light_node.node.ros_io import message_class, qos, ros_context
+from signal_light_node.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, DIAGNOSTICS_TOPIC,
+                                      DIAGNOSTICS_TYPE, IMAGE_TYPE, INPUT_COMPRESSED_TOPIC,
+                                      INPUT_DETECTIONS_TOPIC, INPUT_IMAGE_TOPIC, OUTPUT_TOPIC,
+                                      VEHICLE_LIGHTS_TYPE)
 
 REPO = Path(__file__).resolve().parents[1]
-OUTPUT_TOPIC = "/signal_light_detector/output/vehicle_lights"
 
 
 def parse_args(argv: List[str]) -> argparse.Namespace:
@@ -114,8 +117,7 @@ def main(argv: List[str]) -> int:
         model = model_path(args, Path(tmp))
         print(f"rendering {args.width}x{args.height} frames ({args.transport}) ...", flush=True)
         payloads, layout = make_frames(args)
-        image_type = ("sensor_msgs/msg/CompressedImage" if args.transport == "compressed"
-                      else "sensor_msgs/msg/Image")
+        image_type = COMPRESSED_TYPE if args.transport == "compressed" else IMAGE_TYPE
         node_args = ["detector", "--ros-args", "-p", f"image_transport:={args.transport}",
                      "-p", "reliability:=reliable", "-p", f"num_threads:={args.num_threads}",
                      "-p", f"work_queue_size:={args.work_queue}"]
@@ -160,12 +162,11 @@ def run_client(args: argparse.Namespace, payloads: List[dict], layout: List[dict
         node = rclpy.create_node(f"benchmark_node_client_{os.getpid()}", context=context)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
-        image_topic = ("/signal_light_detector/input/image/compressed"
-                       if args.transport == "compressed" else "/signal_light_detector/input/image")
+        image_topic = (INPUT_COMPRESSED_TOPIC if args.transport == "compressed"
+                       else INPUT_IMAGE_TOPIC)
         image_pub = node.create_publisher(message_class(image_type), image_topic,
                                           qos("reliable", 10))
-        det_pub = node.create_publisher(message_class("vision_msgs/msg/Detection2DArray"),
-                                        "/signal_light_detector/input/detections",
+        det_pub = node.create_publisher(message_class(DETECTIONS_TYPE), INPUT_DETECTIONS_TOPIC,
                                         qos("reliable", 10))
 
         def on_output(msg) -> None:
@@ -177,10 +178,10 @@ def run_client(args: argparse.Namespace, payloads: List[dict], layout: List[dict
                     diagnostics.clear()
                     diagnostics.update({kv.key: kv.value for kv in status.values})
 
-        node.create_subscription(message_class("signal_light_msgs/msg/VehicleLightStateArray"),
-                                 OUTPUT_TOPIC, on_output, qos("reliable", 100))
-        node.create_subscription(message_class("diagnostic_msgs/msg/DiagnosticArray"),
-                                 "/diagnostics", on_diag, qos("reliable", 10))
+        node.create_subscription(message_class(VEHICLE_LIGHTS_TYPE), OUTPUT_TOPIC, on_output,
+                                 qos("reliable", 100))
+        node.create_subscription(message_class(DIAGNOSTICS_TYPE), DIAGNOSTICS_TOPIC, on_diag,
+                                 qos("reliable", 10))
         deadline = time.monotonic() + 60
         while not (image_pub.get_subscription_count() and det_pub.get_subscription_count()
                    and node.count_publishers(OUTPUT_TOPIC)):

@@ -50,9 +50,9 @@ from signal_light_node.image_codec import bgr_to_compressed_fields  # noqa: E402
 from signal_light_node.model import (DEFAULT_WEIGHTS, ModelConfig, build_model,  # noqa: E402
                                      load_checkpoint)
 from signal_light_node.replay import replay_bag  # noqa: E402
+from signal_light_node.topics import (CAMERA_COMPRESSED_TOPIC, COMPRESSED_TYPE,  # noqa: E402
+                                      DETECTIONS_TYPE, TRACKED_OBJECTS_TOPIC)
 
-IMAGE_TOPIC = "/camera/image/compressed"
-DET_TOPIC = "/tracker/detections"
 T0 = 1_700_000_000 * 1_000_000_000
 
 
@@ -88,14 +88,14 @@ def write_bench_bag(path: Path, frames: Sequence[Dict[str, Any]], n_tracks: int,
                     height: int, fps: float = 10.0) -> Path:
     period = int(1e9 / fps)
     with bagio.BagWriter(path) as bag:
-        bag.add_topic(IMAGE_TOPIC, "sensor_msgs/msg/CompressedImage")
-        bag.add_topic(DET_TOPIC, "vision_msgs/msg/Detection2DArray")
+        bag.add_topic(CAMERA_COMPRESSED_TOPIC, COMPRESSED_TYPE)
+        bag.add_topic(TRACKED_OBJECTS_TOPIC, DETECTIONS_TYPE)
         for t, fields in enumerate(frames):
             stamp = T0 + t * period
             header = make_header(stamp, "camera", bagio.make)
-            bag.write(IMAGE_TOPIC, stamp,
-                      bagio.make("sensor_msgs/msg/CompressedImage", header=header, **fields))
-            bag.write(DET_TOPIC, stamp, boxes_to_detections(
+            bag.write(CAMERA_COMPRESSED_TOPIC, stamp,
+                      bagio.make(COMPRESSED_TYPE, header=header, **fields))
+            bag.write(TRACKED_OBJECTS_TOPIC, stamp, boxes_to_detections(
                 header, track_boxes(n_tracks, t, width, height), bagio.make))
     return path
 

@@ -26,14 +26,10 @@ from signal_light_node.conversions import (detections_to_boxes, stamp_to_ns,
 from signal_light_node.errors import BagIOError, SignalLightError
 from signal_light_node.labels import Intent, LightStatus
 from signal_light_node.results import VehicleResult
+from signal_light_node.topics import (DETECTIONS_TYPE, DIAGNOSTICS_TOPIC, GROUND_TRUTH_TOPIC,
+                                      IMAGE_TYPES, OUTPUT_TOPIC)
 
 LOG = logging.getLogger(__name__)
-
-OUTPUT_TOPIC = "/signal_light_detector/output/vehicle_lights"
-DIAGNOSTICS_TOPIC = "/diagnostics"
-GROUND_TRUTH_TOPIC = "/ground_truth/vehicle_lights"
-IMAGE_TYPES = ("sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/Image")
-DETECTION_TYPE = "vision_msgs/msg/Detection2DArray"
 
 _LIGHT_WORD = {LightStatus.OFF: "off", LightStatus.ON: "ON", LightStatus.UNKNOWN: "?"}
 _INTENT_WORD = {Intent.OFF: "off", Intent.LEFT: "LEFT", Intent.RIGHT: "RIGHT",
@@ -74,7 +70,7 @@ def inspect_inputs(path: "str | Path") -> BagInputs:
     with open_bag(path) as bag:
         topics = bag.topics()
     image = find_topic(topics, IMAGE_TYPES, None, "image", path)
-    detections = find_topic(topics, (DETECTION_TYPE,), None, "detections", path)
+    detections = find_topic(topics, (DETECTIONS_TYPE,), None, "detections", path)
     return BagInputs(image, topics[image].msgtype, detections, topics[image].count)
 
 

@@ -30,15 +30,10 @@ from signal_light_node.errors import BagIOError, ImageConversionError
 from signal_light_node.image_codec import msg_to_bgr
 from signal_light_node.labels import TASKS
 from signal_light_node.results import VehicleResult
+from signal_light_node.topics import (DETECTIONS_TYPE, GROUND_TRUTH_TOPIC, IMAGE_TYPES,
+                                      OUTPUT_TOPIC, VEHICLE_LIGHTS_TYPE)
 
 LOG = logging.getLogger(__name__)
-
-#: Topic of the engine's output, as the node publishes it.
-OUTPUT_TOPIC = "/signal_light_detector/output/vehicle_lights"
-OUTPUT_TYPE = "signal_light_msgs/msg/VehicleLightStateArray"
-GROUND_TRUTH_TOPIC = "/ground_truth/vehicle_lights"
-IMAGE_TYPES = ("sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/Image")
-DETECTION_TYPE = "vision_msgs/msg/Detection2DArray"
 
 
 def find_topic(topics: Mapping[str, TopicInfo], types: Sequence[str], wanted: Optional[str],
@@ -245,10 +240,10 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
     with open_bag(bag_path) as bag:
         topics = bag.topics()
         img_t = find_topic(topics, IMAGE_TYPES, image_topic, "image", bag_path)
-        det_t = find_topic(topics, (DETECTION_TYPE,), detections_topic, "detections", bag_path)
+        det_t = find_topic(topics, (DETECTIONS_TYPE,), detections_topic, "detections", bag_path)
         gt_info = topics.get(GROUND_TRUTH_TOPIC)
-        gt_t = GROUND_TRUTH_TOPIC if gt_info is not None and gt_info.msgtype == OUTPUT_TYPE \
-            else None
+        gt_t = GROUND_TRUTH_TOPIC if gt_info is not None and \
+            gt_info.msgtype == VEHICLE_LIGHTS_TYPE else None
         summary.image_topic, summary.detections_topic = img_t, det_t
         summary.has_ground_truth = gt_t is not None
         n_images = topics[img_t].count
@@ -273,7 +268,7 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
         seen_stamps = set()
         start = time.perf_counter()
         with BagWriter(output, overwrite=overwrite) as writer:
-            writer.add_topic(OUTPUT_TOPIC, OUTPUT_TYPE)
+            writer.add_topic(OUTPUT_TOPIC, VEHICLE_LIGHTS_TYPE)
             if with_inputs:
                 for t in input_topics:
                     writer.add_topic(t, topics[t].msgtype)

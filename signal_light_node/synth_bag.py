@@ -32,17 +32,14 @@ from signal_light_node.errors import ConfigError
 from signal_light_node.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
 from signal_light_node.labels import LIGHT_CODES, Intent, LightStatus, View
 from signal_light_node.results import LightEstimate, VehicleResult
+# The topics under the names the tests and tools import them by from here.
+from signal_light_node.topics import CAMERA_COMPRESSED_TOPIC as COMPRESSED_TOPIC
+from signal_light_node.topics import CAMERA_IMAGE_TOPIC as IMAGE_TOPIC
+from signal_light_node.topics import TRACKED_OBJECTS_TOPIC as DETECTIONS_TOPIC
+from signal_light_node.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, GROUND_TRUTH_TOPIC,
+                                      IMAGE_TYPE, VEHICLE_LIGHTS_TYPE)
 
 LOG = logging.getLogger(__name__)
-
-IMAGE_TOPIC = "/camera/image_raw"
-COMPRESSED_TOPIC = "/camera/image_raw/compressed"
-DETECTIONS_TOPIC = "/camera/tracked_objects"
-GROUND_TRUTH_TOPIC = "/ground_truth/vehicle_lights"
-IMAGE_TYPE = "sensor_msgs/msg/Image"
-COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
-DETECTIONS_TYPE = "vision_msgs/msg/Detection2DArray"
-GROUND_TRUTH_TYPE = "signal_light_msgs/msg/VehicleLightStateArray"
 
 
 @dataclass
@@ -151,7 +148,7 @@ def write_scene_bag(path: "str | os.PathLike[str]", seed: int = 0, *,
     observed: Counter = Counter()
     with bagio.BagWriter(path, overwrite=overwrite) as bag:
         for topic, msgtype in ((image_topic, image_type), (DETECTIONS_TOPIC, DETECTIONS_TYPE),
-                               (GROUND_TRUTH_TOPIC, GROUND_TRUTH_TYPE)):
+                               (GROUND_TRUTH_TOPIC, VEHICLE_LIGHTS_TYPE)):
             bag.add_topic(topic, msgtype)
         frames = renderer.frames(n_frames)
         for frame in tqdm(frames, total=n_frames, desc=f"synth {summary.path.name}",

@@ -13,11 +13,8 @@ from typing import Any, Dict, Optional, Set
 from signal_light_node import bagio
 from signal_light_node.errors import ImageConversionError
 from signal_light_node.image_codec import compressed_msg_to_bgr
-
-IMAGE_TYPE = "sensor_msgs/msg/Image"
-COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
-DETECTIONS_TYPE = "vision_msgs/msg/Detection2DArray"
-OUTPUT_TYPE = "signal_light_msgs/msg/VehicleLightStateArray"
+from signal_light_node.topics import (DETECTIONS_TYPE, IMAGE_TYPE, IMAGE_TYPES,
+                                      VEHICLE_LIGHTS_TYPE)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -65,9 +62,9 @@ def describe(path: str) -> Dict[str, Any]:
         for topic, info in bag.topics().items():
             entry: Dict[str, Any] = {"topic": topic, "msgtype": info.msgtype,
                                      "count": info.count}
-            if info.msgtype in (IMAGE_TYPE, COMPRESSED_TYPE):
+            if info.msgtype in IMAGE_TYPES:
                 entry["image"] = _image_size(bag, topic, info.msgtype)
-            elif info.msgtype in (DETECTIONS_TYPE, OUTPUT_TYPE):
+            elif info.msgtype in (DETECTIONS_TYPE, VEHICLE_LIGHTS_TYPE):
                 ids = _track_ids(bag, topic, info.msgtype)
                 entry["track_ids"] = len(ids)
                 if info.msgtype == DETECTIONS_TYPE:

@@ -15,10 +15,10 @@ from typing import Callable, Dict, Iterator, Mapping, Optional, Sequence
 
 from signal_light_node.bagio import BagReader, normalize_msgtype, typestore
 from signal_light_node.errors import BagIOError, ConfigError
+from signal_light_node.topics import DETECTIONS_TYPE, IMAGE_TYPES
 
 #: Types that ``play`` publishes when no topics are named: the detector's inputs.
-INPUT_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage",
-               "vision_msgs/msg/Detection2DArray")
+INPUT_TYPES = IMAGE_TYPES + (DETECTIONS_TYPE,)
 
 
 @dataclass(frozen=True)

@@ -34,6 +34,8 @@ from signal_light_node.node.params import (NODE_NAME, DetectorParams, read_param
 from signal_light_node.node.ros_io import message_class, qos
 from signal_light_node.node.stats import ERROR, OK, WARN, LatencyWindow, Snapshot, health
 from signal_light_node.node.worker import DropOldestQueue, Worker
+from signal_light_node.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, DIAGNOSTICS_TOPIC,
+                                      DIAGNOSTICS_TYPE, IMAGE_TYPE, VEHICLE_LIGHTS_TYPE)
 
 _NS = 1_000_000_000
 
@@ -43,7 +45,6 @@ COMPRESSED_TOPIC = "~/input/image/compressed"
 DETECTIONS_TOPIC = "~/input/detections"
 OUTPUT_TOPIC = "~/output/vehicle_lights"
 DEBUG_TOPIC = "~/output/debug/image"
-DIAGNOSTICS_TOPIC = "/diagnostics"
 
 _LEVEL_BYTES = {OK: b"\x00", WARN: b"\x01", ERROR: b"\x02"}
 
@@ -96,27 +97,23 @@ class SignalLightDetector(Node):
         self._pairer = StampPairer(int(p.sync_slop_s * _NS), int(p.sync_timeout_s * _NS),
                                    p.image_queue_size, p.detection_queue_size)
         self._queue = DropOldestQueue(p.work_queue_size)
-        self._out = self.create_publisher(message_class("signal_light_msgs/msg/"
-                                                           "VehicleLightStateArray"),
-                                          OUTPUT_TOPIC, 10)
+        self._out = self.create_publisher(message_class(VEHICLE_LIGHTS_TYPE), OUTPUT_TOPIC, 10)
         self._debug = None
         if p.publish_debug_image:
-            self._debug = self.create_publisher(message_class("sensor_msgs/msg/Image"),
-                                                DEBUG_TOPIC, 2)
-        self._diag = self.create_publisher(message_class("diagnostic_msgs/msg/"
-                                                            "DiagnosticArray"),
-                                           DIAGNOSTICS_TOPIC, 10)
+            self._debug = self.create_publisher(message_class(IMAGE_TYPE), DEBUG_TOPIC, 2)
+        self._diag = self.create_publisher(message_class(DIAGNOSTICS_TYPE), DIAGNOSTICS_TOPIC,
+                                           10)
         self._worker = Worker(self._queue, self._process, name="signal_light_inference").start()
 
         if p.image_transport == "compressed":
-            image_type, image_topic = "sensor_msgs/msg/CompressedImage", COMPRESSED_TOPIC
+            image_type, image_topic = COMPRESSED_TYPE, COMPRESSED_TOPIC
         else:
-            image_type, image_topic = "sensor_msgs/msg/Image", IMAGE_TOPIC
+            image_type, image_topic = IMAGE_TYPE, IMAGE_TOPIC
         self._image_sub = self.create_subscription(
             message_class(image_type), image_topic, self._on_image,
             qos(p.reliability, p.image_queue_size))
         self._det_sub = self.create_subscription(
-            message_class("vision_msgs/msg/Detection2DArray"), DETECTIONS_TOPIC,
+            message_class(DETECTIONS_TYPE), DETECTIONS_TOPIC,
             self._on_detections, qos(p.reliability, p.detection_queue_size))
         self._image_topic = self._image_sub.topic_name
         self._decode = _decoder(p.image_transport)
@@ -180,7 +177,7 @@ class SignalLightDetector(Node):
         attention = self.engine.attention_masks(image, boxes)
         drawn = draw_results(image, results, attention=attention,
                              caption=f"{pair.stamp_ns / 1e9:.3f}")
-        msg = rclpy_make("sensor_msgs/msg/Image", header=pair.image.header,
+        msg = rclpy_make(IMAGE_TYPE, header=pair.image.header,
                          **bgr_to_image_fields(drawn))
         self._debug.publish(msg)
         self._counts["debug_images"] += 1
@@ -222,7 +219,7 @@ class SignalLightDetector(Node):
                             name=f"{self.get_name()}: vehicle light state",
                             message=message, hardware_id="signal_light_node",
                             values=[KeyValue(key=k, value=v) for k, v in values])
-        array = rclpy_make("diagnostic_msgs/msg/DiagnosticArray", status=[status])
+        array = rclpy_make(DIAGNOSTICS_TYPE, status=[status])
         array.header.stamp = self.get_clock().now().to_msg()
         self._diag.publish(array)
 

@@ -15,6 +15,7 @@ import time
 from typing import List, Mapping, Optional
 
 from signal_light_node.node.stats import DROP_COUNTERS
+from signal_light_node.topics import DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE
 
 _STATUS_PREFIX = "signal_light_detector"
 
@@ -56,8 +57,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                     last.clear()
                     last.update({kv.key: kv.value for kv in status.values})
 
-        node.create_subscription(message_class("diagnostic_msgs/msg/DiagnosticArray"),
-                                 "/diagnostics", on_diagnostics, qos("reliable", 10))
+        node.create_subscription(message_class(DIAGNOSTICS_TYPE), DIAGNOSTICS_TOPIC,
+                                 on_diagnostics, qos("reliable", 10))
         executor = rclpy.executors.SingleThreadedExecutor(context=context)
         executor.add_node(node)
         deadline = time.monotonic() + args.timeout

@@ -40,13 +40,10 @@ from signal_light_node.crops import CropConfig, crop_vehicle
 from signal_light_node.data.stream import PAD_LABEL
 from signal_light_node.errors import BagIOError, ConfigError, CropError
 from signal_light_node.labels import TASKS, Intent, LightStatus, View, intent_from_lights
+from signal_light_node.topics import (DETECTIONS_TYPE, GROUND_TRUTH_TOPIC, IMAGE_TYPES,
+                                      VEHICLE_LIGHTS_TYPE)
 
 logger = logging.getLogger(__name__)
-
-GROUND_TRUTH_TOPIC = "/ground_truth/vehicle_lights"
-IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
-DETECTION_TYPE = "vision_msgs/msg/Detection2DArray"
-GROUND_TRUTH_TYPE = "signal_light_msgs/msg/VehicleLightStateArray"
 
 #: The eight UCM sequence codes: (brake, left, right) letters, O = off.
 UCM_CODES = ("OOO", "BOO", "OLO", "BLO", "OOR", "BOR", "OLR", "BLR")
@@ -277,8 +274,9 @@ def load_bag_tracks(path: Path, crop_config: CropConfig = CropConfig(),
     with open_bag(path) as bag:
         topics = bag.topics()
         img_t = _pick_topic(topics, IMAGE_TYPES, image_topic, "image", path)
-        det_t = _pick_topic(topics, (DETECTION_TYPE,), detection_topic, "detection", path)
-        gt_t = _pick_topic(topics, (GROUND_TRUTH_TYPE,), ground_truth_topic, "ground truth", path)
+        det_t = _pick_topic(topics, (DETECTIONS_TYPE,), detection_topic, "detection", path)
+        gt_t = _pick_topic(topics, (VEHICLE_LIGHTS_TYPE,), ground_truth_topic, "ground truth",
+                           path)
         kinds = {img_t: "image", det_t: "det", gt_t: "gt"}
         for m in bag.messages([img_t, det_t, gt_t]):
             stamp = stamp_to_ns(m.msg.header.stamp)
