@@ -20,7 +20,8 @@ import shutil
 import struct
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, Iterable, Iterator, List, NamedTuple, Optional, Tuple
+from typing import (Any, Dict, Iterable, Iterator, List, Mapping, NamedTuple, Optional,
+                    Sequence, Tuple)
 
 from signal_light_node.errors import BagIOError
 
@@ -491,6 +492,48 @@ def open_bag(path: "str | os.PathLike[str]") -> _OpenBag:
         BagIOError: On entering, if the path is missing or not a readable bag.
     """
     return _OpenBag(Path(path))
+
+
+def find_topic(topics: Mapping[str, TopicInfo], types: Sequence[str], wanted: Optional[str],
+               what: str, path: "str | os.PathLike[str]") -> str:
+    """The topic a tool reads: ``wanted`` if given, else one found by type.
+
+    Without ``wanted``, ``types`` are tried in order (a preference, e.g. compressed
+    images before raw ones) and within a type the alphabetically first topic is taken;
+    a warning names the others.
+
+    Args:
+        topics: :meth:`BagReader.topics` of the bag.
+        types: Acceptable full type names, most preferred first.
+        wanted: The topic the user named, or None / empty to choose by type.
+        what: What the topic is for, for messages (e.g. ``"image"``).
+        path: The bag, for messages.
+
+    Returns:
+        The topic name.
+
+    Raises:
+        BagIOError: ``wanted`` is not in the bag or has another type, or no topic has
+            one of ``types``.
+    """
+    if wanted:
+        info = topics.get(wanted)
+        if info is None:
+            raise BagIOError(f"bag {path} has no topic {wanted!r} ({what}); it has "
+                             f"{sorted(topics)}")
+        if info.msgtype not in types:
+            raise BagIOError(f"topic {wanted} of bag {path} has type {info.msgtype}, not "
+                             f"{' or '.join(types)} ({what})")
+        return wanted
+    for msgtype in types:
+        matches = sorted(t for t, info in topics.items() if info.msgtype == msgtype)
+        if matches:
+            if len(matches) > 1:
+                LOG.warning("bag %s has several %s topics %s; using %s (choose with an option)",
+                            path, what, matches, matches[0])
+            return matches[0]
+    raise BagIOError(f"bag {path} has no {what} topic (of type {' or '.join(types)}); it has "
+                     f"{ {t: i.msgtype for t, i in topics.items()} }")
 
 
 def _remove_bag(path: Path) -> None:

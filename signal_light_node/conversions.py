@@ -15,7 +15,7 @@ from typing import Any, Callable, List, Sequence, Tuple
 import numpy as np
 
 from signal_light_node.boxes import TrackBox
-from signal_light_node.labels import Intent, LightStatus, View
+from signal_light_node.labels import TASKS, Intent, LightStatus, View
 from signal_light_node.results import LightEstimate, VehicleResult
 
 #: ``make(msgtype, **fields) -> message``
@@ -199,3 +199,23 @@ def vehicle_light_array_to_results(msg: Any) -> Tuple[int, List[VehicleResult]]:
             judged=judged,
         ))
     return stamp_to_ns(msg.header.stamp), results
+
+
+def _task_row(intent: Any, brake: Any, left: Any, right: Any, view: Any) -> np.ndarray:
+    values = {"intent": intent, "brake": brake, "left": left, "right": right, "view": view}
+    return np.array([int(values[t]) for t in TASKS], dtype=np.int64)
+
+
+def truth_row(vehicle: Any) -> np.ndarray:
+    """A ``VehicleLightState`` message's classes as int64 ``[len(TASKS)]``, ``TASKS`` order.
+
+    The label row of a ground-truth entry, as training, evaluation and replay score it.
+    """
+    return _task_row(vehicle.intent, vehicle.brake.state, vehicle.left_blinker.state,
+                     vehicle.right_blinker.state, vehicle.view)
+
+
+def result_row(result: VehicleResult) -> np.ndarray:
+    """A :class:`VehicleResult`'s classes in the layout of :func:`truth_row`."""
+    return _task_row(result.intent, result.brake.state, result.left.state, result.right.state,
+                     result.view)

@@ -20,9 +20,9 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import cv2
 import numpy as np
 
-from signal_light_node.bagio import open_bag
-from signal_light_node.conversions import (detections_to_boxes, stamp_to_ns,
-                                           vehicle_light_array_to_results)
+from signal_light_node.bagio import find_topic, open_bag
+from signal_light_node.conversions import (detections_to_boxes, result_row, stamp_to_ns,
+                                           truth_row, vehicle_light_array_to_results)
 from signal_light_node.errors import BagIOError, SignalLightError
 from signal_light_node.labels import Intent, LightStatus
 from signal_light_node.results import VehicleResult
@@ -64,8 +64,6 @@ def inspect_inputs(path: "str | Path") -> BagInputs:
     Raises:
         BagIOError: The bag lacks one of them.
     """
-    from signal_light_node.replay import find_topic
-
     path = Path(path)
     with open_bag(path) as bag:
         topics = bag.topics()
@@ -328,8 +326,6 @@ def _add_to_timeline(timelines: Dict[str, TrackTimeline], res: VehicleResult, in
     tl.agree += sum(int(est.state) == int(g.state) for est, g in pairs)
     tl.compared += 3
     if accumulator is not None:
-        from signal_light_node.replay import result_row, truth_row
-
         accumulator.add_frames(truth_row(gt)[None], result_row(res)[None])
 
 

@@ -22,11 +22,12 @@ from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
-from signal_light_node.bagio import BagWriter, TopicInfo, make, open_bag
+from signal_light_node.bagio import BagWriter, find_topic, make, open_bag
 from signal_light_node.boxes import TrackBox
-from signal_light_node.conversions import detections_to_boxes, stamp_to_ns, vehicle_light_array
+from signal_light_node.conversions import (detections_to_boxes, result_row, stamp_to_ns,
+                                           truth_row, vehicle_light_array)
 from signal_light_node.engine import FrameResult, LightStateEngine, unjudged_result
-from signal_light_node.errors import BagIOError, ImageConversionError
+from signal_light_node.errors import ImageConversionError
 from signal_light_node.image_codec import msg_to_bgr
 from signal_light_node.labels import TASKS
 from signal_light_node.results import VehicleResult
@@ -34,50 +35,6 @@ from signal_light_node.topics import (DETECTIONS_TYPE, GROUND_TRUTH_TOPIC, IMAGE
                                       OUTPUT_TOPIC, VEHICLE_LIGHTS_TYPE)
 
 LOG = logging.getLogger(__name__)
-
-
-def find_topic(topics: Mapping[str, TopicInfo], types: Sequence[str], wanted: Optional[str],
-               what: str, path: Path) -> str:
-    """The topic to read: ``wanted`` if given, else the first topic of the first type found.
-
-    Raises:
-        BagIOError: ``wanted`` is not in the bag or has another type, or no topic has
-            one of ``types``.
-    """
-    if wanted:
-        info = topics.get(wanted)
-        if info is None:
-            raise BagIOError(f"bag {path} has no topic {wanted!r} ({what}); it has "
-                             f"{sorted(topics)}")
-        if info.msgtype not in types:
-            raise BagIOError(f"topic {wanted} of bag {path} has type {info.msgtype}, not "
-                             f"{' or '.join(types)} ({what})")
-        return wanted
-    for msgtype in types:
-        matches = sorted(t for t, info in topics.items() if info.msgtype == msgtype)
-        if matches:
-            if len(matches) > 1:
-                LOG.warning("bag %s has several %s topics %s; using %s (choose with an option)",
-                            path, what, matches, matches[0])
-            return matches[0]
-    raise BagIOError(f"bag {path} has no {what} topic (of type {' or '.join(types)}); it has "
-                     f"{ {t: i.msgtype for t, i in topics.items()} }")
-
-
-def result_row(result: VehicleResult) -> np.ndarray:
-    """The result's classes in ``labels.TASKS`` order (as ground-truth rows are)."""
-    row = {"intent": int(result.intent), "brake": int(result.brake.state),
-           "left": int(result.left.state), "right": int(result.right.state),
-           "view": int(result.view)}
-    return np.array([row[t] for t in TASKS], dtype=np.int64)
-
-
-def truth_row(vehicle: Any) -> np.ndarray:
-    """A ground-truth ``VehicleLightState``'s classes in ``labels.TASKS`` order."""
-    row = {"intent": int(vehicle.intent), "brake": int(vehicle.brake.state),
-           "left": int(vehicle.left_blinker.state), "right": int(vehicle.right_blinker.state),
-           "view": int(vehicle.view)}
-    return np.array([row[t] for t in TASKS], dtype=np.int64)
 
 
 @dataclass

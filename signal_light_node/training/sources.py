@@ -217,28 +217,6 @@ def load_ucm_tracks(root: Path, crop_config: CropConfig = CropConfig(), fps: flo
 # ------------------------------------------------------------------------------- bags
 
 
-def _gt_row(vehicle: Any) -> np.ndarray:
-    row = {"intent": int(vehicle.intent), "brake": int(vehicle.brake.state),
-           "left": int(vehicle.left_blinker.state), "right": int(vehicle.right_blinker.state),
-           "view": int(vehicle.view)}
-    return np.array([row[t] for t in TASKS], dtype=np.int64)
-
-
-def _pick_topic(topics: Mapping[str, Any], types: Sequence[str], wanted: Optional[str],
-                what: str, path: Path) -> str:
-    if wanted:
-        if wanted not in topics:
-            raise BagIOError(f"bag {path} has no topic {wanted} ({what})")
-        return wanted
-    matches = [t for t, info in topics.items() if info.msgtype in types]
-    if not matches:
-        raise BagIOError(f"bag {path} has no {what} topic (types {', '.join(types)})")
-    if len(matches) > 1:
-        logger.warning("bag %s has several %s topics %s; using %s", path, what, matches,
-                       matches[0])
-    return matches[0]
-
-
 def load_bag_tracks(path: Path, crop_config: CropConfig = CropConfig(),
                     image_topic: Optional[str] = None, detection_topic: Optional[str] = None,
                     ground_truth_topic: str = GROUND_TRUTH_TOPIC,
@@ -253,19 +231,21 @@ def load_bag_tracks(path: Path, crop_config: CropConfig = CropConfig(),
     Args:
         path: The bag.
         crop_config: Crop settings of the model.
-        image_topic: Image topic (default: the only/first Image or CompressedImage topic).
+        image_topic: Image topic (default: chosen by :func:`bagio.find_topic`, the first
+            CompressedImage topic, else the first Image topic).
         detection_topic: Detection topic (default: the first Detection2DArray topic).
-        ground_truth_topic: Ground-truth topic.
+        ground_truth_topic: Ground-truth topic (a ``VehicleLightStateArray``).
         lighting: Lighting written into the tracks (bags do not say).
 
     Returns:
         Tracks sorted by track ID; frames of a track in stamp order.
 
     Raises:
-        BagIOError: The bag cannot be read or lacks one of the three topics.
+        BagIOError: The bag cannot be read, lacks one of the three topics, or a named
+            topic has another type.
     """
-    from signal_light_node.bagio import open_bag
-    from signal_light_node.conversions import detections_to_boxes, stamp_to_ns
+    from signal_light_node.bagio import find_topic, open_bag
+    from signal_light_node.conversions import detections_to_boxes, stamp_to_ns, truth_row
     from signal_light_node.image_codec import msg_to_bgr
 
     path = Path(path)
@@ -273,10 +253,10 @@ def load_bag_tracks(path: Path, crop_config: CropConfig = CropConfig(),
     pending: Dict[int, Dict[str, Any]] = {}
     with open_bag(path) as bag:
         topics = bag.topics()
-        img_t = _pick_topic(topics, IMAGE_TYPES, image_topic, "image", path)
-        det_t = _pick_topic(topics, (DETECTIONS_TYPE,), detection_topic, "detection", path)
-        gt_t = _pick_topic(topics, (VEHICLE_LIGHTS_TYPE,), ground_truth_topic, "ground truth",
-                           path)
+        img_t = find_topic(topics, IMAGE_TYPES, image_topic, "image", path)
+        det_t = find_topic(topics, (DETECTIONS_TYPE,), detection_topic, "detection", path)
+        gt_t = find_topic(topics, (VEHICLE_LIGHTS_TYPE,), ground_truth_topic, "ground truth",
+                          path)
         kinds = {img_t: "image", det_t: "det", gt_t: "gt"}
         for m in bag.messages([img_t, det_t, gt_t]):
             stamp = stamp_to_ns(m.msg.header.stamp)
@@ -301,7 +281,7 @@ def load_bag_tracks(path: Path, crop_config: CropConfig = CropConfig(),
                     ok = False
                 rec["stamp"].append(stamp)
                 rec["crop"].append(crop)
-                rec["label"].append(_gt_row(gt))
+                rec["label"].append(truth_row(gt))
                 size = math.sqrt(max(box.width, 0.0) * max(box.height, 0.0))
                 rec["size"].append(float(size) if math.isfinite(size) else math.nan)
                 rec["ok"].append(ok)
