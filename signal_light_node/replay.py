@@ -29,7 +29,6 @@ from signal_light_node.conversions import (detections_to_boxes, result_row, stam
 from signal_light_node.engine import FrameResult, LightStateEngine, unjudged_result
 from signal_light_node.errors import ImageConversionError
 from signal_light_node.image_codec import msg_to_bgr
-from signal_light_node.labels import TASKS
 from signal_light_node.results import VehicleResult
 from signal_light_node.topics import (DETECTIONS_TYPE, GROUND_TRUTH_TOPIC, IMAGE_TYPES,
                                       OUTPUT_TOPIC, VEHICLE_LIGHTS_TYPE)
@@ -298,10 +297,10 @@ def score_summary(summary: ReplaySummary, settings: Any = None) -> Optional[Dict
     """Score the replay's output against the bag's ground truth, with the evaluation's rules.
 
     The warm-up and grace-window rules are those of ``signal-light evaluate``
-    (:mod:`signal_light_node.training.evaluation`); they apply from each start of a
-    track's state in the engine (``frames_observed == 1``), so a track that timed out
-    and came back warms up again. Only judged boxes with a ground-truth entry of the
-    same track ID are scored.
+    (:class:`signal_light_node.training.evaluation.TrackScorer`); they apply from each
+    start of a track's state in the engine (``frames_observed == 1``), so a track that
+    timed out and came back warms up again. Only judged boxes with a ground-truth entry
+    of the same track ID are scored.
 
     Args:
         summary: A replay summary of a bag with ground truth.
@@ -309,21 +308,16 @@ def score_summary(summary: ReplaySummary, settings: Any = None) -> Optional[Dict
 
     Returns:
         ``{"settings", "counts", "no_grace", "grace"}`` shaped like ``evaluate_tracks``'
-        result (reports from ``metrics.MetricAccumulator.report``), or None when no
-        judged box had ground truth.
+        result (reports from ``metrics.MetricAccumulator.report``, without breakdowns),
+        where a track is one segment of a track's state, or None when no judged box had
+        ground truth.
     """
-    from dataclasses import asdict
-
-    from signal_light_node.metrics import MetricAccumulator
-    from signal_light_node.training.evaluation import EvalSettings, grace_mask, warmup_mask
+    from signal_light_node.training.evaluation import EvalSettings, TrackScorer
     from signal_light_node.training.sources import TrackSequence
 
     if not summary.tracks:
         return None
-    settings = settings or EvalSettings()
-    strict, graced = MetricAccumulator(), MetricAccumulator()
-    counts = {"tracks": 0, "frames": 0, "warmup_excluded": 0, "scored": 0,
-              "grace_excluded": {t: 0 for t in TASKS}}
+    scorer = TrackScorer(settings or EvalSettings())
     for track_id, rec in sorted(summary.tracks.items()):
         frames = np.asarray(rec.frames_observed)
         starts = list(np.flatnonzero(frames == 1)) or [0]
@@ -336,16 +330,5 @@ def score_summary(summary: ReplaySummary, settings: Any = None) -> Optional[Dict
                                 stamps_ns=np.asarray(rec.stamps_ns[a:b], np.int64),
                                 box_size=np.full(n, math.nan), occlusion=np.full(n, math.nan),
                                 source=f"replay:{summary.output.name}")
-            pred = np.stack(rec.pred[a:b])
-            rows = np.flatnonzero(warmup_mask(seq, settings))
-            counts["tracks"] += 1
-            counts["frames"] += n
-            counts["scored"] += len(rows)
-            counts["warmup_excluded"] += n - len(rows)
-            for i, task in enumerate(TASKS):
-                strict.add(task, seq.labels[rows, i], pred[rows, i])
-                keep = grace_mask(seq, i, settings)[rows]
-                counts["grace_excluded"][task] += int((~keep).sum())
-                graced.add(task, seq.labels[rows[keep], i], pred[rows[keep], i])
-    return {"settings": asdict(settings), "counts": counts, "no_grace": strict.report(),
-            "grace": graced.report()}
+            scorer.add(seq, np.stack(rec.pred[a:b]), breakdowns=False)
+    return scorer.result()

@@ -153,6 +153,67 @@ def _chunks(tracks: Iterable[TrackSequence], size: int) -> Iterator[List[TrackSe
         yield chunk
 
 
+class TrackScorer:
+    """Scores predicted classes of whole tracks with the warm-up and grace-window rules.
+
+    The one scoring loop: :func:`evaluate_tracks` feeds it the model's predictions and
+    ``replay.score_summary`` the engine's.
+
+    Args:
+        settings: Scoring rules.
+
+    Attributes:
+        settings: The rules.
+        strict: Metrics after the warm-up.
+        graced: Metrics after the warm-up, without the grace windows.
+        counts: Tracks and frames seen, frames stepped, excluded by the warm-up, scored,
+            and per head excluded by the grace window.
+    """
+
+    def __init__(self, settings: EvalSettings = EvalSettings()) -> None:
+        self.settings = settings
+        self.strict, self.graced = MetricAccumulator(), MetricAccumulator()
+        self.counts: Dict[str, Any] = {"tracks": 0, "frames": 0, "stepped": 0,
+                                       "warmup_excluded": 0, "scored": 0,
+                                       "grace_excluded": {t: 0 for t in TASKS}}
+
+    def add(self, track: TrackSequence, pred: np.ndarray, breakdowns: bool = True) -> None:
+        """Score one track.
+
+        Args:
+            track: The track with its ground truth; frames with ``mask`` False count as
+                not stepped and are never scored.
+            pred: int64 ``[len(track), len(TASKS)]`` predicted classes.
+            breakdowns: Also group the metrics by lighting, view, box size and occlusion.
+        """
+        stepped = np.asarray(track.mask, bool)
+        scored = warmup_mask(track, self.settings)
+        counts = self.counts
+        counts["tracks"] += 1
+        counts["frames"] += len(track)
+        counts["stepped"] += int(stepped.sum())
+        counts["warmup_excluded"] += int((stepped & ~scored).sum())
+        counts["scored"] += int(scored.sum())
+        rows = np.flatnonzero(scored)
+        groups = _groups(track, rows) if breakdowns else {}
+        for i, task in enumerate(TASKS):
+            y, p = track.labels[rows, i], pred[rows, i]
+            self.strict.add(task, y, p, groups)
+            keep = grace_mask(track, i, self.settings)[rows]
+            counts["grace_excluded"][task] += int((~keep).sum())
+            self.graced.add(task, y[keep], p[keep],
+                            {k: (v if isinstance(v, str) else v[keep])
+                             for k, v in groups.items()})
+
+    def result(self) -> Dict[str, Any]:
+        """``{"settings", "counts", "no_grace": report, "grace": report}``.
+
+        The reports come from :meth:`MetricAccumulator.report`.
+        """
+        return {"settings": asdict(self.settings), "counts": self.counts,
+                "no_grace": self.strict.report(), "grace": self.graced.report()}
+
+
 def evaluate_tracks(model: Any, tracks: Iterable[TrackSequence],
                     settings: EvalSettings = EvalSettings(),
                     device: "str | torch.device" = "cpu", progress: bool = True,
@@ -171,41 +232,23 @@ def evaluate_tracks(model: Any, tracks: Iterable[TrackSequence],
         total: Number of tracks, for the progress bar.
 
     Returns:
-        ``{"settings", "counts", "no_grace": report, "grace": report}`` where the reports
-        come from :meth:`MetricAccumulator.report` and ``counts`` says how many frames
-        were stepped, excluded by the warm-up and (per head) by the grace window.
+        :meth:`TrackScorer.result`: ``{"settings", "counts", "no_grace": report, "grace":
+        report}`` where ``counts`` says how many frames were stepped, excluded by the
+        warm-up and (per head) by the grace window.
 
     Raises:
         ConfigError: There were no tracks.
     """
     device = torch.device(device)
     model.eval()
-    strict, graced = MetricAccumulator(), MetricAccumulator()
-    counts = {"tracks": 0, "frames": 0, "stepped": 0, "warmup_excluded": 0,
-              "scored": 0, "grace_excluded": {t: 0 for t in TASKS}}
+    scorer = TrackScorer(settings)
     bar = tqdm(total=total, desc="evaluate", unit="track", disable=not progress)
     for batch in _chunks(tracks, settings.batch_tracks):
         preds = predict_track_batch(model, batch, device)
         for track, pred in zip(batch, preds):
-            stepped = np.asarray(track.mask, bool)
-            scored = warmup_mask(track, settings)
-            counts["tracks"] += 1
-            counts["frames"] += len(track)
-            counts["stepped"] += int(stepped.sum())
-            counts["warmup_excluded"] += int((stepped & ~scored).sum())
-            counts["scored"] += int(scored.sum())
-            rows = np.flatnonzero(scored)
-            groups = _groups(track, rows)
-            for i, task in enumerate(TASKS):
-                y, p = track.labels[rows, i], pred[rows, i]
-                strict.add(task, y, p, groups)
-                keep = grace_mask(track, i, settings)[rows]
-                counts["grace_excluded"][task] += int((~keep).sum())
-                graced.add(task, y[keep], p[keep],
-                           {k: (v if isinstance(v, str) else v[keep]) for k, v in groups.items()})
+            scorer.add(track, pred)
         bar.update(len(batch))
     bar.close()
-    if counts["tracks"] == 0:
+    if scorer.counts["tracks"] == 0:
         raise ConfigError("nothing to evaluate: no tracks")
-    return {"settings": asdict(settings), "counts": counts, "no_grace": strict.report(),
-            "grace": graced.report()}
+    return scorer.result()
