@@ -22,6 +22,7 @@ from itertools import islice
 from pathlib import Path
 from typing import Any, Dict, Iterable, Iterator, Optional, Tuple
 
+from signal_light_node.commands.options import add_labelled_data_options, add_torch_options
 from signal_light_node.errors import ConfigError
 
 logger = logging.getLogger(__name__)
@@ -35,10 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="directory for the reports")
     data = parser.add_argument_group("data (choose one)")
     data.add_argument("--split", type=Path, default=None, help="materialised split directory")
-    data.add_argument("--bags", nargs="+", type=Path, default=[], metavar="BAG",
-                      help="bags with /ground_truth/vehicle_lights, images and detections")
-    data.add_argument("--ucm", nargs="+", type=Path, default=[], metavar="ROOT",
-                      help="UC Merced Vehicle Rear Signal dataset roots")
+    add_labelled_data_options(data)
     data.add_argument("--synthetic-seed", type=int, default=None,
                       help="render synthetic test tracks from this stream seed")
     data.add_argument("--tracks", type=int, default=200,
@@ -55,9 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     rules.add_argument("--grace", type=float, default=0.5,
                        help="seconds after each label change left out of the grace report")
     parser.add_argument("--batch-tracks", type=int, default=32, help="tracks stepped together")
-    parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
-    parser.add_argument("--threads", type=int, default=None, help="torch threads")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_torch_options(parser)
 
 
 def _tracks(args: argparse.Namespace, crop: Any) -> Tuple[Iterable[Any], Optional[int], Dict]:

@@ -7,6 +7,7 @@ import logging
 from pathlib import Path
 from typing import Dict
 
+from signal_light_node.commands.options import add_torch_options
 from signal_light_node.errors import ConfigError
 
 LOG = logging.getLogger(__name__)
@@ -47,11 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "codes, e.g. brake=0.6 or 101=0.4 (repeatable; default 0.5)")
     parser.add_argument("--track-timeout", type=float, default=1.0, metavar="S",
                         help="seconds a track may stay unseen before its state is dropped")
-    parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
-    parser.add_argument("--threads", type=int, default=None,
-                        help="torch CPU threads (default: torch's choice)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_torch_options(parser)
 
 
 def run(args: argparse.Namespace) -> int:

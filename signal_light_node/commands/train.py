@@ -24,6 +24,7 @@ import json
 from pathlib import Path
 from typing import Any, Dict
 
+from signal_light_node.commands.options import add_labelled_data_options, add_torch_options
 from signal_light_node.errors import ConfigError
 
 
@@ -60,22 +61,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--steps", type=int, default=None, help="total optimiser steps to reach")
     g.add_argument("--max-minutes", type=float, default=None,
                    help="wall-clock budget of this invocation")
-    g.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     g.add_argument("--seed", type=int, default=0, help="seed of init, data and sampling")
-    g.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     g.add_argument("--workers", type=int, default=1,
                    help="DataLoader processes rendering synthetic data (0: in the main process)")
     g.add_argument("--resume", nargs="?", const="", default=None, metavar="CKPT",
                    help="resume from CKPT (default OUT/last.pt) and its .state.pt")
     g.add_argument("--init-from", default=None, metavar="CKPT",
                    help="start from these weights ('default' = the shipped weights)")
-    g.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_torch_options(g)
 
     g = parser.add_argument_group("data")
-    g.add_argument("--bags", nargs="+", type=Path, default=[], metavar="BAG",
-                   help="labelled bags (/ground_truth/vehicle_lights + images + detections)")
-    g.add_argument("--ucm", nargs="+", type=Path, default=[], metavar="ROOT",
-                   help="UC Merced Vehicle Rear Signal dataset roots")
+    add_labelled_data_options(g)
     g.add_argument("--synthetic-fraction", type=float, default=None,
                    help="share of synthetic sequences (default 1 without --bags/--ucm, else 0)")
     g.add_argument("--batch", type=int, default=8, help="sequences per step (per process)")

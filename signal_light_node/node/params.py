@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any, Dict, Mapping, Optional, Tuple, Union
 
 from signal_light_node.errors import ConfigError
+from signal_light_node.labels import LIGHT_CODES
 
 #: The node's name; also the top-level key of ``config/detector.yaml``.
 NODE_NAME = "signal_light_detector"
@@ -73,8 +74,9 @@ class DetectorParams:
     @property
     def thresholds(self) -> Dict[int, float]:
         """Per-code ON thresholds, keyed by the ``LightClassification`` codes."""
-        return {100: self.threshold_brake, 101: self.threshold_left_blinker,
-                102: self.threshold_right_blinker}
+        return {LIGHT_CODES["brake"]: self.threshold_brake,
+                LIGHT_CODES["left"]: self.threshold_left_blinker,
+                LIGHT_CODES["right"]: self.threshold_right_blinker}
 
     def as_dict(self) -> Dict[str, Any]:
         """Name -> value, in declaration order."""
