@@ -418,7 +418,8 @@ def _group_table(name: str, values: Mapping[str, Mapping[str, Mapping[str, objec
     lines = [f"| {name} | frames | " + " | ".join(h for _, _, h in _GROUP_COLUMNS) + " |",
              "|---|---:|" + "---:|" * len(_GROUP_COLUMNS)]
     for value, by_task in values.items():
-        n = next((m["n"] for m in by_task.values()), 0)
+        # Heads can differ (grace windows are per head); show the most frames scored.
+        n = max((m["n"] for m in by_task.values()), default=0)
         cells = [_fmt(by_task.get(t, {}).get(key)) for t, key, _ in _GROUP_COLUMNS]
         lines.append(f"| {value} | {n} | " + " | ".join(cells) + " |")
     return lines

@@ -88,7 +88,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="extra SyntheticSequenceStream options, e.g. 'vehicles=[2,5]'")
 
     g = parser.add_argument_group("optimisation")
-    g.add_argument("--lr", type=float, default=2e-3, help="initial Adam learning rate")
+    g.add_argument("--lr", type=float, default=1e-3, help="initial Adam learning rate")
     g.add_argument("--weight-decay", type=float, default=1e-4, help="L2 on dense layers")
     g.add_argument("--task-weights", default="", metavar="T=W,...",
                    help="loss weight per head, e.g. 'intent=1,brake=1,left=0.5,right=0.5,view=0.5'")

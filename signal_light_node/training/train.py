@@ -43,6 +43,7 @@ import logging
 import math
 import os
 import random
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -159,7 +160,7 @@ class TrainOptions:
     max_minutes: Optional[float] = None
     batch: int = 8
     seq_len: int = 16
-    lr: float = 2e-3
+    lr: float = 1e-3
     weight_decay: float = 1e-4
     task_weights: Dict[str, float] = field(default_factory=lambda: dict(DEFAULT_TASK_WEIGHTS))
     class_weight_power: float = 0.5
@@ -824,9 +825,11 @@ class Trainer:
         max_steps = opts.max_steps if opts.max_steps is not None else None
         step = self.start_step
         started = time.monotonic()
+        interactive = sys.stderr.isatty()
+        # Into a log file the bar is redrawn rarely, so that a long run's log stays small.
         bar = tqdm(total=max_steps, initial=step, desc="train", unit="step",
                    disable=not (opts.progress and self.dist.main), dynamic_ncols=True,
-                   mininterval=1.0)
+                   mininterval=1.0 if interactive else 60.0)
         ema = self._ema
         data_iter = iter(self.loader)
         last_val: Optional[Dict[str, Any]] = None
@@ -863,7 +866,8 @@ class Trainer:
                     if value is not None:
                         ema[key] = value if key not in ema else 0.9 * ema[key] + 0.1 * value
                 bar.update(1)
-                if bar.disable and self.dist.main and step % (opts.log_every * 10) == 0:
+                if (bar.disable or not interactive) and self.dist.main \
+                        and step % (opts.log_every * 10) == 0:
                     logger.info("step %d: train loss %.3f, intent %s, brake %s, %.2f s/step",
                                 step, ema.get("loss", math.nan), _pct(ema.get("intent")),
                                 _pct(ema.get("brake")),
