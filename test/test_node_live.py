@@ -203,31 +203,30 @@ def test_raw_images_with_an_edited_params_file(tmp_path, rclpy_isolated_env):
               debug_image=True)
 
 
+def _run_until_exit(args, env, tmp_path, timeout_s: float = 60.0):
+    """Start the detector with ``args``, poll until it exits (or time out) and return
+    its exit code and non-empty log lines."""
+    node = DetectorProcess(args, env, tmp_path / "detector.log")
+    deadline = time.monotonic() + timeout_s
+    while node.proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    code = node.stop()
+    return code, [line for line in node.text().splitlines() if line.strip()]
+
+
 @pytest.mark.parametrize("content", [None, b"not a torch checkpoint"],
                          ids=["missing", "incompatible"])
 def test_missing_or_bad_model_stops_with_one_clear_line(tmp_path, rclpy_isolated_env, content):
     missing = tmp_path / "no_such_model.pt"
     if content is not None:
         missing.write_bytes(content)
-    node = DetectorProcess(["-p", f"model_path:={missing}"], rclpy_isolated_env(),
-                           tmp_path / "detector.log")
-    deadline = time.monotonic() + 60
-    while node.proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)
-    code = node.stop()
-    lines = [line for line in node.text().splitlines() if line.strip()]
+    code, lines = _run_until_exit(["-p", f"model_path:={missing}"], rclpy_isolated_env(), tmp_path)
     assert code != 0
     assert len(lines) == 1, lines
     assert "no_such_model.pt" in lines[0] and "FATAL" in lines[0]
 
 
 def test_bad_parameter_stops_with_one_clear_line(tmp_path, rclpy_isolated_env):
-    node = DetectorProcess(["-p", "image_transport:=theora"], rclpy_isolated_env(),
-                           tmp_path / "detector.log")
-    deadline = time.monotonic() + 60
-    while node.proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)
-    code = node.stop()
-    lines = [line for line in node.text().splitlines() if line.strip()]
+    code, lines = _run_until_exit(["-p", "image_transport:=theora"], rclpy_isolated_env(), tmp_path)
     assert code != 0 and len(lines) == 1, lines
     assert "image_transport" in lines[0] and "raw, compressed" in lines[0]
