@@ -24,9 +24,10 @@ from signal_light_node.node.params import NODE_NAME
 rclpy = pytest.importorskip("rclpy")
 
 #: Lower bound of the per-light state accuracy (brake, left, right pooled, judged entries)
-#: of the live node against the bag's ground truth. Checked only with the shipped weights;
-#: None until they exist. Set it from the model's documented accuracy minus a margin.
-LIVE_MIN_LIGHT_ACCURACY = None
+#: of the live node against the bag's ground truth. Checked only with the shipped weights.
+#: The shipped (interim) weights score 61.8 % (day bag) and 55.1 % (night bag) on this
+#: measure in `signal-light replay`; the bound leaves a margin. Raise it with the weights.
+LIVE_MIN_LIGHT_ACCURACY = 0.45
 
 #: Frames fed per test: enough to exercise the recurrent state, small enough for CI.
 N_FRAMES = 25

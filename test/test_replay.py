@@ -36,10 +36,13 @@ COMMITTED_BAGS = sorted(p for p in (REPO / "bags").glob("*")
                         if (p / "metadata.yaml").exists() or p.suffix == ".mcap")
 
 #: Lower bounds of the agreement between the shipped model's replay output and the ground
-#: truth of the committed bags. TO BE SET BY THE LEAD from the shipped weights' documented
-#: accuracy (a fixed bound, not measured by the test itself).
-MIN_BRAKE_ACCURACY = 0.80
-MIN_INTENT_MACRO_F1 = 0.50
+#: truth of the committed bags (after warm-up, no grace window). Set from the documented
+#: accuracy of the shipped (interim) weights on the held-out test split, brake 55.5 % and
+#: intent macro-F1 27.4 % (docs/results/metrics.md), less a margin for two small bags; on
+#: the bags they measured brake 75.7 % / 47.1 % and intent F1 21.8 % / 22.0 % (day / night).
+#: Raise them with the weights.
+MIN_BRAKE_ACCURACY = 0.40
+MIN_INTENT_MACRO_F1 = 0.15
 
 IMAGE_T = "/camera/image/compressed"
 DET_T = "/tracker/detections"
