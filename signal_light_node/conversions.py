@@ -8,6 +8,7 @@ for bags, :func:`rclpy_make` for rclpy. This module never imports rclpy.
 
 from __future__ import annotations
 
+import functools
 import importlib
 import math
 from typing import Any, Callable, List, Sequence, Tuple
@@ -48,8 +49,25 @@ def _copy_header(header: Any, make: MessageFactory) -> Any:
     return make_header(stamp_to_ns(header.stamp), header.frame_id, make)
 
 
+@functools.lru_cache(maxsize=None)
+def rclpy_class(msgtype: str) -> type:
+    """The generated rclpy message class of a type, its ``<pkg>.msg`` module imported lazily.
+
+    Cached: the node builds several messages per vehicle and frame with :func:`rclpy_make`.
+
+    Args:
+        msgtype: ``pkg/msg/Name`` or ``pkg/Name``.
+
+    Returns:
+        The message class.
+    """
+    parts = msgtype.split("/")
+    package, name = parts[0], parts[-1]
+    return getattr(importlib.import_module(f"{package}.msg"), name)
+
+
 def rclpy_make(msgtype: str, **fields: Any) -> Any:
-    """Message factory for rclpy: imports the generated ``<pkg>.msg`` module lazily.
+    """Message factory for rclpy (see :func:`rclpy_class`).
 
     Args:
         msgtype: ``pkg/msg/Name`` or ``pkg/Name``.
@@ -58,10 +76,7 @@ def rclpy_make(msgtype: str, **fields: Any) -> Any:
     Returns:
         An instance of the generated rclpy message class.
     """
-    parts = msgtype.split("/")
-    package, name = parts[0], parts[-1]
-    cls = getattr(importlib.import_module(f"{package}.msg"), name)
-    return cls(**fields)
+    return rclpy_class(msgtype)(**fields)
 
 
 def detections_to_boxes(msg: Any) -> List[TrackBox]:

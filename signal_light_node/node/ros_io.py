@@ -11,7 +11,7 @@ from typing import Any, Callable, Iterator, List, Optional
 import rclpy
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from signal_light_node.conversions import rclpy_make
+from signal_light_node.conversions import rclpy_class
 
 RELIABILITIES = ("reliable", "best_effort")
 
@@ -26,7 +26,7 @@ def qos(reliability: str, depth: int = 10) -> QoSProfile:
 
 def message_class(msgtype: str) -> type:
     """The rclpy class of ``pkg/msg/Name`` (resolved by the core's message factory)."""
-    return type(rclpy_make(msgtype))
+    return rclpy_class(msgtype)
 
 
 @contextlib.contextmanager
