@@ -45,10 +45,6 @@ class _Layout:
     shapes: Tuple[torch.Size, ...]
     widths: Tuple[int, ...]
 
-    @property
-    def total(self) -> int:
-        return sum(self.widths)
-
 
 def _flatten(state: State, n: int) -> torch.Tensor:
     """``[n, total]`` rows holding every layer's h and c of each track."""

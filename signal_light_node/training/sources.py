@@ -39,7 +39,7 @@ from signal_light_node.boxes import TrackBox
 from signal_light_node.crops import CropConfig, crop_vehicle
 from signal_light_node.data.stream import PAD_LABEL
 from signal_light_node.errors import BagIOError, ConfigError, CropError
-from signal_light_node.labels import TASKS, Intent, LightStatus, View, intent_from_lights
+from signal_light_node.labels import TASKS, LightStatus, View, intent_from_lights
 from signal_light_node.topics import (DETECTIONS_TYPE, GROUND_TRUTH_TOPIC, IMAGE_TYPES,
                                       VEHICLE_LIGHTS_TYPE)
 
