@@ -25,7 +25,7 @@ from signal_light_node.errors import ConfigError
 from signal_light_node.labels import LIGHT_CODES, LIGHT_TASKS, TASKS, Intent, LightStatus, View
 from signal_light_node.model.interface import to_input
 from signal_light_node.results import LightEstimate, VehicleResult
-from signal_light_node.state_bank import StateBank
+from signal_light_node.state_bank import StateBank, check_limits
 
 LOG = logging.getLogger(__name__)
 
@@ -34,14 +34,6 @@ DEFAULT_THRESHOLDS: Dict[int, float] = {code: 0.5 for code in LIGHT_CODES.values
 
 _CODE_OF_NAME = dict(LIGHT_CODES)
 _NAME_OF_CODE = {code: name for name, code in LIGHT_CODES.items()}
-
-
-def _positive(name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ConfigError(f"{name} must be a number, got {value!r}")
-    if not (math.isfinite(value) and value > 0):
-        raise ConfigError(f"{name} must be a positive finite number, got {value!r}")
-    return float(value)
 
 
 def normalize_thresholds(thresholds: Mapping[Any, Any]) -> Dict[int, float]:
@@ -104,13 +96,9 @@ class EngineConfig:
         if self.crop is not None and not isinstance(self.crop, CropConfig):
             raise ConfigError(f"crop must be a CropConfig or None, got {self.crop!r}")
         object.__setattr__(self, "thresholds", normalize_thresholds(self.thresholds))
-        object.__setattr__(self, "track_timeout_s",
-                           _positive("track_timeout_s", self.track_timeout_s))
-        object.__setattr__(self, "max_gap_s", _positive("max_gap_s", self.max_gap_s))
-        if isinstance(self.max_tracks, bool) or not isinstance(self.max_tracks, (int, np.integer)) \
-                or self.max_tracks < 1:
-            raise ConfigError(f"max_tracks must be a positive integer, got {self.max_tracks!r}")
-        object.__setattr__(self, "max_tracks", int(self.max_tracks))
+        limits = check_limits(self.track_timeout_s, self.max_tracks, self.max_gap_s)
+        for name, value in zip(("track_timeout_s", "max_tracks", "max_gap_s"), limits):
+            object.__setattr__(self, name, value)
         try:
             device = torch.device(self.device)
         except (RuntimeError, TypeError) as exc:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Dict, List, Optional, Protocol, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Protocol, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -44,6 +44,31 @@ class _Layout:
 
     shapes: Tuple[torch.Size, ...]
     widths: Tuple[int, ...]
+
+
+def check_limits(track_timeout_s: Any, max_tracks: Any,
+                 max_gap_s: Any) -> Tuple[float, int, float]:
+    """Validate the limits of a :class:`StateBank` (also checked by ``EngineConfig``).
+
+    Args:
+        track_timeout_s: Seconds a track may stay unseen; a positive finite number.
+        max_tracks: Most tracks kept; a positive integer.
+        max_gap_s: Largest forward stamp jump in seconds; a positive finite number.
+
+    Returns:
+        ``(track_timeout_s, max_tracks, max_gap_s)`` as float, int, float.
+
+    Raises:
+        ConfigError: A limit is not of that kind.
+    """
+    for name, value in (("track_timeout_s", track_timeout_s), ("max_gap_s", max_gap_s)):
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+                or not math.isfinite(value) or value <= 0:
+            raise ConfigError(f"{name} must be a positive number of seconds, got {value!r}")
+    if isinstance(max_tracks, bool) or not isinstance(max_tracks, (int, np.integer)) \
+            or max_tracks < 1:
+        raise ConfigError(f"max_tracks must be a positive integer, got {max_tracks!r}")
+    return float(track_timeout_s), int(max_tracks), float(max_gap_s)
 
 
 def _flatten(state: State, n: int) -> torch.Tensor:
@@ -74,16 +99,11 @@ class StateBank:
     def __init__(self, model: _HasInitialState, track_timeout_s: float = 1.0,
                  max_tracks: int = 128, max_gap_s: float = 2.0,
                  device: str | torch.device = "cpu") -> None:
-        for name, value in (("track_timeout_s", track_timeout_s), ("max_gap_s", max_gap_s)):
-            if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                    or not math.isfinite(value) or value <= 0:
-                raise ConfigError(f"{name} must be a positive number of seconds, got {value!r}")
-        if isinstance(max_tracks, bool) or not isinstance(max_tracks, (int, np.integer)) \
-                or max_tracks < 1:
-            raise ConfigError(f"max_tracks must be a positive integer, got {max_tracks!r}")
+        track_timeout_s, max_tracks, max_gap_s = check_limits(track_timeout_s, max_tracks,
+                                                              max_gap_s)
         self.track_timeout_ns = int(round(track_timeout_s * 1e9))
         self.max_gap_ns = int(round(max_gap_s * 1e9))
-        self.capacity = int(max_tracks)
+        self.capacity = max_tracks
         self.device = torch.device(device)
 
         with torch.inference_mode():
