@@ -30,6 +30,9 @@ logger = logging.getLogger(__name__)
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``signal-light evaluate``."""
+    # The scoring rules' defaults live in EvalSettings only (replay scores with them too).
+    from signal_light_node.training.evaluation import EvalSettings
+
     parser.formatter_class = argparse.ArgumentDefaultsHelpFormatter
     parser.add_argument("--checkpoint", type=Path, default=None,
                         help="checkpoint to score (default: the shipped weights)")
@@ -46,13 +49,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     data.add_argument("--lighting", default="unknown",
                       help="lighting recorded for bag tracks (bags do not carry it)")
     rules = parser.add_argument_group("scoring")
-    rules.add_argument("--warmup-frames", type=int, default=10,
+    rules.add_argument("--warmup-frames", type=int, default=EvalSettings.warmup_frames,
                        help="frames at the start of each track not scored")
-    rules.add_argument("--warmup-seconds", type=float, default=1.0,
+    rules.add_argument("--warmup-seconds", type=float,
+                       default=EvalSettings.warmup_seconds,
                        help="seconds at the start of each track not scored")
-    rules.add_argument("--grace", type=float, default=0.5,
+    rules.add_argument("--grace", type=float, default=EvalSettings.grace_seconds,
                        help="seconds after each label change left out of the grace report")
-    parser.add_argument("--batch-tracks", type=int, default=32, help="tracks stepped together")
+    parser.add_argument("--batch-tracks", type=int, default=EvalSettings.batch_tracks,
+                        help="tracks stepped together")
     add_torch_options(parser)
 
 
