@@ -1,21 +1,31 @@
 #!/usr/bin/env bash
 # Produce the shipped weights signal_light_node/weights/default.pt -- the one documented
-# command (about 85 minutes on a 2-core CPU with the defaults below):
+# command (about 65 minutes on a 2-core CPU with the defaults below):
 #
 #   scripts/train_default.sh
 #
 # Steps:
-#   1. materialise a validation split (windows) and a held-out test split (whole tracks)
-#      from stream seeds that training never uses;
-#   2. train from scratch on the synthetic stream for TRAIN_MINUTES, validating every
-#      VAL_EVERY steps and keeping the best checkpoint (intent macro-F1 + brake accuracy);
-#   3. copy the best checkpoint to signal_light_node/weights/default.pt;
-#   4. evaluate it frame by frame on the test split (metrics.json / metrics.md / PNG in
-#      RUN/test_eval) and print the Markdown table.
+#   1. materialise the training pool (POOL_TRACKS whole tracks per seed of POOL_SEEDS,
+#      rendered in parallel), a validation split (windows) and a held-out test split
+#      (whole tracks) from seeds that training never uses;
+#   2. stage 1, per-frame pre-training (--mode frames): FRAME_BATCH single frames from
+#      anywhere in the pool per step, so every step sees many different vehicles;
+#      stage 2, stateful lanes (--mode lanes) from the stage-1 weights: LANES tracks
+#      played side by side, SEQ_LEN frames per step, each lane's ConvLSTM state carried
+#      from step to step as in the node (this is where blinks are learnt);
+#   3. the better of the two stages' best checkpoints (validation score) is copied to
+#      signal_light_node/weights/default.pt;
+#   4. it is evaluated frame by frame on the test split (metrics.json / metrics.md / PNG
+#      in RUN/test_eval) and the Markdown table is printed.
 #
-# Every setting can be overridden from the environment, e.g. a 5-minute smoke run:
-#   RUN=runs/smoke TRAIN_MINUTES=3 VAL_SEQUENCES=16 TEST_TRACKS=12 TEST_FRAMES=40 \
-#     WEIGHTS=runs/smoke/default.pt scripts/train_default.sh
+# Why two stages: windows of consecutive frames from a few vehicles are nearly the same
+# picture, so on 2 cores sequence-only training from scratch barely moved in an hour;
+# single frames from many vehicles teach the attention and backbone quickly, and the
+# lanes then only have to learn time.
+#
+# Every setting can be overridden from the environment, e.g. a 3-minute smoke run:
+#   RUN=runs/smoke POOL_TRACKS=16 FRAME_MINUTES=1 LANE_MINUTES=1 VAL_SEQUENCES=16 \
+#     TEST_TRACKS=12 TEST_FRAMES=40 WEIGHTS=runs/smoke/default.pt scripts/train_default.sh
 set -euo pipefail
 
 cd "$(dirname "$0")/.."
@@ -26,25 +36,40 @@ fi
 
 RUN=${RUN:-runs/default}
 WEIGHTS=${WEIGHTS:-signal_light_node/weights/default.pt}
-SEED=${SEED:-1}                      # training stream, model init
+SEED=${SEED:-1}                      # model init and sampling
+POOL_SEEDS=${POOL_SEEDS:-"11 12"}    # training pool: one split per seed
+POOL_TRACKS=${POOL_TRACKS:-800}      # whole tracks per pool seed
+POOL_FRAMES=${POOL_FRAMES:-150}      # frames per rendered scene
 VAL_SEED=${VAL_SEED:-700001}         # validation split
 TEST_SEED=${TEST_SEED:-900001}       # test split: never trained or validated on
-TRAIN_MINUTES=${TRAIN_MINUTES:-75}
-MAX_STEPS=${MAX_STEPS:-100000}       # the time budget is what normally stops training
-BATCH=${BATCH:-8}
-SEQ_LEN=${SEQ_LEN:-24}
-LR=${LR:-1e-3}
-VAL_EVERY=${VAL_EVERY:-250}
+FRAME_MINUTES=${FRAME_MINUTES:-30}   # stage 1
+FRAME_BATCH=${FRAME_BATCH:-64}
+FRAME_LR=${FRAME_LR:-1e-3}
+LANE_MINUTES=${LANE_MINUTES:-30}     # stage 2
+LANES=${LANES:-32}
+SEQ_LEN=${SEQ_LEN:-12}
+LANE_LR=${LANE_LR:-5e-4}
+VAL_EVERY=${VAL_EVERY:-500}          # steps between validations in stage 1 (stage 2: / 4)
 VAL_SEQUENCES=${VAL_SEQUENCES:-128}
 VAL_LEN=${VAL_LEN:-48}
 TEST_TRACKS=${TEST_TRACKS:-240}
 TEST_FRAMES=${TEST_FRAMES:-150}
-THREADS=${THREADS:-1}                # torch threads of the trainer; the other core renders
-WORKERS=${WORKERS:-1}
+THREADS=${THREADS:-2}
 
 mkdir -p "$RUN"
 start=$(date +%s)
-echo "== 1/4 splits: validation (seed $VAL_SEED) and test (seed $TEST_SEED) in $RUN"
+echo "== 1/4 data: pool (seeds $POOL_SEEDS), validation (seed $VAL_SEED), test (seed $TEST_SEED) in $RUN"
+pools=()
+pids=()
+for seed in $POOL_SEEDS; do
+  pools+=(--pool "$RUN/pool_$seed")
+  if [[ ! -f "$RUN/pool_$seed/manifest.json" ]]; then
+    python -m signal_light_node.data.split "$RUN/pool_$seed" --seed "$seed" \
+      --sequences "$POOL_TRACKS" --seq-len "$POOL_FRAMES" --full-tracks --overwrite \
+      > "$RUN/pool_$seed.log" 2>&1 &
+    pids+=($!)
+  fi
+done
 python - "$RUN" "$VAL_SEED" "$VAL_SEQUENCES" "$VAL_LEN" "$TEST_SEED" "$TEST_TRACKS" "$TEST_FRAMES" <<'EOF'
 import sys
 from pathlib import Path
@@ -64,23 +89,49 @@ for name, seed, n, length, full in (("val_split", val_seed, val_n, val_len, Fals
                 full_tracks=full)
 EOF
 
-echo "== 2/4 training for $TRAIN_MINUTES minutes (batch $BATCH x $SEQ_LEN frames)"
-if [[ -f "$RUN/train/summary.json" ]]; then
-  echo "$RUN/train/summary.json exists: training finished before; skipping"
-else
-  resume=()
-  if [[ -f "$RUN/train/last.pt" && -f "$RUN/train/last.state.pt" ]]; then
-    resume=(--resume)   # an interrupted run continues (with a fresh time budget)
+for pid in "${pids[@]}"; do wait "$pid"; done
+
+common=(--seed "$SEED" --val-split "$RUN/val_split" --threads "$THREADS" --workers 0 "${pools[@]}")
+stage() {  # stage NAME MINUTES ARGS...: train unless it finished before; resume if interrupted
+  local name=$1 minutes=$2
+  shift 2
+  if [[ -f "$RUN/$name/summary.json" ]]; then
+    echo "$RUN/$name/summary.json exists: finished before; skipping"
+    return
   fi
-  signal-light train --out "$RUN/train" --seed "$SEED" --max-minutes "$TRAIN_MINUTES" \
-    --steps "$MAX_STEPS" --batch "$BATCH" --seq-len "$SEQ_LEN" --lr "$LR" \
-    --val-split "$RUN/val_split" --val-every "$VAL_EVERY" --threads "$THREADS" \
-    --workers "$WORKERS" "${resume[@]}"
-fi
+  local resume=()
+  if [[ -f "$RUN/$name/last.pt" && -f "$RUN/$name/last.state.pt" ]]; then
+    resume=(--resume)   # an interrupted stage continues (with a fresh time budget)
+  fi
+  signal-light train --out "$RUN/$name" --max-minutes "$minutes" --steps 1000000 \
+    "${common[@]}" "$@" "${resume[@]}"
+}
+
+echo "== 2/4 stage 1: single frames for $FRAME_MINUTES minutes (batch $FRAME_BATCH)"
+stage frames "$FRAME_MINUTES" --mode frames --batch "$FRAME_BATCH" --lr "$FRAME_LR" \
+  --val-every "$VAL_EVERY"
+echo "== 2/4 stage 2: lanes for $LANE_MINUTES minutes ($LANES lanes x $SEQ_LEN frames)"
+stage lanes "$LANE_MINUTES" --mode lanes --batch "$LANES" --seq-len "$SEQ_LEN" \
+  --lr "$LANE_LR" --val-every "$(( VAL_EVERY / 4 > 0 ? VAL_EVERY / 4 : 1 ))" \
+  --init-from "$RUN/frames/best.pt"
 
 echo "== 3/4 best checkpoint -> $WEIGHTS"
 mkdir -p "$(dirname "$WEIGHTS")"
-cp "$RUN/train/best.pt" "$WEIGHTS"
+best=$(python - "$RUN/frames/summary.json" "$RUN/lanes/summary.json" <<'EOF'
+import json
+import sys
+from pathlib import Path
+
+scores = {}
+for path in sys.argv[1:]:
+    score = json.loads(Path(path).read_text()).get("best_score")
+    scores[str(Path(path).parent)] = float("-inf") if score is None else score
+best = max(scores, key=scores.get)
+print(f"best validation score per stage: {scores}; keeping {best}", file=sys.stderr)
+print(Path(best) / "best.pt")
+EOF
+)
+cp "$best" "$WEIGHTS"
 
 echo "== 4/4 evaluation on the held-out test split"
 signal-light evaluate --checkpoint "$WEIGHTS" --split "$RUN/test_split" \

@@ -8,6 +8,11 @@ Examples::
     # fine-tune the shipped weights on your labelled bags and the UCM dataset
     signal-light train --out runs/ft --init-from default --bags my.bag --ucm ~/ucm --steps 2000
 
+    # the shipped recipe: per-frame pre-training, then stateful lanes (scripts/train_default.sh)
+    signal-light train --out runs/f --pool runs/pool --mode frames --batch 64 --max-minutes 30
+    signal-light train --out runs/l --pool runs/pool --mode lanes --batch 32 --seq-len 12 \
+        --init-from runs/f/best.pt --max-minutes 45
+
     # resume an interrupted run (last.pt + last.state.pt in --out)
     signal-light train --out runs/syn --max-minutes 30 --resume
 
@@ -26,6 +31,7 @@ from typing import Any, Dict
 
 from signal_light_node.commands.options import add_labelled_data_options, add_torch_options
 from signal_light_node.errors import ConfigError
+from signal_light_node.training import BATCH_MODES
 
 
 def _key_values(text: str, what: str) -> Dict[str, Any]:
@@ -74,7 +80,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_labelled_data_options(g)
     g.add_argument("--synthetic-fraction", type=float, default=None,
                    help="share of synthetic sequences (default 1 without --bags/--ucm, else 0)")
-    g.add_argument("--batch", type=int, default=8, help="sequences per step (per process)")
+    g.add_argument("--pool", dest="pools", action="append", type=Path, default=[],
+                   metavar="SPLIT", help="materialised synthetic split to train on as whole "
+                   "tracks (python -m signal_light_node.data.split ... --full-tracks); repeatable")
+    g.add_argument("--mode", choices=BATCH_MODES, default="windows",
+                   help="windows: sequences from a zero state; frames: single frames from "
+                   "anywhere (per-frame pre-training); lanes: --batch tracks side by side, "
+                   "--seq-len frames per step, state carried (frames/lanes need --pool/--bags)")
+    g.add_argument("--batch", type=int, default=8,
+                   help="sequences (frames in --mode frames, lanes in --mode lanes) per step "
+                   "per process")
     g.add_argument("--seq-len", type=int, default=16, help="frames per training sequence")
     g.add_argument("--no-mirror", action="store_true", help="no mirroring augmentation")
     g.add_argument("--no-jitter", action="store_true", help="no colour jitter")
@@ -135,7 +150,8 @@ def options_from_args(args: argparse.Namespace) -> "Any":
         val_fraction=args.val_fraction, plateau_patience=args.patience, device=args.device,
         seed=args.seed, threads=args.threads, workers=args.workers, resume=resume,
         init_from=Path(args.init_from) if args.init_from else None, bags=list(args.bags),
-        ucm=list(args.ucm), synthetic_fraction=args.synthetic_fraction,
+        ucm=list(args.ucm), pools=list(args.pools), mode=args.mode,
+        synthetic_fraction=args.synthetic_fraction,
         mirror_prob=0.0 if args.no_mirror else 0.5, jitter=not args.no_jitter,
         model=_key_values(args.model, "--model"), stream=_key_values(args.stream, "--stream"),
         progress=not args.no_progress)

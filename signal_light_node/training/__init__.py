@@ -5,5 +5,10 @@
   serves training windows from them.
 * :mod:`.sampling` assigns a window its rarity stratum (HAZARD, brake with a blinker,
   a blinker, brake, nothing) and balances what the trainer sees.
+* :mod:`.track_batches` cuts in-memory tracks into single-frame batches or stateful
+  lanes (the recipe of the shipped weights).
 * :mod:`.train` is the loop behind ``signal-light train`` (single process or DDP).
 """
+
+#: How training batches are cut (``signal-light train --mode``; see ``TrainOptions.mode``).
+BATCH_MODES = ("windows", "frames", "lanes")

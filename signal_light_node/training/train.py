@@ -73,6 +73,7 @@ from signal_light_node.model import (
     save_checkpoint,
     to_input,
 )
+from signal_light_node.model.interface import State, state_batch_size
 from signal_light_node.training.sampling import (
     STRATA,
     ClassFrequency,
@@ -84,7 +85,10 @@ from signal_light_node.training.sources import (
     WindowDataset,
     load_bag_tracks,
     load_ucm_tracks,
+    split_tracks,
 )
+from signal_light_node.training import BATCH_MODES
+from signal_light_node.training.track_batches import FrameBatches, LaneBatches
 
 logger = logging.getLogger(__name__)
 
@@ -141,6 +145,13 @@ class TrainOptions:
         init_from: Checkpoint whose weights (and model config) start the run, or None.
         bags: Labelled bags to train on.
         ucm: UC Merced rear-signal dataset roots to train on.
+        pools: Materialised synthetic splits (``data.split``) to train on, as tracks.
+        mode: How batches are cut: "windows" (``batch`` windows of ``seq_len`` frames,
+            each from a zero state), "frames" (``batch`` single frames from anywhere in
+            the tracks: per-frame pre-training) or "lanes" (``batch`` tracks played side
+            by side, ``seq_len`` frames per step, their state carried between steps; see
+            :mod:`.track_batches`). Frames and lanes take in-memory tracks (bags, pools)
+            only; the live synthetic stream gives windows.
         synthetic_fraction: Share of sequences from the synthetic stream; None means 1
             without bags/UCM and 0 with them.
         mirror_prob: Probability that a sequence is mirrored.
@@ -187,6 +198,8 @@ class TrainOptions:
     init_from: Optional[Path] = None
     bags: List[Path] = field(default_factory=list)
     ucm: List[Path] = field(default_factory=list)
+    pools: List[Path] = field(default_factory=list)
+    mode: str = "windows"
     synthetic_fraction: Optional[float] = None
     mirror_prob: float = 0.5
     jitter: bool = True
@@ -220,8 +233,21 @@ class TrainOptions:
                               f"{self.task_weights}")
         if self.synthetic_fraction is not None and not 0 <= self.synthetic_fraction <= 1:
             raise ConfigError(f"synthetic fraction must be in 0..1, got {self.synthetic_fraction}")
-        if self.synthetic_fraction == 0 and not (self.bags or self.ucm):
-            raise ConfigError("no data: the synthetic fraction is 0 and no --bags / --ucm given")
+        if self.synthetic_fraction == 0 and not (self.bags or self.ucm or self.pools):
+            raise ConfigError("no data: the synthetic fraction is 0 and no --bags / --ucm / "
+                              "--pool given")
+        if self.mode not in BATCH_MODES:
+            raise ConfigError(f"mode must be one of {list(BATCH_MODES)}, got {self.mode!r}")
+        if self.mode != "windows":
+            if not (self.bags or self.pools):
+                raise ConfigError(f"--mode {self.mode} needs in-memory tracks: give --pool or "
+                                  "--bags (the live synthetic stream only gives windows)")
+            if self.synthetic_fraction:
+                raise ConfigError(f"--mode {self.mode} cannot mix in the live synthetic "
+                                  "stream; drop --synthetic-fraction")
+            if self.ucm:
+                raise ConfigError(f"--mode {self.mode} needs in-memory tracks; UCM frames are "
+                                  "read lazily, use --mode windows for --ucm")
         if not 0 <= self.val_fraction < 1:
             raise ConfigError(f"validation fraction must be in [0, 1), got {self.val_fraction}")
         if not str(self.device).startswith(("cpu", "cuda")):
@@ -435,6 +461,13 @@ def _load_sources(opts: TrainOptions, crop: CropConfig) -> List[TrackSequence]:
         tracks += load_bag_tracks(Path(bag), crop)
     for root in opts.ucm:
         tracks += load_ucm_tracks(Path(root), crop)
+    for pool in opts.pools:
+        from signal_light_node.data.split import SequenceSplit
+
+        pool_crop = SequenceSplit(Path(pool)).crop
+        if pool_crop != crop:
+            raise ConfigError(f"pool {pool} was cropped with {pool_crop}, the model uses {crop}")
+        tracks += split_tracks(Path(pool))
     return tracks
 
 
@@ -634,6 +667,7 @@ class Trainer:
         self.train_seconds = 0.0
         self.data_wait = 0.0  # seconds this invocation waited for batches
         self._ema: Dict[str, float] = {}  # running training loss and batch accuracies
+        self._lanes: Optional[State] = None  # carried state of the lanes (mode "lanes")
         if state is not None:
             self.optimizer.load_state_dict(state["optimizer"])
             self.scheduler.load_state_dict(state["scheduler"])
@@ -676,6 +710,17 @@ class Trainer:
         parts, probs = [], []
         frac = self._synthetic_fraction()
         augment = _Augment(opts.mirror_prob, opts.jitter)
+        if opts.mode != "windows":
+            # In-process: lanes must stay in the order of the state the trainer keeps,
+            # and the tracks are already in memory (nothing to render).
+            if opts.mode == "frames":
+                batches: torch.utils.data.IterableDataset = FrameBatches(
+                    self.train_tracks, opts.batch, self._data_seed(), augment, self.dist.rank)
+            else:
+                batches = LaneBatches(self.train_tracks, opts.batch, opts.seq_len,
+                                      self._data_seed(), augment, self.dist.rank,
+                                      opts.loss_warmup, opts.loss_warmup_seconds)
+            return torch.utils.data.DataLoader(batches, batch_size=None, num_workers=0)
         if frac > 0:
             stream_opts = dict(opts.stream)
             # Setting up a scene costs about as much as rendering 10 frames: render
@@ -746,12 +791,15 @@ class Trainer:
         if self._synthetic_fraction() > 0:
             sources.append("synthetic stream (signal_light_node.synth scenes)")
         sources += [f"bag {b}" for b in opts.bags] + [f"UCM {u}" for u in opts.ucm]
+        sources += [f"synthetic pool {p}" for p in opts.pools]
         meta = {
             "training_data": {"sources": sources,
                               "synthetic_fraction": self._synthetic_fraction(),
                               "seed": opts.seed, "seq_len": opts.seq_len, "batch": opts.batch,
                               "world_size": self.dist.world,
-                              "frames_seen": int(step * opts.batch * opts.seq_len
+                              "mode": opts.mode,
+                              "frames_seen": int(step * opts.batch
+                                                 * (1 if opts.mode == "frames" else opts.seq_len)
                                                  * self.dist.world)},
             "training": {"step": step, "lr": self.optimizer.param_groups[0]["lr"],
                          "train_seconds": round(self.train_seconds, 1),
@@ -782,6 +830,28 @@ class Trainer:
             fh.write(json.dumps(record) + "\n")
 
     # ----------------------------------------------------------------------- loop
+
+    def _lane_state(self, reset: Optional[torch.Tensor]) -> Optional[State]:
+        """The lanes' carried state, zeroed where a lane starts a new track (None: no lanes)."""
+        if reset is None:
+            return None
+        reset = reset.to(self.device)
+        if self._lanes is None or state_batch_size(self._lanes) != reset.numel():
+            return self.model.initial_state(int(reset.numel()))
+        keep = (~reset).to(self._lanes[0][0].dtype).view(-1, 1, 1, 1)
+        return tuple((h * keep, c * keep) for h, c in self._lanes)
+
+    def _loss_warmup(self, batch: Mapping[str, Any]) -> "int | torch.Tensor":
+        """Leading frames per sequence without loss on the blinker-driven heads."""
+        if "warmup" in batch:  # lanes: only the start of each track warms up
+            return batch["warmup"].to(self.device)
+        if self.opts.mode == "frames":
+            # Single frames: a lit lamp is a per-frame cue; a blinker's dark phase is
+            # label noise the recurrent stage later resolves.
+            return 0
+        fps = batch["meta"].get("fps", [None] * len(batch["labels"]))
+        return warmup_frames(fps, self.opts.loss_warmup,
+                             self.opts.loss_warmup_seconds).to(self.device)
 
     def _validate_and_keep(self, step: int) -> Optional[Dict[str, Any]]:
         """Rank 0 validates and saves; every rank steps its scheduler with the same loss."""
@@ -848,9 +918,12 @@ class Trainer:
                 mask = batch["mask"].to(self.device)
                 self.freq.update(batch["labels"].numpy(), batch["mask"].numpy())
                 x = batch_input(batch["crops"], self.device)
-                logits, _ = self.net(x)
-                warm = warmup_frames(batch["meta"].get("fps", [None] * len(labels)),
-                                     opts.loss_warmup, opts.loss_warmup_seconds).to(self.device)
+                state = self._lane_state(batch.get("reset"))
+                logits, new_state = self.net(x, state)
+                if state is not None:
+                    # Truncated back-propagation: the next step starts from these values.
+                    self._lanes = tuple((h.detach(), c.detach()) for h, c in new_state)
+                warm = self._loss_warmup(batch)
                 loss, parts = multitask_loss(logits, labels, mask, opts.task_weights,
                                              self.freq.tensors(self.device), warm)
                 self.optimizer.zero_grad(set_to_none=True)
