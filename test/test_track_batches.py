@@ -1,0 +1,126 @@
+"""Frame and lane batches from in-memory tracks, and the trainer's two modes that use them."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from signal_light_node.crops import CropConfig
+from signal_light_node.data.split import write_split
+from signal_light_node.data.stream import PAD_LABEL
+from signal_light_node.errors import ConfigError
+from signal_light_node.training.sources import TrackSequence
+from signal_light_node.training.track_batches import FrameBatches, LaneBatches
+from signal_light_node.training.train import TrainOptions, Trainer
+
+from test_training import TINY
+
+SIZE = 4
+
+
+def numbered_track(number: int, length: int, fps: float = 10.0) -> TrackSequence:
+    """A track whose crop pixels and brake label say (track number, frame index)."""
+    crops = np.zeros((length, SIZE, SIZE, 3), np.uint8)
+    crops[..., 0] = number
+    crops[..., 1] = np.arange(length)[:, None, None]
+    labels = np.zeros((length, 5), np.int64)
+    labels[:, 1] = np.arange(length) % 3
+    stamps = (np.arange(length) * 1e9 / fps).astype(np.int64)
+    return TrackSequence(track_id=f"t{number}", labels=labels, mask=np.ones(length, bool),
+                         stamps_ns=stamps, box_size=np.full(length, 50.0),
+                         occlusion=np.zeros(length), crops=crops)
+
+
+def test_lanes_continue_each_track_and_flag_new_ones():
+    tracks = [numbered_track(n, length) for n, length in ((1, 7), (2, 5), (3, 4))]
+    batches = iter(LaneBatches(tracks, lanes=2, seq_len=3, seed=0, warmup_frames=4))
+    expected_next = {}  # lane -> (track number, next frame index)
+    for k in range(12):
+        batch = next(batches)
+        crops, mask, reset = batch["crops"].numpy(), batch["mask"].numpy(), batch["reset"].numpy()
+        assert crops.shape == (2, 3, SIZE, SIZE, 3) and batch["labels"].shape == (2, 3, 5)
+        if k == 0:
+            assert reset.all()
+        for lane in range(2):
+            number, first = int(crops[lane, 0, 0, 0, 0]), int(crops[lane, 0, 0, 0, 1])
+            if reset[lane]:
+                assert first == 0  # a new track starts at its first frame ...
+            else:
+                assert (number, first) == expected_next[lane]  # ... else the same one goes on
+            n = int(mask[lane].sum())
+            assert n >= 1 and mask[lane, :n].all() and not mask[lane, n:].any()
+            assert (crops[lane, :n, 0, 0, 1] == np.arange(first, first + n)).all()
+            assert (batch["labels"][lane, n:] == PAD_LABEL).all()
+            assert batch["warmup"][lane] == max(0, 4 - first)
+            expected_next[lane] = (number, first + n)
+
+
+def test_frame_batches_draw_single_labelled_frames():
+    tracks = [numbered_track(n, 6) for n in (1, 2)]
+    # a frame without a crop is never served
+    tracks[1].mask[:] = [True, False, True, False, True, False]
+    batch = next(iter(FrameBatches(tracks, batch=40, seed=3)))
+    crops, labels = batch["crops"].numpy(), batch["labels"].numpy()
+    assert crops.shape == (40, 1, SIZE, SIZE, 3) and batch["mask"].all()
+    numbers, frames = crops[:, 0, 0, 0, 0], crops[:, 0, 0, 0, 1]
+    assert set(numbers) == {1, 2}
+    assert set(frames[numbers == 2]) <= {0, 2, 4}
+    assert (labels[:, 0, 1] == frames % 3).all()  # each frame keeps its own label
+
+
+def test_batchers_need_tracks_in_memory():
+    track = numbered_track(1, 3)
+    track.crops = None
+    with pytest.raises(ConfigError, match="in memory"):
+        LaneBatches([track], lanes=1, seq_len=2)
+
+
+@pytest.fixture(scope="module")
+def tiny_pool(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("pool") / "pool"
+    write_split(out, seed=5, n_sequences=6, seq_len=20, crop=CropConfig(size=16),
+                full_tracks=True, progress=False)
+    return out
+
+
+def pool_options(out: Path, pool: Path, **changes) -> TrainOptions:
+    opts = dict(out=out, max_steps=4, batch=3, seq_len=5, lr=1e-3, model=dict(TINY),
+                pools=[pool], val_fraction=0.34, val_every=2, workers=0, progress=False,
+                threads=1, seed=1)
+    opts.update(changes)
+    return TrainOptions(**opts)
+
+
+@pytest.mark.parametrize("mode", ["frames", "lanes"])
+def test_trainer_runs_on_a_pool(tmp_path, tiny_pool, mode):
+    trainer = Trainer(pool_options(tmp_path / mode, tiny_pool, mode=mode))
+    summary = trainer.run()
+    assert summary["steps"] == 4 and summary["last_validation"] is not None
+    if mode == "lanes":  # the lanes' state is carried: one (h, c) row per lane
+        assert trainer._lanes is not None and trainer._lanes[0][0].shape[0] == 3
+    else:
+        assert trainer._lanes is None
+    meta = torch.load(tmp_path / mode / "best.pt", weights_only=False)
+    assert "pool" in str(meta)
+
+
+def test_lane_state_is_zeroed_where_a_track_starts(tmp_path, tiny_pool):
+    trainer = Trainer(pool_options(tmp_path / "z", tiny_pool, mode="lanes"))
+    assert trainer._lane_state(torch.tensor([False, False, False]))[0][0].abs().sum() == 0
+    trainer._lanes = tuple((torch.ones_like(h), torch.ones_like(c))
+                           for h, c in trainer.model.initial_state(3))
+    state = trainer._lane_state(torch.tensor([True, False, True]))
+    for h, c in state:
+        for x in (h, c):
+            assert x[0].abs().sum() == 0 and x[2].abs().sum() == 0 and (x[1] == 1).all()
+
+
+def test_modes_are_checked(tmp_path, tiny_pool):
+    with pytest.raises(ConfigError, match="needs in-memory tracks"):
+        TrainOptions(out=tmp_path, max_steps=1, mode="lanes").validate()
+    with pytest.raises(ConfigError, match="mode must be one of"):
+        TrainOptions(out=tmp_path, max_steps=1, mode="clips", pools=[tiny_pool]).validate()
+    with pytest.raises(ConfigError, match="cannot mix"):
+        TrainOptions(out=tmp_path, max_steps=1, mode="frames", pools=[tiny_pool],
+                     synthetic_fraction=0.5).validate()
