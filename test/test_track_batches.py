@@ -34,7 +34,7 @@ def numbered_track(number: int, length: int, fps: float = 10.0) -> TrackSequence
 
 def test_lanes_continue_each_track_and_flag_new_ones():
     tracks = [numbered_track(n, length) for n, length in ((1, 7), (2, 5), (3, 4))]
-    batches = iter(LaneBatches(tracks, lanes=2, seq_len=3, seed=0, warmup_frames=4))
+    batches = iter(LaneBatches(tracks, lanes=2, seq_len=3, seed=0))
     expected_next = {}  # lane -> (track number, next frame index)
     for k in range(12):
         batch = next(batches)
@@ -52,7 +52,7 @@ def test_lanes_continue_each_track_and_flag_new_ones():
             assert n >= 1 and mask[lane, :n].all() and not mask[lane, n:].any()
             assert (crops[lane, :n, 0, 0, 1] == np.arange(first, first + n)).all()
             assert (batch["labels"][lane, n:] == PAD_LABEL).all()
-            assert batch["warmup"][lane] == max(0, 4 - first)
+            assert batch["start"][lane] == first
             expected_next[lane] = (number, first + n)
 
 
@@ -114,6 +114,19 @@ def test_lane_state_is_zeroed_where_a_track_starts(tmp_path, tiny_pool):
     for h, c in state:
         for x in (h, c):
             assert x[0].abs().sum() == 0 and x[2].abs().sum() == 0 and (x[1] == 1).all()
+
+
+def test_lane_warmup_counts_from_the_track_start(tmp_path, tiny_pool):
+    trainer = Trainer(pool_options(tmp_path / "w", tiny_pool, mode="lanes", loss_warmup=4,
+                                   loss_warmup_seconds=0.0))
+    batch = {"labels": torch.zeros(3, 3, 5), "start": torch.tensor([0, 3, 6]),
+             "meta": {"fps": [10.0, 10.0, 10.0]}}
+    assert trainer._loss_warmup(batch).tolist() == [4, 1, 0]  # max(0, 4 - first)
+
+
+def test_pool_cropped_for_another_model_is_refused(tmp_path, tiny_pool):
+    with pytest.raises(ConfigError, match="pool .* was cropped with"):
+        Trainer(pool_options(tmp_path / "c", tiny_pool, mode="lanes", model={}))
 
 
 def test_modes_are_checked(tmp_path, tiny_pool):

@@ -76,9 +76,7 @@ def _tracks(args: argparse.Namespace, crop: Any) -> Tuple[Iterable[Any], Optiona
         from signal_light_node.data.split import SequenceSplit
 
         split = SequenceSplit(args.split)
-        if split.crop != crop:
-            raise ConfigError(f"split {args.split} was cropped with {split.crop}, the model "
-                              f"needs {crop}")
+        split.require_crop(crop)
 
         def gen() -> Iterator[Any]:
             for i in range(len(split)):

@@ -212,6 +212,17 @@ class SequenceSplit(Dataset):
     def __len__(self) -> int:
         return self._length
 
+    def require_crop(self, crop: CropConfig, role: str = "split") -> None:
+        """Raise ConfigError unless the split was cropped with ``crop`` (the model's).
+
+        Args:
+            crop: The crop settings the model was trained with.
+            role: What the split is used as, for the message ("pool", "validation split").
+        """
+        if self.crop != crop:
+            raise ConfigError(f"{role} {self.root} was cropped with {self.crop}, the model "
+                              f"uses {crop}")
+
     def _shard(self, name: str) -> Dict[str, np.ndarray]:
         shard = self._cache.get(name)
         if shard is not None:

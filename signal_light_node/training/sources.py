@@ -350,11 +350,23 @@ def track_from_item(item: Mapping[str, Any], track_id: str, source: str = "synth
                          source=source, crops=crops)
 
 
-def split_tracks(split_dir: Path) -> List[TrackSequence]:
-    """Every item of a materialised split as a track."""
+def split_tracks(split_dir: Path, crop: Optional[CropConfig] = None,
+                 role: str = "split") -> List[TrackSequence]:
+    """Every item of a materialised split as a track.
+
+    Args:
+        split_dir: The split's directory.
+        crop: The model's crop settings; the split must have been cropped with them.
+        role: What the split is used as, for the mismatch message.
+
+    Raises:
+        ConfigError: The split was cropped with other settings than ``crop``.
+    """
     from signal_light_node.data.split import SequenceSplit
 
     split = SequenceSplit(split_dir)
+    if crop is not None:
+        split.require_crop(crop, role)
     return [track_from_item(split[i], f"{Path(split_dir).name}:{i}", "synthetic")
             for i in range(len(split))]
 

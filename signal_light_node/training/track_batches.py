@@ -19,8 +19,8 @@ Both yield already collated batches (``DataLoader(..., batch_size=None)``) in th
 of :func:`signal_light_node.data.stream.collate_sequences`; lanes add::
 
     reset   bool  [B]  the lane starts a new track with this batch (zero its state)
-    warmup  int64 [B]  leading frames of this batch still inside the track's warm-up
-                       (no loss on the blinker-driven heads there)
+    start   int64 [B]  index in its track of the lane's first frame in this batch (the
+                       trainer's warm-up counts from the track's start, not the batch's)
 
 Augmentation (mirroring, colour jitter) is drawn once per track visit, so a lane's
 frames stay consistent across its batches.
@@ -28,7 +28,6 @@ frames stay consistent across its batches.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence
 
@@ -122,7 +121,6 @@ class _Lane:
     crops: np.ndarray
     labels: np.ndarray
     fps: float
-    warmup: int
     position: int = 0
 
 
@@ -139,29 +137,23 @@ class LaneBatches(torch.utils.data.IterableDataset):
         seed: Seed of the track draws and the augmentation.
         augment: Mirroring / jitter applied to a whole track when a lane takes it.
         rank: Process rank under DDP.
-        warmup_frames: Blinker warm-up of a track in frames ...
-        warmup_seconds: ... or in seconds at the track's frame rate (the larger applies).
     """
 
     def __init__(self, tracks: Sequence[TrackSequence], lanes: int, seq_len: int, seed: int = 0,
-                 augment: Optional[Augment] = None, rank: int = 0, warmup_frames: int = 0,
-                 warmup_seconds: float = 0.0) -> None:
+                 augment: Optional[Augment] = None, rank: int = 0) -> None:
         super().__init__()
         if lanes < 1 or seq_len < 1:
             raise ConfigError(f"lanes and seq_len must be >= 1, got {lanes}, {seq_len}")
         self.tracks = _usable(tracks)
         self.lanes, self.seq_len = int(lanes), int(seq_len)
         self.seed, self.rank, self.augment = int(seed), int(rank), augment
-        self.warmup_frames, self.warmup_seconds = int(warmup_frames), float(warmup_seconds)
 
     def _take(self, rng: np.random.Generator) -> _Lane:
         track = self.tracks[int(rng.integers(len(self.tracks)))]
         item = _item(track, 0, len(track))
         if self.augment is not None:
             item = self.augment(item, rng)
-        fps = track.fps
-        warmup = max(self.warmup_frames, int(math.ceil(self.warmup_seconds * fps)))
-        return _Lane(crops=item["crops"], labels=item["labels"], fps=fps, warmup=warmup)
+        return _Lane(crops=item["crops"], labels=item["labels"], fps=track.fps)
 
     def __iter__(self) -> Iterator[Dict[str, Any]]:
         rng = _rng(self.seed, self.rank, 43)
@@ -178,17 +170,17 @@ class LaneBatches(torch.utils.data.IterableDataset):
             crops = np.zeros((b, t) + tuple(size), np.uint8)
             labels = np.full((b, t, lanes[0].labels.shape[1]), PAD_LABEL, np.int64)
             mask = np.zeros((b, t), bool)
-            warmup = np.zeros(b, np.int64)
+            starts = np.zeros(b, np.int64)
             for i, lane in enumerate(lanes):
                 start = lane.position
                 stop = min(start + t, len(lane.labels))
                 crops[i, :stop - start] = lane.crops[start:stop]
                 labels[i, :stop - start] = lane.labels[start:stop]
                 mask[i, :stop - start] = True
-                warmup[i] = max(0, lane.warmup - start)
+                starts[i] = start
                 lane.position = stop
             yield {"crops": torch.from_numpy(crops), "labels": torch.from_numpy(labels),
                    "mask": torch.from_numpy(mask), "reset": torch.from_numpy(reset),
-                   "warmup": torch.from_numpy(warmup),
+                   "start": torch.from_numpy(starts),
                    "meta": {"fps": [lane.fps for lane in lanes]}}
 

@@ -462,12 +462,7 @@ def _load_sources(opts: TrainOptions, crop: CropConfig) -> List[TrackSequence]:
     for root in opts.ucm:
         tracks += load_ucm_tracks(Path(root), crop)
     for pool in opts.pools:
-        from signal_light_node.data.split import SequenceSplit
-
-        pool_crop = SequenceSplit(Path(pool)).crop
-        if pool_crop != crop:
-            raise ConfigError(f"pool {pool} was cropped with {pool_crop}, the model uses {crop}")
-        tracks += split_tracks(Path(pool))
+        tracks += split_tracks(Path(pool), crop, role="pool")
     return tracks
 
 
@@ -718,8 +713,7 @@ class Trainer:
                     self.train_tracks, opts.batch, self._data_seed(), augment, self.dist.rank)
             else:
                 batches = LaneBatches(self.train_tracks, opts.batch, opts.seq_len,
-                                      self._data_seed(), augment, self.dist.rank,
-                                      opts.loss_warmup, opts.loss_warmup_seconds)
+                                      self._data_seed(), augment, self.dist.rank)
             return torch.utils.data.DataLoader(batches, batch_size=None, num_workers=0)
         if frac > 0:
             stream_opts = dict(opts.stream)
@@ -761,9 +755,7 @@ class Trainer:
             from signal_light_node.data.split import SequenceSplit
 
             split = SequenceSplit(opts.val_split)
-            if split.crop != self.crop:
-                raise ConfigError(f"validation split {opts.val_split} was cropped with "
-                                  f"{split.crop}, the model uses {self.crop}")
+            split.require_crop(self.crop, "validation split")
             return [split[i] for i in range(len(split))]
         if held_out:
             win = WindowDataset(held_out, max(opts.seq_len, opts.val_seq_len), seed=opts.seed)
@@ -843,15 +835,15 @@ class Trainer:
 
     def _loss_warmup(self, batch: Mapping[str, Any]) -> "int | torch.Tensor":
         """Leading frames per sequence without loss on the blinker-driven heads."""
-        if "warmup" in batch:  # lanes: only the start of each track warms up
-            return batch["warmup"].to(self.device)
         if self.opts.mode == "frames":
             # Single frames: a lit lamp is a per-frame cue; a blinker's dark phase is
             # label noise the recurrent stage later resolves.
             return 0
         fps = batch["meta"].get("fps", [None] * len(batch["labels"]))
-        return warmup_frames(fps, self.opts.loss_warmup,
-                             self.opts.loss_warmup_seconds).to(self.device)
+        warm = warmup_frames(fps, self.opts.loss_warmup, self.opts.loss_warmup_seconds)
+        if "start" in batch:  # lanes: only the start of each track warms up
+            warm = (warm - batch["start"]).clamp(min=0)
+        return warm.to(self.device)
 
     def _validate_and_keep(self, step: int) -> Optional[Dict[str, Any]]:
         """Rank 0 validates and saves; every rank steps its scheduler with the same loss."""
