@@ -26,6 +26,10 @@
 # Every setting can be overridden from the environment, e.g. a 3-minute smoke run:
 #   RUN=runs/smoke POOL_TRACKS=16 FRAME_MINUTES=1 LANE_MINUTES=1 VAL_SEQUENCES=16 \
 #     TEST_TRACKS=12 TEST_FRAMES=40 WEIGHTS=runs/smoke/default.pt scripts/train_default.sh
+# DATA keeps the rendered splits apart from RUN (the checkpoints), TRAIN_ARGS adds options
+# to both stages and FRAME_STEPS / LANE_STEPS cap them by steps: scripts/ablations.sh uses
+# these to train variants on the same data with the same number of steps; DATA_ONLY=1
+# stops after rendering the splits.
 set -euo pipefail
 
 cd "$(dirname "$0")/.."
@@ -35,6 +39,8 @@ if [[ -z "${VIRTUAL_ENV:-}" && -f env.sh ]]; then
 fi
 
 RUN=${RUN:-runs/default}
+DATA=${DATA:-$RUN}                   # where the pool, validation and test splits live
+TRAIN_ARGS=${TRAIN_ARGS:-}           # extra `signal-light train` options for both stages
 WEIGHTS=${WEIGHTS:-signal_light_node/weights/default.pt}
 SEED=${SEED:-1}                      # model init and sampling
 POOL_SEEDS=${POOL_SEEDS:-"11 12"}    # training pool: one split per seed
@@ -43,9 +49,11 @@ POOL_FRAMES=${POOL_FRAMES:-150}      # frames per rendered scene
 VAL_SEED=${VAL_SEED:-700001}         # validation split
 TEST_SEED=${TEST_SEED:-900001}       # test split: never trained or validated on
 FRAME_MINUTES=${FRAME_MINUTES:-30}   # stage 1
+FRAME_STEPS=${FRAME_STEPS:-1000000}  # (the time budget ends it first by default)
 FRAME_BATCH=${FRAME_BATCH:-64}
 FRAME_LR=${FRAME_LR:-1e-3}
 LANE_MINUTES=${LANE_MINUTES:-30}     # stage 2
+LANE_STEPS=${LANE_STEPS:-1000000}
 LANES=${LANES:-32}
 SEQ_LEN=${SEQ_LEN:-12}
 LANE_LR=${LANE_LR:-5e-4}
@@ -56,21 +64,21 @@ TEST_TRACKS=${TEST_TRACKS:-240}
 TEST_FRAMES=${TEST_FRAMES:-150}
 THREADS=${THREADS:-2}
 
-mkdir -p "$RUN"
+mkdir -p "$RUN" "$DATA"
 start=$(date +%s)
-echo "== 1/4 data: pool (seeds $POOL_SEEDS), validation (seed $VAL_SEED), test (seed $TEST_SEED) in $RUN"
+echo "== 1/4 data: pool (seeds $POOL_SEEDS), validation (seed $VAL_SEED), test (seed $TEST_SEED) in $DATA"
 pools=()
 pids=()
 for seed in $POOL_SEEDS; do
-  pools+=(--pool "$RUN/pool_$seed")
-  if [[ ! -f "$RUN/pool_$seed/manifest.json" ]]; then
-    python -m signal_light_node.data.split "$RUN/pool_$seed" --seed "$seed" \
+  pools+=(--pool "$DATA/pool_$seed")
+  if [[ ! -f "$DATA/pool_$seed/manifest.json" ]]; then
+    python -m signal_light_node.data.split "$DATA/pool_$seed" --seed "$seed" \
       --sequences "$POOL_TRACKS" --seq-len "$POOL_FRAMES" --full-tracks --overwrite \
-      > "$RUN/pool_$seed.log" 2>&1 &
+      > "$DATA/pool_$seed.log" 2>&1 &
     pids+=($!)
   fi
 done
-python - "$RUN" "$VAL_SEED" "$VAL_SEQUENCES" "$VAL_LEN" "$TEST_SEED" "$TEST_TRACKS" "$TEST_FRAMES" <<'EOF'
+python - "$DATA" "$VAL_SEED" "$VAL_SEQUENCES" "$VAL_LEN" "$TEST_SEED" "$TEST_TRACKS" "$TEST_FRAMES" <<'EOF'
 import sys
 from pathlib import Path
 
@@ -90,11 +98,17 @@ for name, seed, n, length, full in (("val_split", val_seed, val_n, val_len, Fals
 EOF
 
 for pid in "${pids[@]}"; do wait "$pid"; done
+if [[ -n "${DATA_ONLY:-}" ]]; then
+  echo "== DATA_ONLY set: splits ready in $DATA"
+  exit 0
+fi
 
-common=(--seed "$SEED" --val-split "$RUN/val_split" --threads "$THREADS" --workers 0 "${pools[@]}")
-stage() {  # stage NAME MINUTES ARGS...: train unless it finished before; resume if interrupted
-  local name=$1 minutes=$2
-  shift 2
+# shellcheck disable=SC2206  # TRAIN_ARGS is split into words on purpose
+common=(--seed "$SEED" --val-split "$DATA/val_split" --threads "$THREADS" --workers 0
+        "${pools[@]}" $TRAIN_ARGS)
+stage() {  # stage NAME MINUTES STEPS ARGS...: train unless it finished; resume if interrupted
+  local name=$1 minutes=$2 steps=$3
+  shift 3
   if [[ -f "$RUN/$name/summary.json" ]]; then
     echo "$RUN/$name/summary.json exists: finished before; skipping"
     return
@@ -103,15 +117,15 @@ stage() {  # stage NAME MINUTES ARGS...: train unless it finished before; resume
   if [[ -f "$RUN/$name/last.pt" && -f "$RUN/$name/last.state.pt" ]]; then
     resume=(--resume)   # an interrupted stage continues (with a fresh time budget)
   fi
-  signal-light train --out "$RUN/$name" --max-minutes "$minutes" --steps 1000000 \
+  signal-light train --out "$RUN/$name" --max-minutes "$minutes" --steps "$steps" \
     "${common[@]}" "$@" "${resume[@]}"
 }
 
 echo "== 2/4 stage 1: single frames for $FRAME_MINUTES minutes (batch $FRAME_BATCH)"
-stage frames "$FRAME_MINUTES" --mode frames --batch "$FRAME_BATCH" --lr "$FRAME_LR" \
+stage frames "$FRAME_MINUTES" "$FRAME_STEPS" --mode frames --batch "$FRAME_BATCH" --lr "$FRAME_LR" \
   --val-every "$VAL_EVERY"
 echo "== 2/4 stage 2: lanes for $LANE_MINUTES minutes ($LANES lanes x $SEQ_LEN frames)"
-stage lanes "$LANE_MINUTES" --mode lanes --batch "$LANES" --seq-len "$SEQ_LEN" \
+stage lanes "$LANE_MINUTES" "$LANE_STEPS" --mode lanes --batch "$LANES" --seq-len "$SEQ_LEN" \
   --lr "$LANE_LR" --val-every "$(( VAL_EVERY / 4 > 0 ? VAL_EVERY / 4 : 1 ))" \
   --init-from "$RUN/frames/best.pt"
 
@@ -134,7 +148,7 @@ EOF
 cp "$best" "$WEIGHTS"
 
 echo "== 4/4 evaluation on the held-out test split"
-signal-light evaluate --checkpoint "$WEIGHTS" --split "$RUN/test_split" \
-  --out "$RUN/test_eval" --threads 2
+signal-light evaluate --checkpoint "$WEIGHTS" --split "$DATA/test_split" \
+  --out "$RUN/test_eval" --threads "$THREADS"
 
 echo "== done in $(( ($(date +%s) - start) / 60 )) minutes; report: $RUN/test_eval/metrics.md"

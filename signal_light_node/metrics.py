@@ -364,14 +364,23 @@ class MetricAccumulator:
         }
 
 
-def selection_score(summary: Mapping[str, Optional[float]]) -> float:
+def selection_score(summary: Mapping[str, Optional[float]],
+                    trained: Optional[Iterable[str]] = None) -> float:
     """Scalar used to pick the best checkpoint: mean of intent macro-F1 and brake accuracy.
+
+    Args:
+        summary: The ``summary`` of a metrics report.
+        trained: Heads that are in the loss; a head left out (an ablation trained on
+            intent alone) does not vote, since its figure only moves by chance.
+            None means all heads.
 
     Missing figures count as 0 so that a model that was never scored never wins.
     """
-    f1 = summary.get("intent_macro_f1") or 0.0
-    brake = summary.get("brake_accuracy") or 0.0
-    return 0.5 * (float(f1) + float(brake))
+    terms = [key for task, key in (("intent", "intent_macro_f1"), ("brake", "brake_accuracy"))
+             if trained is None or task in set(trained)]
+    if not terms:
+        terms = ["intent_macro_f1", "brake_accuracy"]
+    return sum(float(summary.get(key) or 0.0) for key in terms) / len(terms)
 
 
 # ---------------------------------------------------------------------------- rendering

@@ -112,6 +112,9 @@ def test_accumulator_grouped_breakdown_and_summary():
     assert s["lights_fn_rate"] == pytest.approx(0.5)
     assert s["lights_fp_rate"] == pytest.approx(0.0)
     assert M.selection_score(s) == pytest.approx(0.5 * (s["intent_macro_f1"] + 2 / 3))
+    # an intent-only ablation is picked by intent alone; an untrained brake head does not vote
+    assert M.selection_score(s, ["intent"]) == pytest.approx(s["intent_macro_f1"])
+    assert M.selection_score(s, ["brake", "view"]) == pytest.approx(2 / 3)
     # a second add accumulates
     acc.add("intent", [3], [3])
     assert acc.confusion("intent")[3, 3] == 1

@@ -234,6 +234,8 @@ def test_bad_inputs_raise_clear_errors() -> None:
         build_model(ModelConfig(**{**TINY, "attention_channels": (4, 4)}))
     with pytest.raises(ConfigError, match="norm"):
         ModelConfig(norm="layer")
+    with pytest.raises(ConfigError, match="use_attention must be true or false"):
+        ModelConfig(use_attention="false")  # a string would have switched attention on
     with pytest.raises(ConfigError, match="unknown model architecture"):
         build_model(ModelConfig(arch="transformer"))
 

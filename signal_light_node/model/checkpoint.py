@@ -131,7 +131,10 @@ class ModelConfig:
             set_("crop_margin", float(self.crop_margin))
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"model config has a value of the wrong type: {exc}") from None
-        set_("use_attention", bool(self.use_attention))
+        # bool("false") is True: refuse anything but a real boolean (CLI values are JSON).
+        if not isinstance(self.use_attention, bool):
+            raise ConfigError(f"model config use_attention must be true or false, got "
+                              f"{self.use_attention!r}")
         set_("attention_channels", _int_tuple(self.attention_channels, "attention_channels"))
         set_("backbone_channels", _int_tuple(self.backbone_channels, "backbone_channels"))
         set_("lstm_hidden", _int_tuple(self.lstm_hidden, "lstm_hidden"))

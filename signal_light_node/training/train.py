@@ -556,7 +556,8 @@ def validate(model: nn.Module, items: Sequence[Mapping[str, Any]], device: torch
     of the metrics and of the intent/left/right loss.
 
     Returns:
-        ``{"loss": float, "summary": metrics summary, "accuracy": {task: acc}, "score": float}``.
+        ``{"loss": float, "summary": metrics summary, "accuracy": {task: acc}, "score": float}``;
+        the score only counts heads with a positive weight.
     """
     was_training = model.training
     model.eval()
@@ -588,7 +589,7 @@ def validate(model: nn.Module, items: Sequence[Mapping[str, Any]], device: torch
     return {"loss": sum(losses) / max(sum(weights), 1.0), "summary": summary,
             "accuracy": {t: m["accuracy"] for t, m in report["overall"].items()},
             "macro_f1": {t: m["macro_f1"] for t, m in report["overall"].items()},
-            "score": selection_score(summary)}
+            "score": selection_score(summary, [t for t, w in task_weights.items() if w > 0])}
 
 
 # ------------------------------------------------------------------------------ trainer
