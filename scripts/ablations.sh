@@ -13,7 +13,7 @@
 #   intent_only   --task-weights intent=1,brake=0,left=0,right=0,view=0
 #
 # The variants run side by side with THREADS threads each (fixed steps, so sharing the
-# cores changes the time, not the result). About 45 minutes on a 2-core CPU once the
+# cores changes the time, not the result). 31 minutes on this 2-core CPU once the
 # splits exist in DATA (train_default.sh renders them there first if they do not).
 set -euo pipefail
 
