@@ -376,8 +376,9 @@ def selection_score(summary: Mapping[str, Optional[float]],
 
     Missing figures count as 0 so that a model that was never scored never wins.
     """
+    voters = None if trained is None else set(trained)
     terms = [key for task, key in (("intent", "intent_macro_f1"), ("brake", "brake_accuracy"))
-             if trained is None or task in set(trained)]
+             if voters is None or task in voters]
     if not terms:
         terms = ["intent_macro_f1", "brake_accuracy"]
     return sum(float(summary.get(key) or 0.0) for key in terms) / len(terms)
@@ -386,10 +387,11 @@ def selection_score(summary: Mapping[str, Optional[float]],
 # ---------------------------------------------------------------------------- rendering
 
 
-def _fmt(value: Optional[float], percent: bool = True) -> str:
+def percent_cell(value: Optional[float]) -> str:
+    """A rate as a Markdown table cell ("12.3 %"), "–" when missing or NaN."""
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return "–"
-    return f"{100.0 * value:.1f} %" if percent else f"{value:.3f}"
+    return f"{100.0 * value:.1f} %"
 
 
 _COLUMNS = (("accuracy", "accuracy"), ("macro_recall", "macro recall"),
@@ -400,7 +402,7 @@ def _task_table(by_task: Mapping[str, Mapping[str, object]]) -> List[str]:
     lines = ["| task | frames | " + " | ".join(h for _, h in _COLUMNS) + " |",
              "|---|---:|" + "---:|" * len(_COLUMNS)]
     for task, m in by_task.items():
-        cells = [_fmt(m.get(key)) for key, _ in _COLUMNS]  # type: ignore[arg-type]
+        cells = [percent_cell(m.get(key)) for key, _ in _COLUMNS]  # type: ignore[arg-type]
         lines.append(f"| {task} | {m['n']} | " + " | ".join(cells) + " |")
     return lines
 
@@ -429,7 +431,7 @@ def _group_table(name: str, values: Mapping[str, Mapping[str, Mapping[str, objec
     for value, by_task in values.items():
         # Heads can differ (grace windows are per head); show the most frames scored.
         n = max((m["n"] for m in by_task.values()), default=0)
-        cells = [_fmt(by_task.get(t, {}).get(key)) for t, key, _ in _GROUP_COLUMNS]
+        cells = [percent_cell(by_task.get(t, {}).get(key)) for t, key, _ in _GROUP_COLUMNS]
         lines.append(f"| {value} | {n} | " + " | ".join(cells) + " |")
     return lines
 

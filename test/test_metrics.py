@@ -115,6 +115,7 @@ def test_accumulator_grouped_breakdown_and_summary():
     # an intent-only ablation is picked by intent alone; an untrained brake head does not vote
     assert M.selection_score(s, ["intent"]) == pytest.approx(s["intent_macro_f1"])
     assert M.selection_score(s, ["brake", "view"]) == pytest.approx(2 / 3)
+    assert M.selection_score(s, (t for t in ["brake", "view"])) == pytest.approx(2 / 3)
     # a second add accumulates
     acc.add("intent", [3], [3])
     assert acc.confusion("intent")[3, 3] == 1

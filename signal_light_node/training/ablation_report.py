@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional, Sequence
 
 from signal_light_node.errors import SignalLightError
+from signal_light_node.metrics import percent_cell
 
 # (summary key, column title) of the headline figures, in table order.
 _COLUMNS = (("intent_macro_f1", "intent macro-F1"), ("brake_accuracy", "brake accuracy"),
@@ -57,10 +58,6 @@ def load_run(name: str, run_dir: Path) -> Dict[str, Any]:
             "train_seconds": seconds, "data": metrics.get("data_brief", {})}
 
 
-def _pct(value: Optional[float]) -> str:
-    return "–" if value is None else f"{100.0 * value:.1f} %"
-
-
 def render_markdown(runs: Sequence[Mapping[str, Any]], command: str = "") -> str:
     """A Markdown report: one row per run, the first run being the reference."""
     lines: List[str] = ["## Ablations", ""]
@@ -76,7 +73,7 @@ def render_markdown(runs: Sequence[Mapping[str, Any]], command: str = "") -> str
     lines += [header, "|---|---:|---:|" + "---:|" * len(_COLUMNS)]
     for run in runs:
         steps = " + ".join(str(run["steps"][s]) for s in _STAGES)
-        cells = " | ".join(_pct(run["summary"].get(key)) for key, _ in _COLUMNS)
+        cells = " | ".join(percent_cell(run["summary"].get(key)) for key, _ in _COLUMNS)
         lines.append(f"| {run['name']} | {steps} | {run['train_seconds'] / 60:.0f} | {cells} |")
     lines.append("")
     return "\n".join(lines)
