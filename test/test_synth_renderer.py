@@ -8,7 +8,7 @@ import pytest
 from signal_light_node.boxes import TrackBox
 from signal_light_node.errors import ConfigError
 from signal_light_node.labels import Intent, LightStatus, View, intent_from_lights
-from signal_light_node.synth import RenderedFrame, SceneRenderer, VehicleTruth
+from signal_light_node.synth import RenderedFrame, SceneRenderer, VehicleTruth, scene
 
 # A clean stage: one parked vehicle, no distractors, no camera effects, no random poles.
 CLEAN = dict(distractors=False, effects=False, poles=0, weather="clear", respawn=False, shake=False)
@@ -96,7 +96,9 @@ def test_brake_lights_the_rear_and_is_labelled():
 
 
 @pytest.mark.parametrize("view,far", [(View.LEFT, "right"), (View.RIGHT, "left")])
-def test_side_view_far_side_blinker_is_unknown(view, far):
+def test_side_view_far_side_blinker_is_unknown(view, far, monkeypatch):
+    # Side semantics only: let every visible lamp count, however small (the size rule has its own test).
+    monkeypatch.setattr(scene, "LAMP_MIN_BOX_SHARE", 0.0)
     frames = list(_one_vehicle(view, Intent.HAZARD, width_px=300).frames(2))
     near = "left" if far == "right" else "right"
     for f in frames:
@@ -107,7 +109,19 @@ def test_side_view_far_side_blinker_is_unknown(view, far):
         assert v.intent == (Intent.LEFT if near == "left" else Intent.RIGHT)
 
 
-def test_side_view_off_blinker_gives_unknown_intent():
+def test_lamps_too_small_for_the_crop_are_unknown():
+    # A side view's lamps are slivers: under 4 pixels of the node's 64-pixel crop.
+    (side,) = list(_one_vehicle(View.LEFT, Intent.LEFT, brake=True, width_px=300).frames(1))
+    (v,) = side.vehicles
+    assert (v.left, v.right, v.brake, v.intent) == (LightStatus.UNKNOWN,) * 3 + (Intent.UNKNOWN,)
+    # The same vehicle from behind shows big lamps: labelled.
+    (rear,) = list(_one_vehicle(View.BEHIND, Intent.LEFT, brake=True, width_px=120).frames(1))
+    (v,) = rear.vehicles
+    assert (v.left, v.brake, v.intent) == (LightStatus.ON, LightStatus.ON, Intent.LEFT)
+
+
+def test_side_view_off_blinker_gives_unknown_intent(monkeypatch):
+    monkeypatch.setattr(scene, "LAMP_MIN_BOX_SHARE", 0.0)
     (f,) = list(_one_vehicle(View.LEFT, Intent.OFF, width_px=300).frames(1))
     (v,) = f.vehicles
     assert (v.left, v.right, v.intent) == (LightStatus.OFF, LightStatus.UNKNOWN, Intent.UNKNOWN)

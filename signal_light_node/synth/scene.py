@@ -35,6 +35,14 @@ _ONE = 1 << _SHIFT
 _MARGIN = 12
 #: A lamp counts as visible when at least this fraction of it can be seen.
 LAMP_VISIBLE_FRACTION = 0.5
+#: ... and when its visible part is large enough to be judged where the node looks: the
+#: node scales a square of 1.3 x the box's longer side to a 64-pixel crop, so a lamp
+#: covering less than 1/600 of (longer side)^2 spans under 4 crop pixels (a side view's
+#: wrap-around tail lamp or side repeater). Such a lamp's state is UNKNOWN, as an
+#: annotator would mark it, rather than an ON/OFF no image can show.
+LAMP_MIN_BOX_SHARE = 1.0 / 600.0
+#: Nor can a lamp be judged from fewer image pixels than this, however small the box.
+LAMP_MIN_PIXELS = 2.0
 #: Vehicles smaller than this (visible box, pixels) or more hidden than this are not listed.
 MIN_LISTED_PX = 8.0
 MAX_LISTED_OCCLUSION = 0.9
@@ -57,6 +65,12 @@ def _lamp_poly(lamp: Lamp) -> np.ndarray:
         return np.array([[u0 + ru * k, v0], [u1 - ru * k, v0], [u1, v0 + rv * k], [u1, v1 - rv * k], [u1 - ru * k, v1],
                          [u0 + ru * k, v1], [u0, v1 - rv * k], [u0, v0 + rv * k]], np.float32)
     return np.array([[u0, v0], [u1, v0], [u1, v1], [u0, v1]], np.float32)
+
+
+def _polygon_area(points: np.ndarray) -> float:
+    """Area of a simple polygon ``[K, 2]`` in pixels (shoelace formula)."""
+    x, y = points[:, 0], points[:, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
 
 
 def _segment_polys(lamp: Lamp) -> List[np.ndarray]:
@@ -691,7 +705,9 @@ class SceneRenderer:
         levels, brake, left_on, right_on = self._lamp_levels(v, t)
         lt = self._light
         night = self.lighting != "day"
-        visible = {"L": False, "R": False, "brake": False}
+        # (role, side, visible lamp pixels) of lamps seen well enough to be labelled by the
+        # fraction rule; the size rule needs the vehicle's visible box, known after drawing.
+        seen: List[Tuple[str, str, float]] = []
         # All lamp outlines in one transform; per-lamp pixel counts from integral images.
         P = v.lamp_pts @ d.M[:, :2].T + d.M[:, 2]
         IP = np.round(P * _ONE).astype(np.int32)
@@ -713,11 +729,9 @@ class SceneRenderer:
                 n_sil = float(ia[iy1, ix1] - ia[iy0, ix1] - ia[iy1, ix0] + ia[iy0, ix0])
                 outside = max(0.0, (fx1 - fx0) * (fy1 - fy0) - (ix1 - ix0) * (iy1 - iy0))
                 frac = n_vis / max(1.0, n_sil + outside * 0.8)
-            if frac >= LAMP_VISIBLE_FRACTION and (lx1 - lx0) * (ly1 - ly0) >= 1.5:
-                if lamp.role in ("turn", "turn_tail") and lamp.side in ("L", "R"):
-                    visible[lamp.side] = True
-                if lamp.role in ("tail", "turn_tail", "chmsl") and lamp.side != "C":
-                    visible["brake"] = True
+            if frac >= LAMP_VISIBLE_FRACTION:
+                area = sum(_polygon_area(P[a:b]) for a, b in polys)
+                seen.append((lamp.role, lamp.side, frac * area))
             # Unlit lens, then the lit colour blended in by the level.
             lens = v.lens_cols[li]
             for (a, b), lev in zip(polys, levs):
@@ -751,6 +765,15 @@ class SceneRenderer:
         occlusion = float(np.clip(1.0 - len(xs) / d.full_area, 0.0, 1.0))
         if bx1 - bx0 < MIN_LISTED_PX or by1 - by0 < MIN_LISTED_PX or occlusion > MAX_LISTED_OCCLUSION:
             return None
+        min_px = max(LAMP_MIN_PIXELS, LAMP_MIN_BOX_SHARE * max(bx1 - bx0, by1 - by0) ** 2)
+        visible = {"L": False, "R": False, "brake": False}
+        for role, side, pixels in seen:
+            if pixels < min_px:
+                continue
+            if role in ("turn", "turn_tail") and side in ("L", "R"):
+                visible[side] = True
+            if role in ("tail", "turn_tail", "chmsl") and side != "C":
+                visible["brake"] = True
         left = (LightStatus.ON if left_on else LightStatus.OFF) if visible["L"] else LightStatus.UNKNOWN
         right = (LightStatus.ON if right_on else LightStatus.OFF) if visible["R"] else LightStatus.UNKNOWN
         brake_s = (LightStatus.ON if brake else LightStatus.OFF) if visible["brake"] else LightStatus.UNKNOWN
