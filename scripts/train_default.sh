@@ -13,8 +13,8 @@
 #      stage 2, stateful lanes (--mode lanes) from the stage-1 weights: LANES tracks
 #      played side by side, SEQ_LEN frames per step, each lane's ConvLSTM state carried
 #      from step to step as in the node (this is where blinks are learnt);
-#   3. the better of the two stages' best checkpoints (validation score) is copied to
-#      signal_light_node/weights/default.pt;
+#   3. stage 2's best checkpoint (validation score, tracks stepped with their state as in
+#      the node) is copied to signal_light_node/weights/default.pt;
 #   4. it is evaluated frame by frame on the test split (metrics.json / metrics.md / PNG
 #      in RUN/test_eval) and the Markdown table is printed.
 #
@@ -131,20 +131,9 @@ stage lanes "$LANE_MINUTES" "$LANE_STEPS" --mode lanes --batch "$LANES" --seq-le
 
 echo "== 3/4 best checkpoint -> $WEIGHTS"
 mkdir -p "$(dirname "$WEIGHTS")"
-best=$(python - "$RUN/frames/summary.json" "$RUN/lanes/summary.json" <<'EOF'
-import json
-import sys
-from pathlib import Path
-
-scores = {}
-for path in sys.argv[1:]:
-    score = json.loads(Path(path).read_text()).get("best_score")
-    scores[str(Path(path).parent)] = float("-inf") if score is None else score
-best = max(scores, key=scores.get)
-print(f"best validation score per stage: {scores}; keeping {best}", file=sys.stderr)
-print(Path(best) / "best.pt")
-EOF
-)
+# Stage 2's best, by the sequential validation score the node's use calls for; stage 1 is
+# validated frame by frame from a zero state, a score of another kind.
+best="$RUN/lanes/best.pt"
 cp "$best" "$WEIGHTS"
 
 echo "== 4/4 evaluation on the held-out test split"

@@ -167,3 +167,26 @@ def test_ddp_two_cpu_processes(tmp_path):
     # only rank 0 wrote: one summary printed, one log line per validation
     assert proc.stdout.count('"steps": 4') == 1
     assert [json.loads(s)["step"] for s in (out / "log.jsonl").read_text().splitlines()] == [2, 4]
+
+
+def test_per_frame_validation_judges_each_frame_from_a_zero_state():
+    from signal_light_node.model import ModelConfig, build_model
+
+    torch.manual_seed(0)
+    model = build_model(ModelConfig(**TINY))
+    rng = np.random.default_rng(0)
+    t = 5
+    labels = np.stack([rng.integers(0, k, t) for k in (5, 3, 3, 3, 4)], 1)
+    item = {"crops": rng.integers(0, 255, (t, 16, 16, 3), dtype=np.uint8), "labels": labels,
+            "mask": np.ones(t, bool), "meta": {"fps": 10.0}}
+    # The same frames as five one-frame sequences: what per-frame validation must equal.
+    singles = [{"crops": item["crops"][i:i + 1], "labels": labels[i:i + 1],
+                "mask": np.ones(1, bool), "meta": {"fps": 10.0}} for i in range(t)]
+    weights = {task: 1.0 for task in TASKS}
+    per_frame = validate(model, [item], torch.device("cpu"), weights, warmup=2, per_frame=True)
+    alone = validate(model, singles, torch.device("cpu"), weights, warmup=0)
+    stateful = validate(model, [item], torch.device("cpu"), weights, warmup=0)
+    assert per_frame["loss"] == pytest.approx(alone["loss"], rel=1e-5)
+    assert per_frame["accuracy"] == alone["accuracy"]
+    # Carrying the state through the sequence is a different judgement.
+    assert stateful["loss"] != pytest.approx(alone["loss"], rel=1e-5)

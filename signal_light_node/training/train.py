@@ -23,7 +23,7 @@ Recipe (after the research the model follows, scaled to a CPU):
   slower than training, so this doubles the steps per minute.
 * **Validation** every ``val_every`` steps on a fixed split: loss and the metrics of
   :mod:`signal_light_node.metrics` on frames after ``val_warmup`` frames of each
-  sequence; the best checkpoint by :func:`signal_light_node.metrics.selection_score`
+  sequence (``--mode frames``: every frame alone from a zero state, as it trains); the best checkpoint by :func:`signal_light_node.metrics.selection_score`
   (mean of intent macro-F1 and brake accuracy) is kept as ``best.pt``.
 * **Files** in ``out``: ``last.pt`` / ``best.pt`` (model checkpoints), ``last.state.pt``
   (optimizer, scheduler, step, counters, RNG: what ``--resume`` needs), ``log.jsonl``
@@ -549,11 +549,17 @@ def _batch_accuracy(logits: Mapping[str, torch.Tensor], labels: torch.Tensor,
 @torch.no_grad()
 def validate(model: nn.Module, items: Sequence[Mapping[str, Any]], device: torch.device,
              task_weights: Mapping[str, float], warmup: int, batch: int = 16,
-             warmup_seconds: float = 0.0) -> Dict[str, Any]:
+             warmup_seconds: float = 0.0, per_frame: bool = False) -> Dict[str, Any]:
     """Loss and metrics of ``model`` on fixed sequence items (eval mode, no class weights).
 
     The first ``max(warmup, warmup_seconds * fps)`` frames of each sequence are left out
     of the metrics and of the intent/left/right loss.
+
+    Args:
+        per_frame: Judge every frame alone from a zero state, with no warm-up, as the
+            per-frame stage trains. A model that never saw a carried state is otherwise
+            judged on states it was not trained for, and the plateau schedule cuts its
+            learning rate on that drift instead of on what it learns.
 
     Returns:
         ``{"loss": float, "summary": metrics summary, "accuracy": {task: acc}, "score": float}``;
@@ -569,9 +575,15 @@ def validate(model: nn.Module, items: Sequence[Mapping[str, Any]], device: torch
             x = batch_input(chunk["crops"], device)
             labels = chunk["labels"].to(device)
             mask = chunk["mask"].to(device)
-            warm = warmup_frames(chunk["meta"].get("fps", [None] * len(x)), warmup,
-                                 warmup_seconds).to(device)
-            logits, _ = model(x)
+            if per_frame:
+                n_seq, n_t = x.shape[:2]
+                warm = torch.zeros(n_seq, dtype=torch.long, device=device)
+                logits, _ = model(x.flatten(0, 1).unsqueeze(1))
+                logits = {t: v.reshape(n_seq, n_t, -1) for t, v in logits.items()}
+            else:
+                warm = warmup_frames(chunk["meta"].get("fps", [None] * len(x)), warmup,
+                                     warmup_seconds).to(device)
+                logits, _ = model(x)
             loss, _ = multitask_loss(logits, labels, mask, task_weights, None, warm)
             n = float(mask.sum())
             losses.append(float(loss) * n)
@@ -852,7 +864,8 @@ class Trainer:
         loss = math.nan
         if self.dist.main and self.val_items:
             val = validate(self.model, self.val_items, self.device, self.opts.task_weights,
-                           self.opts.val_warmup, warmup_seconds=self.opts.val_warmup_seconds)
+                           self.opts.val_warmup, warmup_seconds=self.opts.val_warmup_seconds,
+                           per_frame=self.opts.mode == "frames")
             loss = val["loss"]
         loss = _broadcast_float(loss, self.dist, self.device)
         if not math.isnan(loss):
