@@ -133,8 +133,7 @@ echo "== 3/4 best checkpoint -> $WEIGHTS"
 mkdir -p "$(dirname "$WEIGHTS")"
 # Stage 2's best, by the sequential validation score the node's use calls for; stage 1 is
 # validated frame by frame from a zero state, a score of another kind.
-best="$RUN/lanes/best.pt"
-cp "$best" "$WEIGHTS"
+cp "$RUN/lanes/best.pt" "$WEIGHTS"
 
 echo "== 4/4 evaluation on the held-out test split"
 signal-light evaluate --checkpoint "$WEIGHTS" --split "$DATA/test_split" \

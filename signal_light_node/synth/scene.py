@@ -67,12 +67,6 @@ def _lamp_poly(lamp: Lamp) -> np.ndarray:
     return np.array([[u0, v0], [u1, v0], [u1, v1], [u0, v1]], np.float32)
 
 
-def _polygon_area(points: np.ndarray) -> float:
-    """Area of a simple polygon ``[K, 2]`` in pixels (shoelace formula)."""
-    x, y = points[:, 0], points[:, 1]
-    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
-
-
 def _segment_polys(lamp: Lamp) -> List[np.ndarray]:
     """Segments of a sequential lamp ordered from the inner end to the outer end."""
     u0, v0, u1, v1 = lamp.rect
@@ -730,7 +724,7 @@ class SceneRenderer:
                 outside = max(0.0, (fx1 - fx0) * (fy1 - fy0) - (ix1 - ix0) * (iy1 - iy0))
                 frac = n_vis / max(1.0, n_sil + outside * 0.8)
             if frac >= LAMP_VISIBLE_FRACTION:
-                area = sum(_polygon_area(P[a:b]) for a, b in polys)
+                area = sum(cv2.contourArea(P[a:b].astype(np.float32)) for a, b in polys)
                 seen.append((lamp.role, lamp.side, frac * area))
             # Unlit lens, then the lit colour blended in by the level.
             lens = v.lens_cols[li]

@@ -23,8 +23,9 @@ Recipe (after the research the model follows, scaled to a CPU):
   slower than training, so this doubles the steps per minute.
 * **Validation** every ``val_every`` steps on a fixed split: loss and the metrics of
   :mod:`signal_light_node.metrics` on frames after ``val_warmup`` frames of each
-  sequence (``--mode frames``: every frame alone from a zero state, as it trains); the best checkpoint by :func:`signal_light_node.metrics.selection_score`
-  (mean of intent macro-F1 and brake accuracy) is kept as ``best.pt``.
+  sequence (``--mode frames``: every frame alone from a zero state, as it trains); the
+  best checkpoint by :func:`signal_light_node.metrics.selection_score` (mean of intent
+  macro-F1 and brake accuracy) is kept as ``best.pt``.
 * **Files** in ``out``: ``last.pt`` / ``best.pt`` (model checkpoints), ``last.state.pt``
   (optimizer, scheduler, step, counters, RNG: what ``--resume`` needs), ``log.jsonl``
   (one line per validation) and ``options.json``.
