@@ -211,6 +211,22 @@ def test_training_mode_has_gradients_and_dropout() -> None:
     assert not torch.allclose(logits["intent"], again["intent"])  # dropout is active
 
 
+def test_frozen_encoder_gets_no_gradients_and_keeps_its_norm_statistics() -> None:
+    model = tiny_model()
+    model.freeze_encoder()
+    model.train()
+    # Norm layers of the frozen part stay in eval mode, whatever train() is asked for.
+    assert not model.backbone.training and not model.attention_net.training
+    assert model.cells.training and model.fc.training
+    running_before = model.backbone[0][1].running_mean.clone()
+    logits, _ = model.forward_sequence(random_crops(4, t=3))
+    sum(v.sum() for v in logits.values()).backward()
+    assert all(p.grad is None for p in model.backbone.parameters())
+    assert all(p.grad is None for p in model.attention_net.parameters())
+    assert all(p.grad is not None for p in model.cells.parameters())
+    torch.testing.assert_close(model.backbone[0][1].running_mean, running_before)
+
+
 def test_to_input_layout_and_range() -> None:
     crops = np.zeros((2, 24, 24, 3), np.uint8)
     crops[0, 3, 5] = (255, 128, 0)  # B, G, R of one pixel

@@ -119,6 +119,22 @@ def test_tiny_model_overfits_fixed_sequences(tmp_path):
     assert "UCM" in best.meta["training_data"]["sources"][0]
 
 
+def test_frozen_encoder_run_moves_only_the_recurrent_part_and_heads(tmp_path):
+    ucm = tmp_path / "ucm"
+    make_ucm(ucm, CODES[:3], frames=8)
+    with pytest.raises(ConfigError, match="needs --init-from"):
+        tiny_options(tmp_path / "bad", ucm, freeze_encoder=True).validate()
+    Trainer(tiny_options(tmp_path / "init", ucm, max_steps=1)).run()
+    init = load_checkpoint(tmp_path / "init" / "last.pt").model.state_dict()
+    Trainer(tiny_options(tmp_path / "run", ucm, max_steps=5, freeze_encoder=True,
+                         init_from=tmp_path / "init" / "last.pt")).run()
+    trained = load_checkpoint(tmp_path / "run" / "last.pt").model.state_dict()
+    for name, before in init.items():
+        unchanged = torch.equal(before, trained[name])
+        encoder = name.startswith(("backbone.", "attention_net."))
+        assert unchanged == encoder or name.endswith("num_batches_tracked"), name
+
+
 def test_resume_continues_from_saved_step(tmp_path):
     ucm = tmp_path / "ucm"
     make_ucm(ucm, CODES[:3], frames=8)

@@ -74,6 +74,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="resume from CKPT (default OUT/last.pt) and its .state.pt")
     g.add_argument("--init-from", default=None, metavar="CKPT",
                    help="start from these weights ('default' = the shipped weights)")
+    g.add_argument("--freeze-encoder", action="store_true",
+                   help="train only the ConvLSTM and the heads on the --init-from encoder")
     add_torch_options(g)
 
     g = parser.add_argument_group("data")
@@ -149,7 +151,8 @@ def options_from_args(args: argparse.Namespace) -> "Any":
         val_sequences=args.val_sequences, val_every=args.val_every,
         val_fraction=args.val_fraction, plateau_patience=args.patience, device=args.device,
         seed=args.seed, threads=args.threads, workers=args.workers, resume=resume,
-        init_from=Path(args.init_from) if args.init_from else None, bags=list(args.bags),
+        init_from=Path(args.init_from) if args.init_from else None,
+        freeze_encoder=args.freeze_encoder, bags=list(args.bags),
         ucm=list(args.ucm), pools=list(args.pools), mode=args.mode,
         synthetic_fraction=args.synthetic_fraction,
         mirror_prob=0.0 if args.no_mirror else 0.5, jitter=not args.no_jitter,

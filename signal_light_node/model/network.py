@@ -146,6 +146,7 @@ class LightStateNet(nn.Module):
         )
         self.heads = nn.ModuleDict({t: nn.Linear(config.fc_hidden, config.num_classes[t])
                                     for t in TASKS})
+        self._encoder_frozen = False
         self._init_weights()
         self.to(memory_format=MEMORY_FORMAT)
 
@@ -190,6 +191,29 @@ class LightStateNet(nn.Module):
         if self.attention_net is not None:
             x = x * self.attention_net(x)
         return self.backbone(x)
+
+    def _encoder_modules(self) -> List[nn.Module]:
+        return [m for m in (self.attention_net, self.backbone) if m is not None]
+
+    def freeze_encoder(self) -> None:
+        """Fix the per-frame part (attention, backbone): no gradients, norms in eval mode.
+
+        Training then only moves the ConvLSTM and the heads, and back-propagation stops
+        at the features, so a step costs a fraction of a full one (used to learn time
+        on top of a per-frame pre-trained encoder).
+        """
+        for module in self._encoder_modules():
+            module.requires_grad_(False)
+        self._encoder_frozen = True
+        self.train(self.training)
+
+    def train(self, mode: bool = True) -> "LightStateNet":
+        """``nn.Module.train``, except that a frozen encoder stays in eval mode."""
+        super().train(mode)
+        if self._encoder_frozen:
+            for module in self._encoder_modules():
+                module.eval()
+        return self
 
     # ------------------------------------------------------------------ recurrent part
 

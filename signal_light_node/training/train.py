@@ -144,6 +144,8 @@ class TrainOptions:
         workers: DataLoader worker processes for the synthetic stream (0: in-process).
         resume: Checkpoint to resume from (its ``.state.pt`` beside it), or None.
         init_from: Checkpoint whose weights (and model config) start the run, or None.
+        freeze_encoder: Train only the ConvLSTM and the heads; the attention and the
+            backbone keep their (``init_from``) weights (``LightStateNet.freeze_encoder``).
         bags: Labelled bags to train on.
         ucm: UC Merced rear-signal dataset roots to train on.
         pools: Materialised synthetic splits (``data.split``) to train on, as tracks.
@@ -197,6 +199,7 @@ class TrainOptions:
     workers: int = 1
     resume: Optional[Path] = None
     init_from: Optional[Path] = None
+    freeze_encoder: bool = False
     bags: List[Path] = field(default_factory=list)
     ucm: List[Path] = field(default_factory=list)
     pools: List[Path] = field(default_factory=list)
@@ -249,6 +252,9 @@ class TrainOptions:
             if self.ucm:
                 raise ConfigError(f"--mode {self.mode} needs in-memory tracks; UCM frames are "
                                   "read lazily, use --mode windows for --ucm")
+        if self.freeze_encoder and self.init_from is None and self.resume is None:
+            raise ConfigError("--freeze-encoder needs --init-from (or --resume): a frozen "
+                              "untrained encoder would never learn")
         if not 0 <= self.val_fraction < 1:
             raise ConfigError(f"validation fraction must be in [0, 1), got {self.val_fraction}")
         if not str(self.device).startswith(("cpu", "cuda")):
@@ -664,6 +670,11 @@ class Trainer:
         else:
             self.config = ModelConfig().replace(**opts.model) if opts.model else ModelConfig()
             model = build_model(self.config)
+        if opts.freeze_encoder:
+            if not hasattr(model, "freeze_encoder"):
+                raise ConfigError(f"--freeze-encoder: architecture {self.config.arch!r} has no "
+                                  "encoder to freeze")
+            model.freeze_encoder()
         self.model = model.to(self.device).train()
         self.crop = self.config.crop_config()
 
