@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Produce the shipped weights signal_light_node/weights/default.pt -- the one documented
-# command (about 65 minutes on a 2-core CPU with the defaults below):
+# command (about 80 minutes on a 2-core CPU with the defaults below):
 #
 #   scripts/train_default.sh
 #
@@ -12,7 +12,10 @@
 #      anywhere in the pool per step, so every step sees many different vehicles;
 #      stage 2, stateful lanes (--mode lanes) from the stage-1 weights: LANES tracks
 #      played side by side, SEQ_LEN frames per step, each lane's ConvLSTM state carried
-#      from step to step as in the node (this is where blinks are learnt);
+#      from step to step as in the node (this is where blinks are learnt); with
+#      LANE_FREEZE=1 (default) the attention and backbone keep their stage-1 weights
+#      (--freeze-encoder): steps cost about a quarter less, and the per-frame features,
+#      which overfit the pool's vehicles when trained on, stay as stage 1 left them;
 #   3. stage 2's best checkpoint (validation score, tracks stepped with their state as in
 #      the node) is copied to signal_light_node/weights/default.pt;
 #   4. it is evaluated frame by frame on the test split (metrics.json / metrics.md / PNG
@@ -43,12 +46,12 @@ DATA=${DATA:-$RUN}                   # where the pool, validation and test split
 TRAIN_ARGS=${TRAIN_ARGS:-}           # extra `signal-light train` options for both stages
 WEIGHTS=${WEIGHTS:-signal_light_node/weights/default.pt}
 SEED=${SEED:-1}                      # model init and sampling
-POOL_SEEDS=${POOL_SEEDS:-"11 12"}    # training pool: one split per seed
+POOL_SEEDS=${POOL_SEEDS:-"11 12 13 14"}  # training pool: one split per seed
 POOL_TRACKS=${POOL_TRACKS:-800}      # whole tracks per pool seed
 POOL_FRAMES=${POOL_FRAMES:-150}      # frames per rendered scene
 VAL_SEED=${VAL_SEED:-700001}         # validation split
 TEST_SEED=${TEST_SEED:-900001}       # test split: never trained or validated on
-FRAME_MINUTES=${FRAME_MINUTES:-30}   # stage 1
+FRAME_MINUTES=${FRAME_MINUTES:-35}   # stage 1
 FRAME_STEPS=${FRAME_STEPS:-1000000}  # (the time budget ends it first by default)
 FRAME_BATCH=${FRAME_BATCH:-64}
 FRAME_LR=${FRAME_LR:-1e-3}
@@ -57,6 +60,7 @@ LANE_STEPS=${LANE_STEPS:-1000000}
 LANES=${LANES:-32}
 SEQ_LEN=${SEQ_LEN:-12}
 LANE_LR=${LANE_LR:-5e-4}
+LANE_FREEZE=${LANE_FREEZE:-1}        # 1: stage 2 trains only the ConvLSTM and the heads
 VAL_EVERY=${VAL_EVERY:-500}          # steps between validations in stage 1 (stage 2: / 4)
 VAL_SEQUENCES=${VAL_SEQUENCES:-128}
 VAL_LEN=${VAL_LEN:-48}
@@ -125,9 +129,13 @@ echo "== 2/4 stage 1: single frames for $FRAME_MINUTES minutes (batch $FRAME_BAT
 stage frames "$FRAME_MINUTES" "$FRAME_STEPS" --mode frames --batch "$FRAME_BATCH" --lr "$FRAME_LR" \
   --val-every "$VAL_EVERY"
 echo "== 2/4 stage 2: lanes for $LANE_MINUTES minutes ($LANES lanes x $SEQ_LEN frames)"
+freeze=()
+if [[ "$LANE_FREEZE" == 1 ]]; then
+  freeze=(--freeze-encoder)
+fi
 stage lanes "$LANE_MINUTES" "$LANE_STEPS" --mode lanes --batch "$LANES" --seq-len "$SEQ_LEN" \
   --lr "$LANE_LR" --val-every "$(( VAL_EVERY / 4 > 0 ? VAL_EVERY / 4 : 1 ))" \
-  --init-from "$RUN/frames/best.pt"
+  --init-from "$RUN/frames/best.pt" "${freeze[@]}"
 
 echo "== 3/4 best checkpoint -> $WEIGHTS"
 mkdir -p "$(dirname "$WEIGHTS")"
