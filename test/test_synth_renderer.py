@@ -144,6 +144,21 @@ def test_occluded_lamp_turns_unknown():
     assert v.box[0] >= pole[2] - 2  # the tight box covers only the visible part
 
 
+def test_centre_brake_lamp_alone_shows_the_brake():
+    # From behind, both tail lamps hidden by poles; only the centre brake lamp between them shows.
+    free = list(_one_vehicle(View.BEHIND, Intent.OFF, brake=True, chmsl=True).frames(1))[0].vehicles[0]
+    x0, _, x1, _ = free.box
+    width = x1 - x0
+    poles = [(x0 - 10, 0, x0 + 0.35 * width, 360), (x1 - 0.35 * width, 0, x1 + 10, 360)]
+    for brake, label in ((True, LightStatus.ON), (False, LightStatus.OFF)):
+        (f,) = list(_one_vehicle(View.BEHIND, Intent.OFF, brake=brake, chmsl=True, occluders=poles).frames(1))
+        (v,) = f.vehicles
+        assert (v.left, v.right) == (LightStatus.UNKNOWN, LightStatus.UNKNOWN)
+        assert v.brake == label
+    # Without a centre brake lamp nothing left in sight tells the brake.
+    (f,) = list(_one_vehicle(View.BEHIND, Intent.OFF, brake=True, chmsl=False, occluders=poles).frames(1))
+    assert f.vehicles[0].brake == LightStatus.UNKNOWN
+
 def test_vehicle_mostly_outside_the_image_is_not_listed():
     # Side view, 300 px long, pointing to the image left: its front end is cut off first.
     (f,) = list(_one_vehicle(View.LEFT, Intent.LEFT, center_x=-142, width_px=300).frames(1))

@@ -766,7 +766,9 @@ class SceneRenderer:
                 continue
             if role in ("turn", "turn_tail") and side in ("L", "R"):
                 visible[side] = True
-            if role in ("tail", "turn_tail", "chmsl") and side != "C":
+            # The centre brake lamp shows the brake on its own; a centre tail bar does not
+            # (it never brightens on braking).
+            if role == "chmsl" or (role in ("tail", "turn_tail") and side != "C"):
                 visible["brake"] = True
         left = (LightStatus.ON if left_on else LightStatus.OFF) if visible["L"] else LightStatus.UNKNOWN
         right = (LightStatus.ON if right_on else LightStatus.OFF) if visible["R"] else LightStatus.UNKNOWN
