@@ -1,15 +1,19 @@
 #!/usr/bin/env bash
 # Produce the shipped weights signal_light_node/weights/default.pt -- the one documented
-# command (about 80 minutes on a 2-core CPU with the defaults below):
+# command (about 85 minutes on a 2-core CPU with the defaults below):
 #
 #   scripts/train_default.sh
 #
 # Steps:
 #   1. materialise the training pool (POOL_TRACKS whole tracks per seed of POOL_SEEDS,
-#      rendered in parallel), a validation split (windows) and a held-out test split
-#      (whole tracks) from seeds that training never uses;
+#      rendered in parallel), a pool of short tracks for stage 1 only (FRAME_POOL_TRACKS
+#      tracks of at most FRAME_POOL_FRAMES frames per seed of FRAME_POOL_SEEDS), a
+#      validation split (windows) and a held-out test split (whole tracks) from seeds
+#      that training never uses;
 #   2. stage 1, per-frame pre-training (--mode frames): FRAME_BATCH single frames from
-#      anywhere in the pool per step, so every step sees many different vehicles;
+#      anywhere in both pools per step, so every step sees many different vehicles (the
+#      short tracks give about four times as many vehicles per rendered frame and per
+#      byte of memory: the encoder overfits the vehicles it has seen);
 #      stage 2, stateful lanes (--mode lanes) from the stage-1 weights: LANES tracks
 #      played side by side, SEQ_LEN frames per step, each lane's ConvLSTM state carried
 #      from step to step as in the node (this is where blinks are learnt); with
@@ -27,8 +31,9 @@
 # lanes then only have to learn time.
 #
 # Every setting can be overridden from the environment, e.g. a 3-minute smoke run:
-#   RUN=runs/smoke POOL_TRACKS=16 FRAME_MINUTES=1 LANE_MINUTES=1 VAL_SEQUENCES=16 \
-#     TEST_TRACKS=12 TEST_FRAMES=40 WEIGHTS=runs/smoke/default.pt scripts/train_default.sh
+#   RUN=runs/smoke POOL_TRACKS=16 FRAME_POOL_TRACKS=32 FRAME_MINUTES=1 LANE_MINUTES=1 \
+#     VAL_SEQUENCES=16 TEST_TRACKS=12 TEST_FRAMES=40 WEIGHTS=runs/smoke/default.pt \
+#     scripts/train_default.sh
 # DATA keeps the rendered splits apart from RUN (the checkpoints), TRAIN_ARGS adds options
 # to both stages and FRAME_STEPS / LANE_STEPS cap them by steps: scripts/ablations.sh uses
 # these to train variants on the same data with the same number of steps; DATA_ONLY=1
@@ -49,13 +54,16 @@ SEED=${SEED:-1}                      # model init and sampling
 POOL_SEEDS=${POOL_SEEDS:-"11 12 13 14"}  # training pool: one split per seed
 POOL_TRACKS=${POOL_TRACKS:-800}      # whole tracks per pool seed
 POOL_FRAMES=${POOL_FRAMES:-150}      # frames per rendered scene
+FRAME_POOL_SEEDS=${FRAME_POOL_SEEDS:-"21 22 23 24"}  # short tracks, stage 1 only ("" = none)
+FRAME_POOL_TRACKS=${FRAME_POOL_TRACKS:-2400}  # tracks per seed
+FRAME_POOL_FRAMES=${FRAME_POOL_FRAMES:-40}    # frames per rendered scene
 VAL_SEED=${VAL_SEED:-700001}         # validation split
 TEST_SEED=${TEST_SEED:-900001}       # test split: never trained or validated on
 FRAME_MINUTES=${FRAME_MINUTES:-35}   # stage 1
 FRAME_STEPS=${FRAME_STEPS:-1000000}  # (the time budget ends it first by default)
 FRAME_BATCH=${FRAME_BATCH:-64}
 FRAME_LR=${FRAME_LR:-1e-3}
-LANE_MINUTES=${LANE_MINUTES:-30}     # stage 2
+LANE_MINUTES=${LANE_MINUTES:-27}     # stage 2
 LANE_STEPS=${LANE_STEPS:-1000000}
 LANES=${LANES:-32}
 SEQ_LEN=${SEQ_LEN:-12}
@@ -70,17 +78,25 @@ THREADS=${THREADS:-2}
 
 mkdir -p "$RUN" "$DATA"
 start=$(date +%s)
-echo "== 1/4 data: pool (seeds $POOL_SEEDS), validation (seed $VAL_SEED), test (seed $TEST_SEED) in $DATA"
-pools=()
+echo "== 1/4 data: pool (seeds $POOL_SEEDS), short-track pool (seeds $FRAME_POOL_SEEDS)," \
+  "validation (seed $VAL_SEED), test (seed $TEST_SEED) in $DATA"
+pools=()        # both stages
+frame_pools=()  # stage 1 only
 pids=()
-for seed in $POOL_SEEDS; do
-  pools+=(--pool "$DATA/pool_$seed")
-  if [[ ! -f "$DATA/pool_$seed/manifest.json" ]]; then
-    python -m signal_light_node.data.split "$DATA/pool_$seed" --seed "$seed" \
-      --sequences "$POOL_TRACKS" --seq-len "$POOL_FRAMES" --full-tracks --overwrite \
-      > "$DATA/pool_$seed.log" 2>&1 &
+render_pool() {  # render_pool SEED TRACKS FRAMES: one pool split in the background
+  if [[ ! -f "$DATA/pool_$1/manifest.json" ]]; then
+    python -m signal_light_node.data.split "$DATA/pool_$1" --seed "$1" \
+      --sequences "$2" --seq-len "$3" --full-tracks --overwrite > "$DATA/pool_$1.log" 2>&1 &
     pids+=($!)
   fi
+}
+for seed in $POOL_SEEDS; do
+  pools+=(--pool "$DATA/pool_$seed")
+  render_pool "$seed" "$POOL_TRACKS" "$POOL_FRAMES"
+done
+for seed in $FRAME_POOL_SEEDS; do
+  frame_pools+=(--pool "$DATA/pool_$seed")
+  render_pool "$seed" "$FRAME_POOL_TRACKS" "$FRAME_POOL_FRAMES"
 done
 python - "$DATA" "$VAL_SEED" "$VAL_SEQUENCES" "$VAL_LEN" "$TEST_SEED" "$TEST_TRACKS" "$TEST_FRAMES" <<'EOF'
 import sys
@@ -127,7 +143,7 @@ stage() {  # stage NAME MINUTES STEPS ARGS...: train unless it finished; resume 
 
 echo "== 2/4 stage 1: single frames for $FRAME_MINUTES minutes (batch $FRAME_BATCH)"
 stage frames "$FRAME_MINUTES" "$FRAME_STEPS" --mode frames --batch "$FRAME_BATCH" --lr "$FRAME_LR" \
-  --val-every "$VAL_EVERY"
+  --val-every "$VAL_EVERY" "${frame_pools[@]}"
 echo "== 2/4 stage 2: lanes for $LANE_MINUTES minutes ($LANES lanes x $SEQ_LEN frames)"
 freeze=()
 if [[ "$LANE_FREEZE" == 1 ]]; then
