@@ -159,6 +159,7 @@ def test_centre_brake_lamp_alone_shows_the_brake():
     (f,) = list(_one_vehicle(View.BEHIND, Intent.OFF, brake=True, chmsl=False, occluders=poles).frames(1))
     assert f.vehicles[0].brake == LightStatus.UNKNOWN
 
+
 def test_vehicle_mostly_outside_the_image_is_not_listed():
     # Side view, 300 px long, pointing to the image left: its front end is cut off first.
     (f,) = list(_one_vehicle(View.LEFT, Intent.LEFT, center_x=-142, width_px=300).frames(1))
