@@ -13,7 +13,10 @@
 #   2. stage 1, per-frame pre-training (--mode frames): FRAME_BATCH single frames from
 #      anywhere in both pools per step, so every step sees many different vehicles (the
 #      short tracks give about four times as many vehicles per rendered frame and per
-#      byte of memory: the encoder overfits the vehicles it has seen);
+#      byte of memory: the encoder overfits the vehicles it has seen); with
+#      FRAME_TARGETS=lit (default) the heads learn what each frame shows (a blinker in
+#      the dark half of its blink counts as off), not the logical states, whose dark
+#      halves are noise to a model that sees one frame;
 #      stage 2, stateful lanes (--mode lanes) from the stage-1 weights: LANES tracks
 #      played side by side, SEQ_LEN frames per step, each lane's ConvLSTM state carried
 #      from step to step as in the node (this is where blinks are learnt); with
@@ -63,6 +66,7 @@ FRAME_MINUTES=${FRAME_MINUTES:-35}   # stage 1
 FRAME_STEPS=${FRAME_STEPS:-1000000}  # (the time budget ends it first by default)
 FRAME_BATCH=${FRAME_BATCH:-64}
 FRAME_LR=${FRAME_LR:-1e-3}
+FRAME_TARGETS=${FRAME_TARGETS:-lit}  # stage 1 labels: lit (what a frame shows) or state
 LANE_MINUTES=${LANE_MINUTES:-27}     # stage 2
 LANE_STEPS=${LANE_STEPS:-1000000}
 LANES=${LANES:-32}
@@ -143,7 +147,7 @@ stage() {  # stage NAME MINUTES STEPS ARGS...: train unless it finished; resume 
 
 echo "== 2/4 stage 1: single frames for $FRAME_MINUTES minutes (batch $FRAME_BATCH)"
 stage frames "$FRAME_MINUTES" "$FRAME_STEPS" --mode frames --batch "$FRAME_BATCH" --lr "$FRAME_LR" \
-  --val-every "$VAL_EVERY" "${frame_pools[@]}"
+  --frame-targets "$FRAME_TARGETS" --val-every "$VAL_EVERY" "${frame_pools[@]}"
 echo "== 2/4 stage 2: lanes for $LANE_MINUTES minutes ($LANES lanes x $SEQ_LEN frames)"
 freeze=()
 if [[ "$LANE_FREEZE" == 1 ]]; then

@@ -32,6 +32,7 @@ def take(stream: SyntheticSequenceStream, n: int, worker_id: int = 0) -> List[It
 def assert_same_item(a: Item, b: Item) -> None:
     np.testing.assert_array_equal(a["crops"], b["crops"])
     np.testing.assert_array_equal(a["labels"], b["labels"])
+    np.testing.assert_array_equal(a["lit_labels"], b["lit_labels"])
     np.testing.assert_array_equal(a["mask"], b["mask"])
     assert a["meta"].keys() == b["meta"].keys()
     for key, value in a["meta"].items():
@@ -79,11 +80,20 @@ def test_items_have_the_documented_shapes_and_types(plain_items):
 
 def test_labels_are_in_range_and_consistent(plain_items):
     labels = np.concatenate([item["labels"] for item in plain_items])
-    for task, column in COL.items():
-        assert labels[:, column].min() >= 0
-        assert labels[:, column].max() < len(CLASS_NAMES[task])
-    for row in labels:
-        assert row[COL["intent"]] == intent_from_lights(row[COL["left"]], row[COL["right"]])
+    lit = np.concatenate([item["lit_labels"] for item in plain_items])
+    for rows in (labels, lit):
+        for task, column in COL.items():
+            assert rows[:, column].min() >= 0
+            assert rows[:, column].max() < len(CLASS_NAMES[task])
+        for row in rows:
+            assert row[COL["intent"]] == intent_from_lights(row[COL["left"]], row[COL["right"]])
+    # A frame shows a blinker lit only while it is on, and hides only what is hidden.
+    for side in ("left", "right"):
+        state, shown = labels[:, COL[side]], lit[:, COL[side]]
+        assert not ((shown == LightStatus.ON) & (state != LightStatus.ON)).any()
+        np.testing.assert_array_equal(shown == LightStatus.UNKNOWN, state == LightStatus.UNKNOWN)
+    for task in ("brake", "view"):
+        np.testing.assert_array_equal(lit[:, COL[task]], labels[:, COL[task]])
 
 
 def test_same_seed_and_worker_repeat_others_differ():
@@ -126,7 +136,10 @@ def test_mirroring_a_forced_case():
     ], dtype=np.int64)
     item = {"crops": crops, "labels": labels, "mask": np.array([True, True, False]),
             "meta": {"mirrored": False}}
+    assert "lit_labels" not in mirror_sequence(item)  # items from bags have none
+    item["lit_labels"] = labels.copy()
     out = mirror_sequence(item)
+    np.testing.assert_array_equal(out["lit_labels"], out["labels"])
     assert out["crops"][:, :, -8:].min() == 200 and out["crops"][:, :, :-8].max() == 0
     np.testing.assert_array_equal(out["labels"], [
         [Intent.RIGHT, LightStatus.OFF, LightStatus.OFF, LightStatus.ON, View.FRONT],

@@ -66,6 +66,18 @@ def test_front_view_left_signal_lights_the_image_right_half():
     assert right_half > 5 * max(left_half, 1.0), (left_half, right_half)
 
 
+def test_lit_labels_follow_the_blink_phase_of_each_frame():
+    lit, dark = _lit_and_dark(_one_vehicle(View.FRONT, Intent.LEFT))
+    (v_lit,), (v_dark,) = lit.vehicles, dark.vehicles
+    # The logical state is ON in both halves; what one frame shows is not.
+    assert (v_lit.left_lit, v_dark.left_lit) == (LightStatus.ON, LightStatus.OFF)
+    assert v_lit.right_lit == v_dark.right_lit == LightStatus.OFF
+    hidden = _one_vehicle(View.LEFT, Intent.RIGHT)  # the right side faces away
+    for frame in hidden.frames(8):
+        (v,) = frame.vehicles
+        assert v.right == v.right_lit == LightStatus.UNKNOWN
+
+
 @pytest.mark.parametrize("design", ["amber", "red_combined", "led_strip", "sequential"])
 def test_behind_view_left_signal_lights_the_image_left_half(design):
     lit, dark = _lit_and_dark(_one_vehicle(View.BEHIND, Intent.LEFT, design=design))

@@ -1,5 +1,6 @@
 """Frame and lane batches from in-memory tracks, and the trainer's two modes that use them."""
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -7,7 +8,7 @@ import pytest
 import torch
 
 from signal_light_node.crops import CropConfig
-from signal_light_node.data.split import write_split
+from signal_light_node.data.split import SequenceSplit, write_split
 from signal_light_node.data.stream import PAD_LABEL
 from signal_light_node.errors import ConfigError
 from signal_light_node.training.sources import TrackSequence
@@ -137,3 +138,37 @@ def test_modes_are_checked(tmp_path, tiny_pool):
     with pytest.raises(ConfigError, match="cannot mix"):
         TrainOptions(out=tmp_path, max_steps=1, mode="frames", pools=[tiny_pool],
                      synthetic_fraction=0.5).validate()
+
+
+def test_frames_can_learn_what_each_frame_shows(tmp_path, tiny_pool):
+    with pytest.raises(ConfigError, match="frame-targets lit is for --mode frames"):
+        TrainOptions(out=tmp_path, max_steps=1, mode="lanes", pools=[tiny_pool],
+                     frame_targets="lit").validate()
+    with pytest.raises(ConfigError, match="frame targets must be one of"):
+        TrainOptions(out=tmp_path, max_steps=1, mode="frames", pools=[tiny_pool],
+                     frame_targets="glow").validate()
+    split = SequenceSplit(tiny_pool)
+    trainer = Trainer(pool_options(tmp_path / "lit", tiny_pool, mode="frames",
+                                   frame_targets="lit", val_fraction=0.0, val_split=tiny_pool))
+    for track, index in zip(trainer.train_tracks, range(len(split))):
+        item = split[index]
+        np.testing.assert_array_equal(track.labels, item["lit_labels"])
+    assert all(np.array_equal(v["labels"], split[i]["lit_labels"])
+               for i, v in enumerate(trainer.val_items))
+    # The pool has blinks, so the two kinds of labels really differ somewhere.
+    assert any(not np.array_equal(split[i]["labels"], split[i]["lit_labels"])
+               for i in range(len(split)))
+    assert trainer.run()["steps"] == 4
+
+
+def test_a_split_without_lit_labels_is_refused_for_lit_targets(tmp_path, tiny_pool):
+    old = tmp_path / "old"
+    shutil.copytree(tiny_pool, old)
+    for shard in old.glob("shard_*.npz"):  # as written before lit labels existed
+        with np.load(shard) as data:
+            arrays = {k: data[k] for k in data.files if k != "lit_labels"}
+        np.savez_compressed(shard, **arrays)
+    assert "lit_labels" not in SequenceSplit(old)[0]
+    Trainer(pool_options(tmp_path / "state", old, mode="frames"))  # logical states still work
+    with pytest.raises(ConfigError, match="render it again"):
+        Trainer(pool_options(tmp_path / "lit", old, mode="frames", frame_targets="lit"))

@@ -31,7 +31,7 @@ from typing import Any, Dict
 
 from signal_light_node.commands.options import add_labelled_data_options, add_torch_options
 from signal_light_node.errors import ConfigError
-from signal_light_node.training import BATCH_MODES
+from signal_light_node.training import BATCH_MODES, FRAME_TARGETS
 
 
 def _key_values(text: str, what: str) -> Dict[str, Any]:
@@ -89,6 +89,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="windows: sequences from a zero state; frames: single frames from "
                    "anywhere (per-frame pre-training); lanes: --batch tracks side by side, "
                    "--seq-len frames per step, state carried (frames/lanes need --pool/--bags)")
+    g.add_argument("--frame-targets", choices=tuple(FRAME_TARGETS), default="state",
+                   help="--mode frames only: state: the lights' logical states; lit: what "
+                   "each frame shows (a blink's dark half counts as off; --pool splits only)")
     g.add_argument("--batch", type=int, default=8,
                    help="sequences (frames in --mode frames, lanes in --mode lanes) per step "
                    "per process")
@@ -154,6 +157,7 @@ def options_from_args(args: argparse.Namespace) -> "Any":
         init_from=Path(args.init_from) if args.init_from else None,
         freeze_encoder=args.freeze_encoder, bags=list(args.bags),
         ucm=list(args.ucm), pools=list(args.pools), mode=args.mode,
+        frame_targets=args.frame_targets,
         synthetic_fraction=args.synthetic_fraction,
         mirror_prob=0.0 if args.no_mirror else 0.5, jitter=not args.no_jitter,
         model=_key_values(args.model, "--model"), stream=_key_values(args.stream, "--stream"),

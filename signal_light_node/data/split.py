@@ -66,6 +66,7 @@ def _write_shard(path: Path, items: List[Item]) -> None:
         "lengths": lengths,
         "crops": ragged(lambda it: it["crops"]),
         "labels": ragged(lambda it: it["labels"]),
+        "lit_labels": ragged(lambda it: it["lit_labels"]),
         "fps": np.array([item["meta"]["fps"] for item in items], dtype=np.float64),
         "seed": np.array([item["meta"]["seed"] for item in items], dtype=np.int64),
     }
@@ -253,6 +254,11 @@ class SequenceSplit(Dataset):
         crops[:n] = shard["crops"][a:b]
         labels = np.full((t, len(TASKS)), PAD_LABEL, dtype=np.int64)
         labels[:n] = shard["labels"][a:b]
+        item: Item = {"crops": crops, "labels": labels}
+        if "lit_labels" in shard:  # splits written before 2026-11-21 16:00 lack them
+            lit_labels = np.full((t, len(TASKS)), PAD_LABEL, dtype=np.int64)
+            lit_labels[:n] = shard["lit_labels"][a:b]
+            item["lit_labels"] = lit_labels
         mask = np.zeros(t, dtype=bool)
         mask[:n] = True
         meta: Dict[str, Any] = {"fps": float(shard["fps"][i]), "seed": int(shard["seed"][i]),
@@ -264,7 +270,8 @@ class SequenceSplit(Dataset):
             values = np.full(t, -1 if key == "frame_index" else 0, dtype=column.dtype)
             values[:n] = column[a:b]
             meta[key] = values
-        return {"crops": crops, "labels": labels, "mask": mask, "meta": meta}
+        item.update(mask=mask, meta=meta)
+        return item
 
     def summary(self) -> Dict[str, Any]:
         """The manifest's counts and label histogram."""

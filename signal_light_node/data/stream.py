@@ -15,6 +15,9 @@ Items are dicts of numpy arrays (``collate_sequences`` turns a batch into tensor
 
     crops   uint8 [T, S, S, 3]  BGR crops
     labels  int64 [T, 5]        per-frame labels in ``labels.TASKS`` order, PAD_LABEL where mask is False
+    lit_labels int64 [T, 5]     the same as the single frame shows it: a blinker is ON only in
+                                the lit half of a blink and the intent follows (per-frame
+                                pre-training targets; ``labels`` holds the logical states)
     mask    bool  [T]           True for real observations (padding only at the end)
     meta    dict                lighting (str), box_size float32 [T] (sqrt(w*h) of the tracker
                                 box), occlusion float32 [T], frame_index int64 [T] (-1 = padding),
@@ -36,7 +39,7 @@ from torch.utils.data import IterableDataset, get_worker_info
 
 from signal_light_node.crops import CropConfig, crop_vehicles
 from signal_light_node.errors import ConfigError
-from signal_light_node.labels import TASKS, mirror_labels
+from signal_light_node.labels import TASKS, intent_from_lights, mirror_labels
 
 LOG = logging.getLogger(__name__)
 
@@ -60,6 +63,7 @@ class _Track:
 
     crops: List[np.ndarray] = field(default_factory=list)
     labels: List[Tuple[int, ...]] = field(default_factory=list)
+    lit_labels: List[Tuple[int, ...]] = field(default_factory=list)
     box_size: List[float] = field(default_factory=list)
     occlusion: List[float] = field(default_factory=list)
     frame_index: List[int] = field(default_factory=list)
@@ -67,10 +71,19 @@ class _Track:
     lamp_design: str = ""
 
 
-def _labels_of(vehicle) -> Tuple[int, ...]:
-    values = {"intent": vehicle.intent, "brake": vehicle.brake, "left": vehicle.left,
-              "right": vehicle.right, "view": vehicle.view}
+def _labels_of(vehicle, lit: bool = False) -> Tuple[int, ...]:
+    left, right = (vehicle.left_lit, vehicle.right_lit) if lit else (vehicle.left, vehicle.right)
+    values = {"intent": intent_from_lights(left, right) if lit else vehicle.intent,
+              "brake": vehicle.brake, "left": left, "right": right, "view": vehicle.view}
     return tuple(int(values[task]) for task in TASKS)
+
+
+def _mirror_rows(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    mirrored_rows = labels.copy()
+    for t in np.flatnonzero(mask):
+        mirrored = mirror_labels(dict(zip(TASKS, (int(v) for v in labels[t]))))
+        mirrored_rows[t] = [mirrored[task] for task in TASKS]
+    return mirrored_rows
 
 
 def mirror_sequence(item: Item) -> Item:
@@ -86,13 +99,13 @@ def mirror_sequence(item: Item) -> Item:
         A new item with ``meta["mirrored"]`` toggled.
     """
     crops = np.ascontiguousarray(item["crops"][:, :, ::-1])
-    labels = item["labels"].copy()
-    for t in np.flatnonzero(item["mask"]):
-        mirrored = mirror_labels(dict(zip(TASKS, (int(v) for v in labels[t]))))
-        labels[t] = [mirrored[task] for task in TASKS]
     meta = dict(item["meta"])
     meta["mirrored"] = not meta.get("mirrored", False)
-    return {"crops": crops, "labels": labels, "mask": item["mask"].copy(), "meta": meta}
+    out = {"crops": crops, "labels": _mirror_rows(item["labels"], item["mask"]),
+           "mask": item["mask"].copy(), "meta": meta}
+    if "lit_labels" in item:
+        out["lit_labels"] = _mirror_rows(item["lit_labels"], item["mask"])
+    return out
 
 
 def jitter_colours(crops: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -298,6 +311,7 @@ class SyntheticSequenceStream(IterableDataset):
                 box = vehicle.tracker_box
                 track.crops.append(crop)
                 track.labels.append(_labels_of(vehicle))
+                track.lit_labels.append(_labels_of(vehicle, lit=True))
                 track.box_size.append(math.sqrt(box.width * box.height))
                 track.occlusion.append(float(vehicle.occlusion))
                 track.frame_index.append(int(frame.index))
@@ -324,6 +338,8 @@ class SyntheticSequenceStream(IterableDataset):
         crops[:n] = np.stack(track.crops[a:b])
         labels = np.full((t, len(TASKS)), PAD_LABEL, dtype=np.int64)
         labels[:n] = track.labels[a:b]
+        lit_labels = np.full((t, len(TASKS)), PAD_LABEL, dtype=np.int64)
+        lit_labels[:n] = track.lit_labels[a:b]
         mask = np.zeros(t, dtype=bool)
         mask[:n] = True
         box_size = np.zeros(t, dtype=np.float32)
@@ -335,7 +351,8 @@ class SyntheticSequenceStream(IterableDataset):
         meta = dict(base_meta, box_size=box_size, occlusion=occlusion, frame_index=frame_index,
                     track_id=track_id, kind=track.kind, lamp_design=track.lamp_design,
                     mirrored=False)
-        return {"crops": crops, "labels": labels, "mask": mask, "meta": meta}
+        return {"crops": crops, "labels": labels, "lit_labels": lit_labels, "mask": mask,
+                "meta": meta}
 
 
 def collate_sequences(batch: Sequence[Item]) -> Dict[str, Any]:

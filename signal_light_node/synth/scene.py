@@ -640,8 +640,9 @@ class SceneRenderer:
         full_area = area_in + max(0.0, full_box_area - in_box_area) * v.shape.fill_ratio
         return _Drawn(v, box, (rx0, ry0, rx1, ry1), M, canvas, alpha, full_area=max(full_area, 1.0))
 
-    def _lamp_levels(self, v: _Vehicle, t: float) -> Tuple[List[List[float]], bool, bool, bool]:
-        """Brightness of every lamp segment at time ``t`` plus (brake, left active, right active)."""
+    def _lamp_levels(self, v: _Vehicle, t: float) -> Tuple[List[List[float]], bool, bool, bool, bool]:
+        """Brightness of every lamp segment at time ``t`` plus (brake, left active, right
+        active, flasher in its lit half)."""
         st = v.style
         state, start = v.blinker.segment(t)
         brake = bool(v.brake.segment(t)[0])
@@ -651,6 +652,7 @@ class SceneRenderer:
         # (override) runs with the vehicle's phase instead.
         t_act = t + v.phase if start < -1e8 else t - start
         exp_s = self._light.exposure_s
+        flash_lit = flasher_level(t_act, st, exp_s) >= 0.5
         tail = st.tail_level if v.lights_on else 0.0
         night = self.lighting != "day"
         levels: List[List[float]] = []
@@ -691,12 +693,12 @@ class SceneRenderer:
                 levels.append([0.12 if night else 0.0])  # catches other vehicles' headlights
             else:
                 levels.append([0.0])
-        return levels, brake, left_on, right_on
+        return levels, brake, left_on, right_on, flash_lit
 
     def _lamps_and_truth(self, d: _Drawn, t: float, layer: np.ndarray, frng: np.random.Generator) -> Optional[VehicleTruth]:
         v = d.v
         rx0, ry0, rx1, ry1 = d.roi
-        levels, brake, left_on, right_on = self._lamp_levels(v, t)
+        levels, brake, left_on, right_on, flash_lit = self._lamp_levels(v, t)
         lt = self._light
         night = self.lighting != "day"
         # (role, side, visible lamp pixels) of lamps seen well enough to be labelled by the
@@ -773,11 +775,14 @@ class SceneRenderer:
         left = (LightStatus.ON if left_on else LightStatus.OFF) if visible["L"] else LightStatus.UNKNOWN
         right = (LightStatus.ON if right_on else LightStatus.OFF) if visible["R"] else LightStatus.UNKNOWN
         brake_s = (LightStatus.ON if brake else LightStatus.OFF) if visible["brake"] else LightStatus.UNKNOWN
+        # What a single frame shows: a blinker in its dark half looks like one switched off.
+        left_lit = (LightStatus.ON if left_on and flash_lit else LightStatus.OFF) if visible["L"] else LightStatus.UNKNOWN
+        right_lit = (LightStatus.ON if right_on and flash_lit else LightStatus.OFF) if visible["R"] else LightStatus.UNKNOWN
         class_id = CLASS_IDS[v.kind]
         tracker = self._tracker_box(v, (bx0, by0, bx1, by1), d, class_id, frng)
         return VehicleTruth(track_id=v.track_id, box=(bx0, by0, bx1, by1), tracker_box=tracker, brake=brake_s, left=left,
                             right=right, intent=intent_from_lights(left, right), view=v.view, occlusion=occlusion, kind=v.kind,
-                            lamp_design=v.style.design, class_id=class_id)
+                            lamp_design=v.style.design, class_id=class_id, left_lit=left_lit, right_lit=right_lit)
 
     def _tracker_box(self, v: _Vehicle, box: Tuple[float, float, float, float], d: _Drawn, class_id: str,
                      frng: np.random.Generator) -> Optional[TrackBox]:

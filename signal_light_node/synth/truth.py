@@ -29,6 +29,9 @@ class VehicleTruth:
         kind: Body type ("car", "suv", "van", "truck", "bus").
         lamp_design: Rear lamp family ("amber", "red_combined", "led_strip", "sequential").
         class_id: What a detector would call it ("car", "truck", "bus").
+        left_lit: The left blinker as this one frame shows it: ON only while its flasher
+            is in the lit half of a blink (OFF in the dark half), UNKNOWN when not visible.
+        right_lit: The same for the right blinker.
     """
 
     track_id: str
@@ -43,6 +46,8 @@ class VehicleTruth:
     kind: str
     lamp_design: str
     class_id: str
+    left_lit: LightStatus = LightStatus.UNKNOWN
+    right_lit: LightStatus = LightStatus.UNKNOWN
 
 
 @dataclass(frozen=True)

@@ -12,3 +12,7 @@
 
 #: How training batches are cut (``signal-light train --mode``; see ``TrainOptions.mode``).
 BATCH_MODES = ("windows", "frames", "lanes")
+
+#: ``signal-light train --frame-targets``: which label array of a split the per-frame
+#: stage learns (``TrainOptions.frame_targets``; see ``data.stream`` for ``lit_labels``).
+FRAME_TARGETS = {"state": "labels", "lit": "lit_labels"}

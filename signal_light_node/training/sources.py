@@ -315,11 +315,26 @@ def load_bag_tracks(path: Path, crop_config: CropConfig = CropConfig(),
 # ------------------------------------------------------------------------------ splits
 
 
-def track_from_item(item: Mapping[str, Any], track_id: str, source: str = "synthetic"
-                    ) -> TrackSequence:
-    """A :class:`TrackSequence` from a stream/split item (``crops``, ``labels``, ``mask``, ``meta``)."""
+def track_from_item(item: Mapping[str, Any], track_id: str, source: str = "synthetic",
+                    label_key: str = "labels") -> TrackSequence:
+    """A :class:`TrackSequence` from a stream/split item (``crops``, ``labels``, ``mask``, ``meta``).
+
+    Args:
+        item: The item.
+        track_id: Name used when the item's meta has no ``track_id``.
+        source: Where the item came from (for reports).
+        label_key: Which of the item's label arrays becomes the track's labels:
+            ``"labels"`` (logical light states) or ``"lit_labels"`` (what each single
+            frame shows; see ``data.stream``).
+
+    Raises:
+        ConfigError: The item has no ``label_key`` array.
+    """
+    if label_key not in item:
+        raise ConfigError(f"track {track_id} has no {label_key!r}: a split rendered before "
+                          "they were written; render it again")
     crops = np.asarray(item["crops"])
-    labels = np.asarray(item["labels"], dtype=np.int64)
+    labels = np.asarray(item[label_key], dtype=np.int64)
     n = labels.shape[0]
     mask = np.asarray(item.get("mask", np.ones(n, bool)), dtype=bool)
     meta = dict(item.get("meta") or {})
@@ -351,23 +366,25 @@ def track_from_item(item: Mapping[str, Any], track_id: str, source: str = "synth
 
 
 def split_tracks(split_dir: Path, crop: Optional[CropConfig] = None,
-                 role: str = "split") -> List[TrackSequence]:
+                 role: str = "split", label_key: str = "labels") -> List[TrackSequence]:
     """Every item of a materialised split as a track.
 
     Args:
         split_dir: The split's directory.
         crop: The model's crop settings; the split must have been cropped with them.
         role: What the split is used as, for the mismatch message.
+        label_key: The items' label array to use (see :func:`track_from_item`).
 
     Raises:
-        ConfigError: The split was cropped with other settings than ``crop``.
+        ConfigError: The split was cropped with other settings than ``crop``, or lacks
+            ``label_key``.
     """
     from signal_light_node.data.split import SequenceSplit
 
     split = SequenceSplit(split_dir)
     if crop is not None:
         split.require_crop(crop, role)
-    return [track_from_item(split[i], f"{Path(split_dir).name}:{i}", "synthetic")
+    return [track_from_item(split[i], f"{Path(split_dir).name}:{i}", "synthetic", label_key)
             for i in range(len(split))]
 
 

@@ -88,7 +88,7 @@ from signal_light_node.training.sources import (
     load_ucm_tracks,
     split_tracks,
 )
-from signal_light_node.training import BATCH_MODES
+from signal_light_node.training import BATCH_MODES, FRAME_TARGETS
 from signal_light_node.training.track_batches import FrameBatches, LaneBatches
 
 logger = logging.getLogger(__name__)
@@ -149,6 +149,11 @@ class TrainOptions:
         bags: Labelled bags to train on.
         ucm: UC Merced rear-signal dataset roots to train on.
         pools: Materialised synthetic splits (``data.split``) to train on, as tracks.
+        frame_targets: What the heads learn in ``mode`` "frames": "state" (the logical
+            light states) or "lit" (what the single frame shows: a blinker counts as ON
+            only in the lit half of a blink, intent following; pools and the validation
+            split give these as ``lit_labels``). A blink's dark half is otherwise label
+            noise for a model that sees one frame.
         mode: How batches are cut: "windows" (``batch`` windows of ``seq_len`` frames,
             each from a zero state), "frames" (``batch`` single frames from anywhere in
             the tracks: per-frame pre-training) or "lanes" (``batch`` tracks played side
@@ -204,6 +209,7 @@ class TrainOptions:
     ucm: List[Path] = field(default_factory=list)
     pools: List[Path] = field(default_factory=list)
     mode: str = "windows"
+    frame_targets: str = "state"
     synthetic_fraction: Optional[float] = None
     mirror_prob: float = 0.5
     jitter: bool = True
@@ -252,6 +258,13 @@ class TrainOptions:
             if self.ucm:
                 raise ConfigError(f"--mode {self.mode} needs in-memory tracks; UCM frames are "
                                   "read lazily, use --mode windows for --ucm")
+        if self.frame_targets not in FRAME_TARGETS:
+            raise ConfigError(f"frame targets must be one of {list(FRAME_TARGETS)}, got "
+                              f"{self.frame_targets!r}")
+        if self.frame_targets == "lit" and (self.mode != "frames" or self.bags or self.ucm):
+            raise ConfigError("--frame-targets lit is for --mode frames on --pool splits: "
+                              "only single frames are judged by what they show, and only "
+                              "rendered splits carry per-frame lamp labels")
         if self.freeze_encoder and self.init_from is None and self.resume is None:
             raise ConfigError("--freeze-encoder needs --init-from (or --resume): a frozen "
                               "untrained encoder would never learn")
@@ -469,7 +482,8 @@ def _load_sources(opts: TrainOptions, crop: CropConfig) -> List[TrackSequence]:
     for root in opts.ucm:
         tracks += load_ucm_tracks(Path(root), crop)
     for pool in opts.pools:
-        tracks += split_tracks(Path(pool), crop, role="pool")
+        tracks += split_tracks(Path(pool), crop, role="pool",
+                               label_key=FRAME_TARGETS[opts.frame_targets])
     return tracks
 
 
@@ -781,7 +795,14 @@ class Trainer:
 
             split = SequenceSplit(opts.val_split)
             split.require_crop(self.crop, "validation split")
-            return [split[i] for i in range(len(split))]
+            key = FRAME_TARGETS[opts.frame_targets]
+            items = [split[i] for i in range(len(split))]
+            if key != "labels":
+                if any(key not in item for item in items):
+                    raise ConfigError(f"validation split {opts.val_split} has no {key!r}: "
+                                      "rendered before they were written; render it again")
+                items = [dict(item, labels=item[key]) for item in items]
+            return items
         if held_out:
             win = WindowDataset(held_out, max(opts.seq_len, opts.val_seq_len), seed=opts.seed)
             return [win.window(i) for i in range(len(win.windows))]
