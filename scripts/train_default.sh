@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Produce the shipped weights signal_light_node/weights/default.pt -- the one documented
-# command (about 86 minutes from nothing on a 2-core CPU with the defaults below):
+# command (about 82 minutes from nothing on a 2-core CPU with the defaults below):
 #
 #   scripts/train_default.sh
 #
