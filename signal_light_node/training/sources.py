@@ -315,6 +315,23 @@ def load_bag_tracks(path: Path, crop_config: CropConfig = CropConfig(),
 # ------------------------------------------------------------------------------ splits
 
 
+def item_labels(item: Mapping[str, Any], label_key: str, name: str) -> np.ndarray:
+    """An item's ``label_key`` array (``"labels"`` or ``"lit_labels"``) as int64.
+
+    Args:
+        item: A stream or split item.
+        label_key: Which label array.
+        name: What the item is, for the message.
+
+    Raises:
+        ConfigError: The item has no such array (a split written before it existed).
+    """
+    if label_key not in item:
+        raise ConfigError(f"{name} has no {label_key!r}: a split rendered before they were "
+                          "written; render it again")
+    return np.asarray(item[label_key], dtype=np.int64)
+
+
 def track_from_item(item: Mapping[str, Any], track_id: str, source: str = "synthetic",
                     label_key: str = "labels") -> TrackSequence:
     """A :class:`TrackSequence` from a stream/split item (``crops``, ``labels``, ``mask``, ``meta``).
@@ -330,11 +347,8 @@ def track_from_item(item: Mapping[str, Any], track_id: str, source: str = "synth
     Raises:
         ConfigError: The item has no ``label_key`` array.
     """
-    if label_key not in item:
-        raise ConfigError(f"track {track_id} has no {label_key!r}: a split rendered before "
-                          "they were written; render it again")
+    labels = item_labels(item, label_key, f"track {track_id}")
     crops = np.asarray(item["crops"])
-    labels = np.asarray(item[label_key], dtype=np.int64)
     n = labels.shape[0]
     mask = np.asarray(item.get("mask", np.ones(n, bool)), dtype=bool)
     meta = dict(item.get("meta") or {})

@@ -84,6 +84,7 @@ from signal_light_node.training.sampling import (
 from signal_light_node.training.sources import (
     TrackSequence,
     WindowDataset,
+    item_labels,
     load_bag_tracks,
     load_ucm_tracks,
     split_tracks,
@@ -149,17 +150,17 @@ class TrainOptions:
         bags: Labelled bags to train on.
         ucm: UC Merced rear-signal dataset roots to train on.
         pools: Materialised synthetic splits (``data.split``) to train on, as tracks.
-        frame_targets: What the heads learn in ``mode`` "frames": "state" (the logical
-            light states) or "lit" (what the single frame shows: a blinker counts as ON
-            only in the lit half of a blink, intent following; pools and the validation
-            split give these as ``lit_labels``). A blink's dark half is otherwise label
-            noise for a model that sees one frame.
         mode: How batches are cut: "windows" (``batch`` windows of ``seq_len`` frames,
             each from a zero state), "frames" (``batch`` single frames from anywhere in
             the tracks: per-frame pre-training) or "lanes" (``batch`` tracks played side
             by side, ``seq_len`` frames per step, their state carried between steps; see
             :mod:`.track_batches`). Frames and lanes take in-memory tracks (bags, pools)
             only; the live synthetic stream gives windows.
+        frame_targets: What the heads learn in ``mode`` "frames": "state" (the logical
+            light states) or "lit" (what the single frame shows: a blinker counts as ON
+            only in the lit half of a blink, intent following; pools and the validation
+            split give these as ``lit_labels``). A blink's dark half is otherwise label
+            noise for a model that sees one frame.
         synthetic_fraction: Share of sequences from the synthetic stream; None means 1
             without bags/UCM and 0 with them.
         mirror_prob: Probability that a sequence is mirrored.
@@ -797,12 +798,10 @@ class Trainer:
             split.require_crop(self.crop, "validation split")
             key = FRAME_TARGETS[opts.frame_targets]
             items = [split[i] for i in range(len(split))]
-            if key != "labels":
-                if any(key not in item for item in items):
-                    raise ConfigError(f"validation split {opts.val_split} has no {key!r}: "
-                                      "rendered before they were written; render it again")
-                items = [dict(item, labels=item[key]) for item in items]
-            return items
+            if key == "labels":
+                return items
+            return [dict(item, labels=item_labels(item, key, f"validation split {opts.val_split}"))
+                    for item in items]
         if held_out:
             win = WindowDataset(held_out, max(opts.seq_len, opts.val_seq_len), seed=opts.seed)
             return [win.window(i) for i in range(len(win.windows))]
