@@ -53,6 +53,13 @@ _VEHICLE_KEYS = {"view", "kind", "lamp_design", "tech", "chmsl", "intent", "brak
                  "width_px", "speed", "blink_hz", "duty", "phase", "shear", "roll", "specular"}
 
 
+def _light_status(on: bool, visible: bool) -> LightStatus:
+    """ON or OFF for a light that can be judged, UNKNOWN for one that cannot."""
+    if not visible:
+        return LightStatus.UNKNOWN
+    return LightStatus.ON if on else LightStatus.OFF
+
+
 def _lamp_poly(lamp: Lamp) -> np.ndarray:
     """Normalised outline polygon of a lamp."""
     u0, v0, u1, v1 = lamp.rect
@@ -772,12 +779,12 @@ class SceneRenderer:
             # (it never brightens on braking).
             if role == "chmsl" or (role in ("tail", "turn_tail") and side != "C"):
                 visible["brake"] = True
-        left = (LightStatus.ON if left_on else LightStatus.OFF) if visible["L"] else LightStatus.UNKNOWN
-        right = (LightStatus.ON if right_on else LightStatus.OFF) if visible["R"] else LightStatus.UNKNOWN
-        brake_s = (LightStatus.ON if brake else LightStatus.OFF) if visible["brake"] else LightStatus.UNKNOWN
+        left = _light_status(left_on, visible["L"])
+        right = _light_status(right_on, visible["R"])
+        brake_s = _light_status(brake, visible["brake"])
         # What a single frame shows: a blinker in its dark half looks like one switched off.
-        left_lit = (LightStatus.ON if left_on and flash_lit else LightStatus.OFF) if visible["L"] else LightStatus.UNKNOWN
-        right_lit = (LightStatus.ON if right_on and flash_lit else LightStatus.OFF) if visible["R"] else LightStatus.UNKNOWN
+        left_lit = _light_status(left_on and flash_lit, visible["L"])
+        right_lit = _light_status(right_on and flash_lit, visible["R"])
         class_id = CLASS_IDS[v.kind]
         tracker = self._tracker_box(v, (bx0, by0, bx1, by1), d, class_id, frng)
         return VehicleTruth(track_id=v.track_id, box=(bx0, by0, bx1, by1), tracker_box=tracker, brake=brake_s, left=left,
