@@ -99,6 +99,22 @@ def test_step_by_step_equals_forward_sequence() -> None:
         torch.testing.assert_close(cs, cq, rtol=0, atol=1e-5)
 
 
+def test_zero_state_shortcut_gives_the_same_gradients() -> None:
+    # forward_sequence without a state skips the h half of the first step's gate conv;
+    # per-frame training relies on it learning exactly what an explicit zero state would.
+    crops = random_crops(4, t=2)
+    grads = []
+    for explicit in (False, True):
+        model = tiny_model().train()
+        torch.manual_seed(3)  # same dropout masks
+        state = model.initial_state(4) if explicit else None
+        logits, _ = model.forward_sequence(crops, state)
+        sum(v.square().sum() for v in logits.values()).backward()
+        grads.append({n: p.grad.clone() for n, p in model.named_parameters()})
+    for name, grad in grads[0].items():
+        torch.testing.assert_close(grad, grads[1][name], rtol=1e-5, atol=1e-6, msg=name)
+
+
 def test_forward_sequence_continues_from_a_given_state() -> None:
     model = tiny_model()
     crops = random_crops(2, t=4)

@@ -95,9 +95,20 @@ class ConvLSTMCell(nn.Module):
             self.gates.bias.zero_()
             self.gates.bias[hidden:2 * hidden].fill_(1.0)
 
-    def forward(self, x: Tensor, h: Tensor, c: Tensor) -> Tuple[Tensor, Tensor]:
-        i, f, o, g = self.gates(torch.cat((x, h), 1)).chunk(4, 1)
-        c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
+    def forward(self, x: Tensor, h: Optional[Tensor], c: Optional[Tensor]
+                ) -> Tuple[Tensor, Tensor]:
+        """One step; ``h`` and ``c`` None stand for the zero state (a new track)."""
+        if h is None or c is None:
+            # h = 0 adds nothing to the gates and c = 0 nothing to the cell: convolving x
+            # alone saves about a third of the ConvLSTM work for a zero state, which is
+            # every frame of per-frame training.
+            weight = self.gates.weight[:, :x.shape[1]].contiguous(memory_format=MEMORY_FORMAT)
+            i, _, o, g = F.conv2d(x, weight, self.gates.bias,
+                                  padding=self.gates.padding).chunk(4, 1)
+            c = torch.sigmoid(i) * torch.tanh(g)
+        else:
+            i, f, o, g = self.gates(torch.cat((x, h), 1)).chunk(4, 1)
+            c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
         h = torch.sigmoid(o) * torch.tanh(c)
         return h, c
 
@@ -232,13 +243,17 @@ class LightStateNet(nn.Module):
         if state_batch_size(state) != n:
             raise ConfigError(f"state holds {state_batch_size(state)} tracks but {n} crops were given")
 
-    def _recur(self, features: Tensor, state: State) -> Tuple[Tensor, State]:
+    def _recur(self, features: Tensor, state: Optional[State]) -> Tuple[Tensor, State]:
+        """One ConvLSTM step of both layers; ``state`` None is the zero state."""
         x = features
         new_state = []
-        for cell, (h, c) in zip(self.cells, state):
-            # States may come back NCHW (e.g. via a flat state bank); the convs want channels-last.
-            h = h.contiguous(memory_format=MEMORY_FORMAT)
-            c = c.contiguous(memory_format=MEMORY_FORMAT)
+        for index, cell in enumerate(self.cells):
+            h = c = None
+            if state is not None:
+                # States may come back NCHW (e.g. via a flat state bank); the convs want
+                # channels-last.
+                h = state[index][0].contiguous(memory_format=MEMORY_FORMAT)
+                c = state[index][1].contiguous(memory_format=MEMORY_FORMAT)
             h, c = cell(x, h, c)
             new_state.append((h, c))
             x = self.lstm_dropout(h)  # dropout on the output only, never on the carried state
@@ -284,9 +299,8 @@ class LightStateNet(nn.Module):
         n, t = crops.shape[:2]
         if t == 0:
             raise CropError("forward_sequence needs at least one frame, got T=0")
-        if state is None:
-            state = self.initial_state(n)
-        self._check_state(state, n)
+        if state is not None:
+            self._check_state(state, n)
         features = self.encode(crops.flatten(0, 1))
         features = features.reshape((n, t) + tuple(features.shape[1:]))
         hidden = []
