@@ -24,6 +24,7 @@ from signal_light_node.training.sources import WindowDataset, load_ucm_tracks
 from signal_light_node.training.train import (
     TrainOptions,
     Trainer,
+    annealed_lr,
     multitask_loss,
     validate,
     warmup_frames,
@@ -95,6 +96,35 @@ def test_options_are_checked(tmp_path):
         TrainOptions(out=tmp_path).validate()
     with pytest.raises(ConfigError, match="unknown tasks"):
         TrainOptions(out=tmp_path, max_steps=1, task_weights={"horn": 1.0}).validate()
+    with pytest.raises(ConfigError, match="anneal fraction"):
+        TrainOptions(out=tmp_path, max_steps=1, anneal_fraction=1.0).validate()
+
+
+def test_annealed_lr_follows_a_cosine_over_the_final_share():
+    assert annealed_lr(1e-3, 0.5, 0.0, 1e-5) == 1e-3  # off
+    assert annealed_lr(1e-3, 0.6, 0.4, 1e-5) == pytest.approx(1e-3)  # not yet
+    assert annealed_lr(1e-3, 0.8, 0.4, 1e-5) == pytest.approx((1e-3 + 1e-5) / 2)  # halfway
+    assert annealed_lr(1e-3, 1.0, 0.4, 1e-5) == pytest.approx(1e-5)  # the end
+    assert annealed_lr(1e-3, 1.5, 0.4, 1e-5) == pytest.approx(1e-5)  # past the end
+    assert annealed_lr(1e-6, 1.0, 0.4, 1e-5) == 1e-6  # never raised to the floor
+
+
+def test_annealing_lowers_the_steps_rate_and_leaves_the_plateau_schedule_alone(tmp_path):
+    ucm = tmp_path / "ucm"
+    make_ucm(ucm, CODES[:3], frames=8)
+    opts = tiny_options(tmp_path / "run", ucm, max_steps=10, val_every=5, val_fraction=0.34,
+                        anneal_fraction=0.5, min_lr=1e-4)
+    trainer = Trainer(opts)
+    trainer.run()
+    records = [json.loads(s) for s in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    # The rate of the step before each validation: step index 4 of 10 is before the final
+    # half, step index 9 is 0.8 of the way into it.
+    assert [r["step"] for r in records] == [5, 10]
+    assert records[0]["lr"] == pytest.approx(1e-2)
+    assert records[1]["lr"] == pytest.approx(annealed_lr(1e-2, 0.9, 0.5, 1e-4))
+    assert records[1]["lr"] < 2e-3
+    # the plateau schedule's own rate is untouched (it had no plateau in 2 validations)
+    assert trainer.optimizer.param_groups[0]["lr"] == pytest.approx(1e-2)
 
 
 def test_tiny_model_overfits_fixed_sequences(tmp_path):

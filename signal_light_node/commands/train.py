@@ -132,6 +132,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="share of bag/UCM tracks held out for validation")
     g.add_argument("--patience", type=int, default=3,
                    help="validations without improvement before the LR drops")
+    g.add_argument("--anneal-fraction", type=float, default=0.0,
+                   help="final share of the budget (--max-minutes or --steps) over which the "
+                        "LR decays along a cosine to its minimum, on top of the plateau "
+                        "schedule (0: off)")
 
 
 def options_from_args(args: argparse.Namespace) -> "Any":
@@ -152,7 +156,8 @@ def options_from_args(args: argparse.Namespace) -> "Any":
         loss_warmup=args.loss_warmup, loss_warmup_seconds=args.loss_warmup_seconds,
         val_split=args.val_split,
         val_sequences=args.val_sequences, val_every=args.val_every,
-        val_fraction=args.val_fraction, plateau_patience=args.patience, device=args.device,
+        val_fraction=args.val_fraction, plateau_patience=args.patience,
+        anneal_fraction=args.anneal_fraction, device=args.device,
         seed=args.seed, threads=args.threads, workers=args.workers, resume=resume,
         init_from=Path(args.init_from) if args.init_from else None,
         freeze_encoder=args.freeze_encoder, bags=list(args.bags),

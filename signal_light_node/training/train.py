@@ -15,7 +15,9 @@ Recipe (after the research the model follows, scaled to a CPU):
   sources draw windows stratum-balanced (:class:`.sources.WindowDataset`).
 * **Optimiser**: Adam; L2 weight decay on the dense layers' weights (the ``nn.Linear``
   of the shared layer and of the heads), dropout as configured in the model;
-  ``ReduceLROnPlateau`` on the validation loss.
+  ``ReduceLROnPlateau`` on the validation loss; optionally (``anneal_fraction``) a
+  cosine decay to ``min_lr`` over the last part of the run's budget on top of it, for
+  runs that end by their budget while the loss still falls.
 * **Augmentation**: mirroring (crops flipped, left/right labels and LEFT/RIGHT views
   swapped) and per-sequence colour/brightness jitter, both from the data stream. A
   rendered synthetic sequence is served ``reuse`` times on average from a replay buffer
@@ -139,6 +141,10 @@ class TrainOptions:
         plateau_patience: Validations without improvement before the LR drops.
         plateau_factor: LR multiplier on a plateau.
         min_lr: Lowest LR.
+        anneal_fraction: Final share of the run's budget (its minutes or steps, whichever
+            ends it first) over which the LR follows a cosine from the plateau schedule's
+            value down to ``min_lr`` (0: off). A run cut by its budget while the loss still
+            falls otherwise ends at its full LR, on a noisy point of the curve.
         device: "cpu" or "cuda" (or "cuda:N").
         seed: Seed of the model init, the data and the sampling.
         threads: torch intra-op threads (None: torch's default).
@@ -199,6 +205,7 @@ class TrainOptions:
     plateau_patience: int = 3
     plateau_factor: float = 0.3
     min_lr: float = 1e-5
+    anneal_fraction: float = 0.0
     device: str = "cpu"
     seed: int = 0
     threads: Optional[int] = None
@@ -242,6 +249,8 @@ class TrainOptions:
                 not any(w > 0 for w in self.task_weights.values()):
             raise ConfigError(f"task weights must be >= 0 with at least one > 0, got "
                               f"{self.task_weights}")
+        if not 0 <= self.anneal_fraction < 1:
+            raise ConfigError(f"anneal fraction must be in [0, 1), got {self.anneal_fraction}")
         if self.synthetic_fraction is not None and not 0 <= self.synthetic_fraction <= 1:
             raise ConfigError(f"synthetic fraction must be in 0..1, got {self.synthetic_fraction}")
         if self.synthetic_fraction == 0 and not (self.bags or self.ucm or self.pools):
@@ -557,6 +566,25 @@ def warmup_frames(fps: Sequence[float], frames: int, seconds: float) -> torch.Te
     return torch.clamp(torch.ceil(rates * float(seconds)), min=float(frames)).to(torch.int64)
 
 
+def annealed_lr(lr: float, progress: float, fraction: float, min_lr: float) -> float:
+    """The learning rate after the final cosine decay of ``TrainOptions.anneal_fraction``.
+
+    Args:
+        lr: The plateau schedule's learning rate.
+        progress: Share of the run's budget used so far (0 at the start, 1 at the end).
+        fraction: Final share of the budget over which the rate decays (0: never).
+        min_lr: The rate at the end of the budget (never raised above ``lr``).
+
+    Returns:
+        ``lr`` before the last ``fraction`` of the budget, then a cosine from ``lr`` down to
+        ``min_lr``.
+    """
+    if fraction <= 0 or lr <= min_lr:
+        return lr
+    into = min(1.0, max(0.0, (progress - (1.0 - fraction)) / fraction))
+    return min_lr + (lr - min_lr) * 0.5 * (1.0 + math.cos(math.pi * into))
+
+
 def _batch_accuracy(logits: Mapping[str, torch.Tensor], labels: torch.Tensor,
                     mask: torch.Tensor, task: str) -> Optional[float]:
     i = TASKS.index(task)
@@ -714,6 +742,7 @@ class Trainer:
             torch.set_rng_state(state["rng"]["torch"])
             logger.info("resumed from %s at step %d (best %.4f at step %d)", opts.resume,
                         self.start_step, self.best_score, self.best_step)
+        self.lr_now = self.optimizer.param_groups[0]["lr"]  # the last step's, annealing included
 
         if self.dist.active:
             from torch.nn.parallel import DistributedDataParallel
@@ -838,7 +867,7 @@ class Trainer:
                               "frames_seen": int(step * opts.batch
                                                  * (1 if opts.mode == "frames" else opts.seq_len)
                                                  * self.dist.world)},
-            "training": {"step": step, "lr": self.optimizer.param_groups[0]["lr"],
+            "training": {"step": step, "lr": self.lr_now,
                          "train_seconds": round(self.train_seconds, 1),
                          "options": opts.to_json()},
         }
@@ -890,6 +919,23 @@ class Trainer:
             warm = (warm - batch["start"]).clamp(min=0)
         return warm.to(self.device)
 
+    def _progress(self, elapsed: float, step: int, budget: float) -> float:
+        """Share of this run's budget used: its minutes or its steps, whichever ends it first."""
+        shares = [elapsed / budget] if math.isfinite(budget) else []
+        if self.opts.max_steps:
+            shares.append(step / self.opts.max_steps)
+        return max(shares, default=0.0)
+
+    def _optimizer_step(self, progress: float) -> None:
+        """Adam's step at the annealed rate; the plateau schedule keeps its own rate."""
+        scheduled = [group["lr"] for group in self.optimizer.param_groups]
+        for group, lr in zip(self.optimizer.param_groups, scheduled):
+            group["lr"] = annealed_lr(lr, progress, self.opts.anneal_fraction, self.opts.min_lr)
+        self.lr_now = self.optimizer.param_groups[0]["lr"]
+        self.optimizer.step()
+        for group, lr in zip(self.optimizer.param_groups, scheduled):
+            group["lr"] = lr
+
     def _validate_and_keep(self, step: int) -> Optional[Dict[str, Any]]:
         """Rank 0 validates and saves; every rank steps its scheduler with the same loss."""
         val = None
@@ -910,7 +956,7 @@ class Trainer:
             if improved or (val is None and step > 0):
                 self._save("best.pt", step, val)
             record = {"step": step, "time_s": round(self.train_seconds, 1),
-                      "lr": self.optimizer.param_groups[0]["lr"],
+                      "lr": self.lr_now,
                       "train": {k: round(v, 4) for k, v in self._ema.items()}}
             if val is not None:
                 record.update(val_loss=round(val["loss"], 5), score=round(val["score"], 5),
@@ -968,7 +1014,7 @@ class Trainer:
                 loss.backward()
                 if opts.grad_clip > 0:
                     nn.utils.clip_grad_norm_(self.model.parameters(), opts.grad_clip)
-                self.optimizer.step()
+                self._optimizer_step(self._progress(elapsed, step, budget))
                 step += 1
                 self.train_seconds += time.monotonic() - t0
                 for key, value in (("loss", float(loss.detach())),
@@ -986,7 +1032,7 @@ class Trainer:
                 if step % opts.log_every == 0:
                     bar.set_postfix(loss=f"{ema.get('loss', math.nan):.3f}",
                                     intent=_pct(ema.get("intent")), brake=_pct(ema.get("brake")),
-                                    lr=f"{self.optimizer.param_groups[0]['lr']:.1e}",
+                                    lr=f"{self.lr_now:.1e}",
                                     best=f"{self.best_score:.3f}" if self.best_step >= 0 else "-")
                 if step % opts.val_every == 0:
                     last_val = self._validate_and_keep(step)
