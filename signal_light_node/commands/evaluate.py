@@ -10,6 +10,10 @@ a second report also leaves out ``--grace`` seconds after each ground-truth chan
 :mod:`signal_light_node.training.evaluation`). Writes ``metrics.json``, ``metrics.md``,
 ``confusion_intent.png`` (no grace window) and ``confusion_intent_grace.png`` into
 ``--out`` and prints the Markdown.
+
+``--ideal-observer`` scores, instead of a checkpoint, the best any online model could do
+on a split or synthetic tracks (:mod:`signal_light_node.training.ideal_observer`): the
+ceiling of each metric under these scoring rules.
 """
 
 from __future__ import annotations
@@ -56,6 +60,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="seconds at the start of each track not scored")
     rules.add_argument("--grace", type=float, default=EvalSettings.grace_seconds,
                        help="seconds after each label change left out of the grace report")
+    rules.add_argument("--ideal-observer", action="store_true",
+                       help="score the ideal causal observer (perfect per-frame sight, known "
+                            "flasher timing) instead of a checkpoint: the ceiling of every "
+                            "metric (--split or --synthetic-seed)")
     parser.add_argument("--batch-tracks", type=int, default=EvalSettings.batch_tracks,
                         help="tracks stepped together")
     add_torch_options(parser)
@@ -65,24 +73,7 @@ def _tracks(args: argparse.Namespace, crop: Any) -> Tuple[Iterable[Any], Optiona
     """The chosen data as an iterable of tracks, its length if known, and a description."""
     from signal_light_node.training import sources
 
-    chosen = [name for name, given in (("--split", args.split is not None),
-                                       ("--bags", bool(args.bags)), ("--ucm", bool(args.ucm)),
-                                       ("--synthetic-seed", args.synthetic_seed is not None))
-              if given]
-    if len(chosen) != 1:
-        raise ConfigError("choose exactly one of --split, --bags, --ucm, --synthetic-seed"
-                          + (f" (got {', '.join(chosen)})" if chosen else ""))
-    if args.split is not None:
-        from signal_light_node.data.split import SequenceSplit
-
-        split = SequenceSplit(args.split)
-        split.require_crop(crop)
-
-        def gen() -> Iterator[Any]:
-            for i in range(len(split)):
-                yield sources.track_from_item(split[i], f"{args.split.name}:{i}")
-
-        return gen(), len(split), {"split": str(args.split), **split.summary()}
+    _check_one_source(args)
     if args.bags:
         tracks = []
         for bag in args.bags:
@@ -93,6 +84,34 @@ def _tracks(args: argparse.Namespace, crop: Any) -> Tuple[Iterable[Any], Optiona
         for root in args.ucm:
             tracks += sources.load_ucm_tracks(root, crop)
         return tracks, len(tracks), {"ucm": [str(u) for u in args.ucm]}
+    items, total, data = _items(args, crop)
+    source = args.split.name if args.split is not None else f"synthetic:{args.synthetic_seed}"
+    gen = (sources.track_from_item(item, f"{source}:{i}") for i, item in enumerate(items))
+    return gen, total, data
+
+
+def _check_one_source(args: argparse.Namespace) -> None:
+    chosen = [name for name, given in (("--split", args.split is not None),
+                                       ("--bags", bool(args.bags)), ("--ucm", bool(args.ucm)),
+                                       ("--synthetic-seed", args.synthetic_seed is not None))
+              if given]
+    if len(chosen) != 1:
+        raise ConfigError("choose exactly one of --split, --bags, --ucm, --synthetic-seed"
+                          + (f" (got {', '.join(chosen)})" if chosen else ""))
+
+
+def _items(args: argparse.Namespace, crop: Any) -> Tuple[Iterator[Any], int, Dict]:
+    """Split or synthetic-stream items (crops, both label arrays, meta), count, description."""
+    if args.split is not None:
+        from signal_light_node.data.split import SequenceSplit
+
+        split = SequenceSplit(args.split)
+        split.require_crop(crop)
+        items = (split[i] for i in range(len(split)))
+        return items, len(split), {"split": str(args.split), **split.summary()}
+    if args.synthetic_seed is None:
+        raise ConfigError("--ideal-observer needs --split or --synthetic-seed: bags and UCM "
+                          "sequences carry no per-frame lamp labels")
     if args.tracks < 1 or args.track_frames < 2:
         raise ConfigError("--tracks must be >= 1 and --track-frames >= 2")
     from signal_light_node.data.stream import SyntheticSequenceStream
@@ -100,9 +119,7 @@ def _tracks(args: argparse.Namespace, crop: Any) -> Tuple[Iterable[Any], Optiona
     stream = SyntheticSequenceStream(int(args.synthetic_seed), int(args.track_frames), crop,
                                      mirror_prob=0.0, jitter=False, full_tracks=True, rank=0)
     items = islice(stream.sequences(worker_id=0), int(args.tracks))
-    gen = (sources.track_from_item(item, f"synthetic:{args.synthetic_seed}:{i}")
-           for i, item in enumerate(items))
-    return gen, int(args.tracks), {"synthetic_seed": int(args.synthetic_seed),
+    return items, int(args.tracks), {"synthetic_seed": int(args.synthetic_seed),
                                    "tracks": int(args.tracks),
                                    "track_frames": int(args.track_frames)}
 
@@ -130,7 +147,8 @@ def render_markdown(result: Dict[str, Any]) -> str:
     parts = [
         f"## Evaluation of `{result['checkpoint']}`", "",
         f"Data: `{json.dumps(result['data_brief'])}`", "",
-        f"{counts['tracks']} tracks, {counts['stepped']} frames stepped through `model.step`, "
+        f"{counts['tracks']} tracks, {counts['stepped']} frames "
+        f"{'judged' if result.get('ideal_observer') else 'stepped through `model.step`'}, "
         f"{counts['scored']} scored after the warm-up (first max({st['warmup_frames']} frames, "
         f"{st['warmup_seconds']:g} s) of each track, {counts['warmup_excluded']} frames). "
         f"Grace window: {st['grace_seconds']:g} s after each ground-truth change of a head.", "",
@@ -151,6 +169,7 @@ def run(args: argparse.Namespace) -> int:
     from signal_light_node.metrics import render_confusion_png
     from signal_light_node.model import DEFAULT_WEIGHTS, load_checkpoint
     from signal_light_node.training.evaluation import EvalSettings, evaluate_tracks
+    from signal_light_node.training.ideal_observer import score_ideal_observer
 
     if args.threads:
         torch.set_num_threads(int(args.threads))
@@ -159,11 +178,19 @@ def run(args: argparse.Namespace) -> int:
     settings = EvalSettings(warmup_frames=args.warmup_frames,
                             warmup_seconds=args.warmup_seconds, grace_seconds=args.grace,
                             batch_tracks=args.batch_tracks)
-    tracks, total, data = _tracks(args, loaded.config.crop_config())
     started = time.monotonic()
-    result = evaluate_tracks(loaded.model.to(args.device), tracks, settings, args.device,
-                             progress=not args.no_progress, total=total)
-    result = {"checkpoint": str(checkpoint), "data": data,
+    if args.ideal_observer:
+        _check_one_source(args)
+        # The checkpoint only gives the crop settings the split must have been made with.
+        items, _, data = _items(args, loaded.config.crop_config())
+        result = score_ideal_observer(items, settings)
+        checkpoint = "the ideal observer"
+    else:
+        tracks, total, data = _tracks(args, loaded.config.crop_config())
+        result = evaluate_tracks(loaded.model.to(args.device), tracks, settings, args.device,
+                                 progress=not args.no_progress, total=total)
+    result = {"checkpoint": str(checkpoint), "ideal_observer": bool(args.ideal_observer),
+              "data": data,
               "data_brief": {k: v for k, v in data.items()
                              if k not in ("label_histogram", "lighting")},
               "seconds": round(time.monotonic() - started, 1),
