@@ -70,7 +70,11 @@ def ideal_observer(labels: np.ndarray, lit_labels: np.ndarray, fps: float) -> np
         fps: Frame rate, for blinkers never seen to blink twice (half a second of patience).
 
     Returns:
-        int64 ``[T, len(TASKS)]`` predicted classes (-1 where the frame is not labelled).
+        int64 ``[T, len(TASKS)]`` predicted classes (negative where the frame is not
+        labelled).
+
+    Raises:
+        ConfigError: The two label arrays do not have the same ``[T, len(TASKS)]`` shape.
     """
     labels = np.asarray(labels, np.int64)
     lit_labels = np.asarray(lit_labels, np.int64)
