@@ -30,7 +30,7 @@ import numpy as np
 from signal_light_node.errors import ConfigError
 from signal_light_node.labels import TASKS, LightStatus, intent_from_lights
 from signal_light_node.training.evaluation import EvalSettings, TrackScorer
-from signal_light_node.training.sources import track_from_item
+from signal_light_node.training.sources import item_labels, track_from_item
 
 _BLINKERS = (TASKS.index("left"), TASKS.index("right"))
 _INTENT = TASKS.index("intent")
@@ -120,7 +120,7 @@ def score_ideal_observer(items: Iterable[Mapping[str, Any]],
     scorer = TrackScorer(settings)
     for i, item in enumerate(items):
         track = track_from_item(item, f"item {i}")
-        lit = track_from_item(item, f"item {i}", label_key="lit_labels").labels
+        lit = item_labels(item, "lit_labels", f"item {i}")
         pred = ideal_observer(track.labels, lit, track.fps)
         pred[~np.asarray(track.mask, bool)] = -1
         scorer.add(track, pred)
