@@ -106,6 +106,13 @@ def test_trainer_runs_on_a_pool(tmp_path, tiny_pool, mode):
     assert "pool" in str(meta)
 
 
+def test_bf16_lanes_carry_a_float32_state(tmp_path, tiny_pool):
+    trainer = Trainer(pool_options(tmp_path / "bf16", tiny_pool, mode="lanes",
+                                   precision="bf16"))
+    assert trainer.run()["steps"] == 4
+    assert {x.dtype for h, c in trainer._lanes for x in (h, c)} == {torch.float32}
+
+
 def test_lane_state_is_zeroed_where_a_track_starts(tmp_path, tiny_pool):
     trainer = Trainer(pool_options(tmp_path / "z", tiny_pool, mode="lanes"))
     assert trainer._lane_state(torch.tensor([False, False, False]))[0][0].abs().sum() == 0

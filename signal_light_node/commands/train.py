@@ -31,7 +31,7 @@ from typing import Any, Dict
 
 from signal_light_node.commands.options import add_labelled_data_options, add_torch_options
 from signal_light_node.errors import ConfigError
-from signal_light_node.training import BATCH_MODES, FRAME_TARGETS
+from signal_light_node.training import BATCH_MODES, FRAME_TARGETS, PRECISIONS
 
 
 def _key_values(text: str, what: str) -> Dict[str, Any]:
@@ -110,6 +110,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("optimisation")
     g.add_argument("--lr", type=float, default=1e-3, help="initial Adam learning rate")
     g.add_argument("--weight-decay", type=float, default=1e-4, help="L2 on dense layers")
+    g.add_argument("--precision", choices=PRECISIONS, default="fp32",
+                   help="bf16: the forward pass autocast to bfloat16 (about 1.2x faster on a "
+                        "CPU with AVX512-BF16; weights and validation stay float32); auto: "
+                        "bf16 where the hardware supports it natively")
     g.add_argument("--task-weights", default="", metavar="T=W,...",
                    help="loss weight per head, e.g. 'intent=1,brake=1,left=0.5,right=0.5,view=0.5'")
     g.add_argument("--class-weight-power", type=float, default=0.5,
@@ -158,6 +162,7 @@ def options_from_args(args: argparse.Namespace) -> "Any":
         val_sequences=args.val_sequences, val_every=args.val_every,
         val_fraction=args.val_fraction, plateau_patience=args.patience,
         anneal_fraction=args.anneal_fraction, device=args.device,
+        precision=args.precision,
         seed=args.seed, threads=args.threads, workers=args.workers, resume=resume,
         init_from=Path(args.init_from) if args.init_from else None,
         freeze_encoder=args.freeze_encoder, bags=list(args.bags),

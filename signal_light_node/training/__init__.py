@@ -16,3 +16,6 @@ BATCH_MODES = ("windows", "frames", "lanes")
 #: ``signal-light train --frame-targets``: which label array of a split the per-frame
 #: stage learns (``TrainOptions.frame_targets``; see ``data.stream`` for ``lit_labels``).
 FRAME_TARGETS = {"state": "labels", "lit": "lit_labels"}
+#: ``signal-light train --precision``: float32, the forward pass autocast to bfloat16, or
+#: "auto" (bfloat16 where the hardware runs it natively; ``train.resolve_precision``).
+PRECISIONS = ("fp32", "bf16", "auto")
