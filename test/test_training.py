@@ -26,6 +26,7 @@ from signal_light_node.training.train import (
     Trainer,
     annealed_lr,
     multitask_loss,
+    resolve_precision,
     validate,
     warmup_frames,
 )
@@ -100,6 +101,17 @@ def test_options_are_checked(tmp_path):
         TrainOptions(out=tmp_path, max_steps=1, anneal_fraction=1.0).validate()
     with pytest.raises(ConfigError, match="precision must be one of"):
         TrainOptions(out=tmp_path, max_steps=1, precision="fp16").validate()
+
+
+def test_auto_precision_is_bf16_only_where_the_cpu_computes_it_natively(monkeypatch):
+    cpu = torch.device("cpu")
+    for avx512_bf16, amx, expected in ((True, False, "bf16"), (False, True, "bf16"),
+                                       (False, False, "fp32")):
+        monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda v=avx512_bf16: v)
+        monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda v=amx: v)
+        assert resolve_precision("auto", cpu) == expected
+    assert resolve_precision("bf16", cpu) == "bf16"  # asked for: emulated, but honoured
+    assert resolve_precision("fp32", cpu) == "fp32"
 
 
 def test_annealed_lr_follows_a_cosine_over_the_final_share():
