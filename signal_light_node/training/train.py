@@ -510,10 +510,16 @@ def _load_sources(opts: TrainOptions, crop: CropConfig) -> List[TrackSequence]:
 
 
 def resolve_precision(precision: str, device: torch.device) -> str:
-    """The precision a run uses: "auto" becomes "bf16" where the device computes bfloat16
-    natively (a CPU with AVX512-BF16 or AMX, a CUDA device that supports it), else "fp32".
+    """The precision a run uses (``TrainOptions.precision``).
 
-    Without native support bfloat16 is emulated and slower than float32.
+    Args:
+        precision: "fp32", "bf16" or "auto".
+        device: The device the run trains on.
+
+    Returns:
+        ``precision`` itself unless it is "auto"; then "bf16" where ``device`` computes
+        bfloat16 natively (a CPU with AVX512-BF16 or AMX, a CUDA device that supports it)
+        and "fp32" elsewhere, where bfloat16 is emulated and slower than float32.
     """
     if precision != "auto":
         return precision
