@@ -526,7 +526,10 @@ def resolve_precision(precision: str, device: torch.device) -> str:
     if device.type == "cuda":
         native = torch.cuda.is_bf16_supported()
     else:
-        native = torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported()
+        # torch's own probes (private, hence the fallback; torch is pinned in requirements.txt)
+        probes = [getattr(torch.cpu, name, lambda: False)
+                  for name in ("_is_avx512_bf16_supported", "_is_amx_tile_supported")]
+        native = any(probe() for probe in probes)
     return "bf16" if native else "fp32"
 
 
