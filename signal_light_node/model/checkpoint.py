@@ -92,6 +92,11 @@ class ModelConfig:
         crop_margin: Margin of the crops the model was trained on (``crops.CropConfig``).
         class_names: Class names per task, index i = class value i.
         light_codes: ``LightClassification`` code of each light head.
+        temporal_input: Feed the backbone the crop's change against the track's
+            previous crop and running mean as well (``model.temporal``); the state then
+            carries that history.
+        align_radius: Largest shift in pixels tried when re-aligning the history.
+        mean_rate: Weight of each new crop in the running mean.
     """
 
     arch: str = "convlstm_attention"
@@ -115,6 +120,9 @@ class ModelConfig:
     class_names: Mapping[str, Tuple[str, ...]] = field(
         default_factory=lambda: {t: tuple(CLASS_NAMES[t]) for t in TASKS}, hash=False)
     light_codes: Mapping[str, int] = field(default_factory=lambda: dict(LIGHT_CODES), hash=False)
+    temporal_input: bool = False
+    align_radius: int = 2
+    mean_rate: float = 0.15
 
     def __post_init__(self) -> None:
         set_ = lambda name, value: object.__setattr__(self, name, value)  # noqa: E731
@@ -132,9 +140,17 @@ class ModelConfig:
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"model config has a value of the wrong type: {exc}") from None
         # bool("false") is True: refuse anything but a real boolean (CLI values are JSON).
-        if not isinstance(self.use_attention, bool):
-            raise ConfigError(f"model config use_attention must be true or false, got "
-                              f"{self.use_attention!r}")
+        for name in ("use_attention", "temporal_input"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"model config {name} must be true or false, got "
+                                  f"{getattr(self, name)!r}")
+        set_("mean_rate", float(self.mean_rate))
+        if not 0.0 < self.mean_rate <= 1.0:
+            raise ConfigError(f"model config mean_rate must be in (0, 1], got {self.mean_rate}")
+        if isinstance(self.align_radius, bool) or not isinstance(self.align_radius, int) \
+                or not 0 <= self.align_radius <= self.input_size // 4:
+            raise ConfigError(f"model config align_radius must be an integer in 0..input_size/4, "
+                              f"got {self.align_radius!r}")
         set_("attention_channels", _int_tuple(self.attention_channels, "attention_channels"))
         set_("backbone_channels", _int_tuple(self.backbone_channels, "backbone_channels"))
         set_("lstm_hidden", _int_tuple(self.lstm_hidden, "lstm_hidden"))

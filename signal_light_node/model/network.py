@@ -7,6 +7,9 @@ and new states::
       -> normalise (config mean/std)
       -> attention FCN (3x3 convs, dilations 1,2,2,1, last layer 1 channel + sigmoid)
          mask [N,1,S,S], multiplied with the normalised crop       (skipped if disabled)
+      -> with ``temporal_input``: 6 more channels, the crop minus the track's previous
+         crop and minus its running mean, both re-aligned (``model.temporal``); the
+         previous crop and the mean are part of the track's state
       -> backbone: per stage a stride-2 3x3 conv and a 3x3 conv, norm + ReLU
          -> [N,C,S/8,S/8] for three stages
       -> ConvLSTM layer 1 -> ConvLSTM layer 2  (explicit (h, c) per layer)
@@ -30,6 +33,7 @@ from torch import Tensor, nn
 from signal_light_node.errors import ConfigError, CropError
 from signal_light_node.labels import TASKS
 from signal_light_node.model.interface import State, state_batch_size
+from signal_light_node.model.temporal import EVIDENCE_CHANNELS, evidence_step
 
 #: Memory layout of activations, weights and states: on CPU (oneDNN) channels-last
 #: convolutions run about 1.5x faster than NCHW ones for these small maps.
@@ -133,7 +137,7 @@ class LightStateNet(nn.Module):
             AttentionFCN(config.attention_channels) if config.use_attention else None)
 
         stages: List[nn.Module] = []
-        c_in = 3
+        c_in = 3 + (EVIDENCE_CHANNELS if config.temporal_input else 0)
         for width in config.backbone_channels:
             stages.append(_conv_block(c_in, width, 2, config.norm))
             stages.append(_conv_block(width, width, 1, config.norm))
@@ -196,12 +200,36 @@ class LightStateNet(nn.Module):
             return crops.new_ones((crops.shape[0], 1) + tuple(crops.shape[2:]))
         return self.attention_net(self._normalise(crops))
 
-    def encode(self, crops: Tensor) -> Tensor:
-        """Per-frame features ``[N, C, F, F]`` (no recurrence) of ``[N, 3, S, S]`` crops."""
+    def encode(self, crops: Tensor, evidence: Optional[Tensor] = None) -> Tensor:
+        """Per-frame features ``[N, C, F, F]`` (no recurrence) of ``[N, 3, S, S]`` crops.
+
+        Args:
+            crops: ``[N, 3, S, S]`` in [0, 1].
+            evidence: ``[N, 6, S, S]`` temporal evidence (``model.temporal``); required
+                exactly when the config has ``temporal_input``.
+        """
         x = self._normalise(crops)
         if self.attention_net is not None:
             x = x * self.attention_net(x)
+        if self.config.temporal_input:
+            if evidence is None:
+                raise ConfigError("this model takes temporal evidence with its crops")
+            # Differences are scaled like the crop, by 1/std per channel.
+            scale = torch.cat((self._inv_std, self._inv_std), 1)
+            x = torch.cat((x, (evidence * scale).contiguous(memory_format=MEMORY_FORMAT)), 1)
         return self.backbone(x)
+
+    def _evidence(self, crops: Tensor, state: Optional[State]) -> Tuple[Tensor, Tuple[Tensor, Tensor]]:
+        """Temporal evidence of one frame and the track history after it."""
+        if state is None:
+            n, _, size, _ = crops.shape
+            history = crops.new_zeros((n, EVIDENCE_CHANNELS, size, size))
+            seen = crops.new_zeros((n, 1, 1, 1))
+        else:
+            history, seen = state[-1]
+        evidence, history = evidence_step(crops, history, seen, self.config.align_radius,
+                                          self.config.mean_rate)
+        return evidence, (history, torch.ones_like(seen))
 
     def _encoder_modules(self) -> List[nn.Module]:
         return [m for m in (self.attention_net, self.backbone) if m is not None]
@@ -235,11 +263,21 @@ class LightStateNet(nn.Module):
         def zeros(channels: int) -> Tensor:
             return ref.new_zeros((n, channels, side, side)).contiguous(memory_format=MEMORY_FORMAT)
 
-        return tuple((zeros(cell.hidden), zeros(cell.hidden)) for cell in self.cells)
+        state = tuple((zeros(cell.hidden), zeros(cell.hidden)) for cell in self.cells)
+        if self.config.temporal_input:
+            # The track's history: previous crop + running mean, and whether it has one.
+            size = self.input_size
+            state += ((ref.new_zeros((n, EVIDENCE_CHANNELS, size, size)),
+                       ref.new_zeros((n, 1, 1, 1))),)
+        return state
+
+    def _state_layers(self) -> int:
+        return len(self.cells) + (1 if self.config.temporal_input else 0)
 
     def _check_state(self, state: State, n: int) -> None:
-        if len(state) != len(self.cells):
-            raise ConfigError(f"state has {len(state)} layers but the model has {len(self.cells)}")
+        if len(state) != self._state_layers():
+            raise ConfigError(f"state has {len(state)} layers but the model has "
+                              f"{self._state_layers()}")
         if state_batch_size(state) != n:
             raise ConfigError(f"state holds {state_batch_size(state)} tracks but {n} crops were given")
 
@@ -276,8 +314,12 @@ class LightStateNet(nn.Module):
         """
         self._check_crops(crops, 4)
         self._check_state(state, crops.shape[0])
-        hidden, state = self._recur(self.encode(crops), state)
-        return self._heads(hidden), state
+        if not self.config.temporal_input:
+            hidden, state = self._recur(self.encode(crops), state)
+            return self._heads(hidden), state
+        evidence, history = self._evidence(crops, state)
+        hidden, lstm_state = self._recur(self.encode(crops, evidence), state[:len(self.cells)])
+        return self._heads(hidden), lstm_state + (history,)
 
     def step(self, crops: Tensor, state: State) -> Tuple[Dict[str, Tensor], State]:
         """Like :meth:`step_logits` but with probabilities (softmax over classes)."""
@@ -301,12 +343,25 @@ class LightStateNet(nn.Module):
             raise CropError("forward_sequence needs at least one frame, got T=0")
         if state is not None:
             self._check_state(state, n)
-        features = self.encode(crops.flatten(0, 1))
+        evidence = history = None
+        if self.config.temporal_input:
+            # The evidence is recursive (the running mean) but cheap: unroll it first,
+            # then encode every frame at once.
+            steps = []
+            for i in range(t):
+                ev, history = self._evidence(crops[:, i], state if i == 0 else (history,))
+                steps.append(ev)
+            evidence = torch.stack(steps, 1).flatten(0, 1)
+            if state is not None:
+                state = state[:len(self.cells)]
+        features = self.encode(crops.flatten(0, 1), evidence)
         features = features.reshape((n, t) + tuple(features.shape[1:]))
         hidden = []
         for i in range(t):
             h, state = self._recur(features[:, i], state)
             hidden.append(h)
+        if history is not None:
+            state = state + (history,)
         # Heads have no state either: run them once on every frame.
         logits = self._heads(torch.stack(hidden, 1).flatten(0, 1))
         return {k: v.reshape(n, t, -1) for k, v in logits.items()}, state
