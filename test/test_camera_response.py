@@ -1,0 +1,36 @@
+"""Random camera response of training crops (data/camera_response.py)."""
+
+import numpy as np
+
+from signal_light_node.data.camera_response import CameraResponse, apply_camera, randomise_camera
+
+
+def _crops() -> np.ndarray:
+    rng = np.random.default_rng(0)
+    return rng.integers(0, 200, (6, 32, 32, 3), dtype=np.uint8)
+
+
+def test_identity_response_changes_nothing():
+    crops = _crops()
+    same = CameraResponse(gain=1.0, gamma=1.0, saturation=1.0, noise=0.0, blur=0.0,
+                          scale=1.0, jpeg_quality=0)
+    out = apply_camera(crops, same, np.random.default_rng(1))
+    assert out.shape == crops.shape and out.dtype == np.uint8
+    assert np.abs(out.astype(int) - crops.astype(int)).max() <= 1
+
+
+def test_gain_clips_bright_lamps_and_zero_saturation_greys():
+    crops = _crops()
+    bright = CameraResponse(gain=3.0, gamma=1.0, saturation=0.0, noise=0.0, blur=0.0,
+                            scale=1.0, jpeg_quality=0)
+    out = apply_camera(crops, bright, np.random.default_rng(1))
+    assert (out == 255).mean() > 0.3
+    assert np.abs(out[..., 0].astype(int) - out[..., 2].astype(int)).max() <= 2
+
+
+def test_one_response_per_sequence_is_deterministic_from_the_rng():
+    crops = _crops()
+    a = randomise_camera(crops, np.random.default_rng(5))
+    b = randomise_camera(crops, np.random.default_rng(5))
+    assert np.array_equal(a, b)
+    assert a.shape == crops.shape
