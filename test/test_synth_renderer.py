@@ -275,3 +275,24 @@ def test_tracker_boxes_are_jittered_and_sometimes_missing():
     rel = np.asarray(rel)
     assert np.median(rel) < 0.1  # usually a few percent off
     assert np.mean(rel > 0.005) > 0.5  # but rarely exact
+
+
+@pytest.mark.parametrize("kind", ["car", "suv"])
+def test_lit_red_combined_lamp_is_clearly_visible_in_daylight(kind):
+    """A lit bulb brightens its lens in daylight too: the lit half of a red combined
+    blinker differs from the dark half by far more than the old 27 grey levels."""
+    lit, dark = _lit_and_dark(_one_vehicle(View.BEHIND, Intent.LEFT, design="red_combined",
+                                           kind=kind, tech="bulb", lights_on=False))
+    x0, y0, x1, y1 = (int(round(v)) for v in lit.vehicles[0].box)
+    grey = lambda im: im[y0:y1, x0:x1].astype(np.float32) @ np.float32([0.114, 0.587, 0.299])  # noqa: E731
+    assert float((grey(lit.image) - grey(dark.image)).max()) >= 60  # was 22 with the faint drawing
+
+
+def test_style_families():
+    default = SceneRenderer(seed=21, width=320, height=180)
+    assert default.family in scene.TRAIN_FAMILIES
+    held_out = SceneRenderer(seed=21, width=320, height=180, family=2)
+    frames = list(held_out.frames(2))
+    assert held_out.family == 2 and frames[0].image.shape == (180, 320, 3)
+    with pytest.raises(ConfigError, match="family"):
+        SceneRenderer(seed=21, family=7)

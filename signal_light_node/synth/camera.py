@@ -49,8 +49,15 @@ class CameraParams:
     shake: float = 0.0
 
 
-def sample_camera(rng: np.random.Generator, lighting_noise: float, lighting: str, weather: str) -> CameraParams:
-    """Random camera parameters; noise grows in the dark, haze appears with haze or rain."""
+#: Tone-curve exponent and exposure ranges per style family (``synth.lamps.STYLE_FAMILIES``).
+_GAMMA = {0: (0.8, 1.0), 1: (1.0, 1.2), 2: (1.25, 1.5)}
+_EXPOSURE = {0: (0.85, 1.05), 1: (1.0, 1.2), 2: (1.2, 1.45)}
+
+
+def sample_camera(rng: np.random.Generator, lighting_noise: float, lighting: str, weather: str,
+                  family: int = 0) -> CameraParams:
+    """Random camera parameters; noise grows in the dark, haze appears with haze or rain;
+    ``family`` picks the ranges of the tone curve and the exposure."""
     haze = 0.0
     if weather == "haze":
         haze = rng.uniform(0.25, 0.55)
@@ -65,10 +72,10 @@ def sample_camera(rng: np.random.Generator, lighting_noise: float, lighting: str
         motion_blur=float(rng.uniform(2, 7)) if rng.random() < 0.45 else 0.0,
         motion_prob=float(rng.uniform(0.1, 0.5)),
         jpeg_quality=int(rng.integers(35, 92)) if rng.random() < 0.7 else 0,
-        exposure=float(rng.uniform(0.85, 1.2)),
+        exposure=float(rng.uniform(*_EXPOSURE[family])),
         exposure_drift=float(rng.uniform(0.0, 0.15)),
         exposure_jump=float(rng.uniform(0.0, 0.15)),
-        gamma=float(rng.uniform(0.85, 1.15)),
+        gamma=float(rng.uniform(*_GAMMA[family])),
         vignette=float(rng.uniform(0.0, 0.35)),
         haze=float(haze),
         haze_colour=(g * rng.uniform(0.95, 1.08), g, g * rng.uniform(0.92, 1.04)),

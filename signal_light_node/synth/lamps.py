@@ -16,6 +16,17 @@ import numpy as np
 
 from signal_light_node.labels import Intent, View
 
+#: Style families: disjoint ranges of lamp colours (and, in ``synth.camera``, of camera
+#: tone curves). Training renders draw from ``TRAIN_FAMILIES`` only; the rest are held
+#: out, so a model can be scored on lamp colours and camera responses it never saw.
+STYLE_FAMILIES: Tuple[int, ...] = (0, 1, 2)
+TRAIN_FAMILIES: Tuple[int, ...] = (0, 1)
+HELD_OUT_FAMILY = 2
+#: Per family: amber green level (yellow-amber .. orange-red), red lamp blue and green.
+_AMBER_G = {0: (150.0, 200.0), 1: (115.0, 150.0), 2: (80.0, 115.0)}
+_RED_B = {0: (10.0, 35.0), 1: (35.0, 60.0), 2: (60.0, 100.0)}
+_RED_G = {0: (0.0, 20.0), 1: (15.0, 35.0), 2: (35.0, 70.0)}
+
 #: Rear lamp families; each also decides the matching front and side lamps.
 LAMP_DESIGNS: Tuple[str, ...] = ("amber", "red_combined", "led_strip", "sequential")
 
@@ -83,8 +94,12 @@ class LampStyle:
 
 def sample_lamp_style(rng: np.random.Generator, kind: str, design: Optional[str] = None,
                       tech: Optional[str] = None, chmsl: Optional[bool] = None,
-                      blink_hz: Optional[float] = None, duty: Optional[float] = None) -> LampStyle:
-    """Draw a random lamp style; any argument given fixes that parameter."""
+                      blink_hz: Optional[float] = None, duty: Optional[float] = None,
+                      family: int = 0) -> LampStyle:
+    """Draw a random lamp style; any argument given fixes that parameter.
+
+    ``family`` (one of ``STYLE_FAMILIES``) picks the range of the lamp colours.
+    """
     if design is None:
         design = str(rng.choice(LAMP_DESIGNS, p=[0.38, 0.22, 0.22, 0.18]))
     if tech is None:
@@ -92,8 +107,8 @@ def sample_lamp_style(rng: np.random.Generator, kind: str, design: Optional[str]
         tech = "led" if design in ("led_strip", "sequential") else str(rng.choice(["led", "bulb"]))
     if chmsl is None:
         chmsl = bool(rng.random() < {"truck": 0.25, "bus": 0.6}.get(kind, 0.85))
-    amber = (rng.uniform(0, 45), rng.uniform(115, 200), 255.0)
-    red = (rng.uniform(10, 70), rng.uniform(0, 45), rng.uniform(225, 255))
+    amber = (rng.uniform(0, 45), rng.uniform(*_AMBER_G[family]), 255.0)
+    red = (rng.uniform(*_RED_B[family]), rng.uniform(*_RED_G[family]), rng.uniform(225, 255))
     white = (rng.uniform(225, 255), rng.uniform(235, 255), rng.uniform(235, 255))
     lens_kind = rng.random()
     if lens_kind < 0.35:  # clear / silver indicator lens

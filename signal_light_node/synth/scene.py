@@ -24,7 +24,8 @@ from signal_light_node.synth import lamps as lamp_mod
 from signal_light_node.synth.camera import Camera, sample_camera
 from signal_light_node.synth.environment import (GLOW_SCALE, LIGHTINGS, Environment, Lighting, Occluder, StreetGeometry,
                                                  add_glow, blur_glow, ellipse, sample_lighting, shade)
-from signal_light_node.synth.lamps import Lamp, LampStyle, blinker_timeline, brake_timeline, flasher_level, sample_lamp_style
+from signal_light_node.synth.lamps import (STYLE_FAMILIES, TRAIN_FAMILIES, Lamp, LampStyle, blinker_timeline, brake_timeline,
+                                           flasher_level, sample_lamp_style)
 from signal_light_node.synth.truth import RenderedFrame, VehicleTruth
 from signal_light_node.synth.vehicles import CLASS_IDS, KIND_DIMS, KIND_WEIGHTS, KINDS, BodyShape, body_shape, face_size_m, sample_colour
 
@@ -48,7 +49,14 @@ MIN_LISTED_PX = 8.0
 MAX_LISTED_OCCLUSION = 0.9
 
 _VIEW_WEIGHTS = {View.BEHIND: 0.42, View.FRONT: 0.26, View.LEFT: 0.16, View.RIGHT: 0.16}
-_SCENE_KEYS = {"vehicles", "occluders", "poles", "distractors", "weather", "effects", "shake", "respawn", "horizon", "focal"}
+_SCENE_KEYS = {"vehicles", "occluders", "poles", "distractors", "weather", "effects", "shake", "respawn", "horizon", "focal",
+               "family"}
+#: A lit signal lamp (level 1) blends at least this far from its unlit lens to its lit
+#: colour, whatever the light: a lit bulb or LED visibly brightens its lens in daylight too.
+LIT_LAMP_MIN_GAIN = 0.85
+#: Share of white in the clipped core of a lit lamp in daylight (a camera clips a lit
+#: lamp towards white even in the sun; 0.2 until 2026-11-22 left red lamps faint).
+LIT_CORE_DAY = 0.45
 _VEHICLE_KEYS = {"view", "kind", "lamp_design", "tech", "chmsl", "intent", "brake", "colour", "lights_on", "center_x",
                  "width_px", "speed", "blink_hz", "duty", "phase", "shear", "roll", "specular"}
 
@@ -151,7 +159,9 @@ class SceneRenderer:
             pixel rectangles in front of every vehicle), ``poles`` (number of moving poles),
             ``distractors`` (bool), ``weather`` ("clear", "rain", "haze"), ``effects`` (bool,
             camera noise/blur/JPEG), ``shake`` (bool), ``respawn`` (bool), ``horizon``
-            (fraction of the height), ``focal`` (fraction of the width). Vehicle keys:
+            (fraction of the height), ``focal`` (fraction of the width), ``family`` (style
+            family of lamp colours and camera tone, ``synth.lamps.STYLE_FAMILIES``; default:
+            one of ``TRAIN_FAMILIES`` drawn from the seed). Vehicle keys:
             ``view`` (View), ``kind``, ``lamp_design``, ``tech`` ("led"/"bulb"), ``chmsl``,
             ``intent`` (Intent held for the whole sequence), ``brake`` (bool held),
             ``colour`` (BGR), ``lights_on``, ``center_x`` (pixels), ``width_px`` (box width),
@@ -196,6 +206,12 @@ class SceneRenderer:
             raise ConfigError(f"n_vehicles must be >= 0, got {n_vehicles}")
         self.n_vehicles = int(n_vehicles)
         self.start_ns = int(1_700_000_000_000_000_000 + int(rng.integers(0, 10 ** 16)))
+        family = overrides.get("family")
+        if family is None:  # its own stream, so that the other draws stay as they were
+            family = TRAIN_FAMILIES[int(np.random.default_rng([self.seed, 0xFA]).integers(len(TRAIN_FAMILIES)))]
+        if family not in STYLE_FAMILIES:
+            raise ConfigError(f"family must be one of {STYLE_FAMILIES}, got {family!r}")
+        self.family = int(family)
 
     # ------------------------------------------------------------------ setup
     def _setup(self) -> None:
@@ -222,7 +238,7 @@ class SceneRenderer:
             x0, y0, x1, y1 = (float(v) for v in rect)
             self._env.occluders.append(Occluder(0, 0, 0, 0, 0, (90, 90, 90), rect=(x0, y0, x1, y1)))
         self._wet = weather == "rain" or (self.lighting != "day" and rng.random() < 0.3)
-        cam_params = sample_camera(rng, self._light.noise, self.lighting, weather)
+        cam_params = sample_camera(rng, self._light.noise, self.lighting, weather, self.family)
         if not o.get("shake", True):
             cam_params.shake = 0.0
         self._camera = Camera(cam_params, W, H, self._hy, self.seed * 7 + 3, enabled=bool(o.get("effects", True)))
@@ -307,7 +323,8 @@ class SceneRenderer:
         design = vo.get("lamp_design")
         if design is not None and design not in lamp_mod.LAMP_DESIGNS:
             raise ConfigError(f"lamp_design must be one of {lamp_mod.LAMP_DESIGNS}, got {design!r}")
-        style = sample_lamp_style(vrng, kind, design, vo.get("tech"), vo.get("chmsl"), vo.get("blink_hz"), vo.get("duty"))
+        style = sample_lamp_style(vrng, kind, design, vo.get("tech"), vo.get("chmsl"), vo.get("blink_hz"), vo.get("duty"),
+                                  family=self.family)
         scale = vrng.uniform(0.93, 1.07)
         face_w, face_h = face_size_m(kind, view, scale)
         shape = body_shape(kind, view, vrng)
@@ -720,7 +737,7 @@ class SceneRenderer:
         iv = cv2.integral(d.vis.view(np.uint8))
         ia = cv2.integral((d.alpha > 127).view(np.uint8))
         rw, rh = rx1 - rx0, ry1 - ry0
-        gain = v.style.brightness * lt.lamp_gain * (1.25 if night else 1.0)
+        gain = max(LIT_LAMP_MIN_GAIN, v.style.brightness * lt.lamp_gain * (1.25 if night else 1.0))
         for li, (lamp, polys, levs) in enumerate(zip(v.lamps, v.lamp_ranges_poly, levels)):
             lx0, ly0 = lo[li]
             lx1, ly1 = hi[li]
@@ -747,10 +764,10 @@ class SceneRenderer:
                     c = p.mean(0)
                     size = max(hi[li][0] - lo[li][0], hi[li][1] - lo[li][1]) if len(polys) == 1 else \
                         max(float(np.ptp(p[:, 0])), float(np.ptp(p[:, 1])))
-                    if (night and k > 0.5) or k > 0.8:
+                    if (night and k > 0.5) or k > 0.6:
                         # Over-exposed core: the centre of a bright lamp clips towards white.
                         core = (p - c) * 0.55 + c
-                        hot = (0.35 + 0.4 * k) if night else 0.2 * v.style.brightness
+                        hot = (0.35 + 0.4 * k) if night else LIT_CORE_DAY * v.style.brightness
                         cc = tuple(e + (255 - e) * hot for e in lamp.emit)
                         cv2.fillPoly(d.canvas, [np.round(core * _ONE).astype(np.int32)], cc, cv2.LINE_AA, _SHIFT)
                     add_glow(layer, c[0] + rx0, c[1] + ry0, size * 0.5, lamp.emit, 0.5 * k * lt.glow * frac * lamp.glow)
