@@ -80,7 +80,8 @@ class IntentFilterConfig:
         hold_s: A blinker stays ON this long after its last strong frame: about one
             blink period, longer than the dark half of the slowest blink (0.7 s).
         confirm_s: A blinker turns ON only once its strong frames span this long, so
-            a single short flash or spike never makes a blinker (or HAZARD).
+            a single short flash or spike never makes a blinker (or HAZARD); the
+            default asks for two strong frames at 10-20 fps, three at 30 fps.
         brake_hold_s: The same hold for the brake light (no confirmation); 0 publishes
             the brake as the model says it.
     """
@@ -88,7 +89,7 @@ class IntentFilterConfig:
     enabled: bool = True
     on_threshold: float = 0.5
     hold_s: float = 0.8
-    confirm_s: float = 0.15
+    confirm_s: float = 0.05
     brake_hold_s: float = 0.0
 
     def __post_init__(self) -> None:

@@ -79,15 +79,17 @@ def test_square_wave_is_held_on_after_onset_and_off_within_hold_after_the_last_f
     assert np.all(_states(outs, "right") == OFF)
 
 
-def test_one_frame_spikes_never_make_a_blinker_nor_hazard():
-    stamps = np.arange(0, 6, 1 / 15)
+@pytest.mark.parametrize("config", [CONFIG, IntentFilterConfig()], ids=["0.15s", "default"])
+@pytest.mark.parametrize("fps", [10, 30])
+def test_one_frame_spikes_never_make_a_blinker_nor_hazard(config, fps):
+    stamps = np.arange(0, 6, 1 / fps)
     spike = np.full(len(stamps), 0.05)
-    spike[[10, 40, 70]] = 0.95  # single frames, 2 s apart
-    outs = _run(stamps, spike, spike)
+    spike[[fps, 3 * fps, 5 * fps]] = 0.95  # single frames, 2 s apart
+    outs = _run(stamps, spike, spike, config)
     assert np.all(_states(outs, "left") != ON) and np.all(_states(outs, "right") != ON)
     assert Intent.HAZARD not in _states(outs, "intent")
     # The capped P(ON) of a spike frame is below the published state's probability.
-    out = outs[10]
+    out = outs[fps]
     assert out.states["left"][0] == OFF
     assert out.probs["left"][0, 1] <= out.probs["left"][0, 0]
 
