@@ -18,8 +18,8 @@ stamps (scenes run at 10-30 fps, so frame counts mean nothing):
   released at once instead of making HAZARD for ``hold_s``;
 * the published probabilities agree with the published state: an ON light keeps the
   largest of its current and its last strong P(ON) (and at least enough to be the most
-  likely class), a light held back from ON gets its P(ON) capped below the published
-  state's; the other two classes share the rest in the model's proportions, so the
+  likely class), OFF and UNKNOWN sharing the rest in the model's proportions; a light
+  held back from ON is OFF, its P(ON) capped at P(OFF), the excess moved to OFF. The
   three still sum to 1. A frame the model judges UNKNOWN passes through unchanged;
 * the intent is derived from the published left and right states with
   :func:`~signal_light_node.labels.intent_from_lights` (HAZARD only when both sides are
@@ -224,10 +224,10 @@ def _check_inputs(probs: Mapping[str, np.ndarray], rows: np.ndarray) -> np.ndarr
 def _publish(p: np.ndarray, on: np.ndarray, held: np.ndarray) -> tuple:
     """Published ``[N, lights, 3]`` probabilities and ``[N, lights]`` states.
 
-    ON keeps max(P(ON), held P(ON), the least that makes ON the most likely class);
-    otherwise P(ON) is capped at the most that keeps it below OFF or UNKNOWN. OFF and
-    UNKNOWN share the rest in the model's proportions; a frame whose most likely class
-    is UNKNOWN passes through.
+    ON keeps max(P(ON), held P(ON), the least that makes ON the most likely class), OFF
+    and UNKNOWN sharing the rest in the model's proportions. Otherwise the light is OFF:
+    P(ON) is capped at P(OFF) (a no-op where the model said OFF), the excess moved to
+    OFF. A frame whose most likely class is UNKNOWN passes through.
     """
     off, p_on, unknown = p[..., _OFF], p[..., _ON], p[..., _UNKNOWN]
     rest = off + unknown
@@ -235,11 +235,14 @@ def _publish(p: np.ndarray, on: np.ndarray, held: np.ndarray) -> tuple:
     safe = np.where(has_rest, rest, 1.0)
     top = np.where(has_rest, np.maximum(off, unknown) / safe, 1.0)
     tie = top / (1.0 + top)  # P(ON) equal to the larger of the rescaled OFF and UNKNOWN
-    q_on = np.where(on, np.maximum(np.maximum(p_on, held), tie), np.minimum(p_on, tie))
-    scale = (1.0 - q_on) / safe
-    q_off = np.where(has_rest, off * scale, 1.0 - q_on)
-    q_unknown = np.where(has_rest, unknown * scale, 0.0)
+    held_on = np.maximum(np.maximum(p_on, held), tie)
+    scale = (1.0 - held_on) / safe
+    capped = np.minimum(p_on, (1.0 - unknown) / 2.0)
+    q_on = np.where(on, held_on, capped)
+    q_off = np.where(on, np.where(has_rest, off * scale, 1.0 - held_on), 1.0 - unknown - capped)
+    q_unknown = np.where(on, unknown * scale, unknown)
     q = np.stack([q_off, q_on, q_unknown], axis=-1)
+    # Held back from ON: OFF, unless UNKNOWN outweighs both (the model all but said it).
     states = np.where(on, _ON, np.where(q_off >= q_unknown, _OFF, _UNKNOWN))
     passed = p.argmax(axis=-1) == _UNKNOWN
     return np.where(passed[..., None], p, q), np.where(passed, _UNKNOWN, states).astype(np.int64)
