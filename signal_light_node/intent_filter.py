@@ -104,6 +104,16 @@ class IntentFilterConfig:
         for name in ("hold_s", "confirm_s", "brake_hold_s"):
             object.__setattr__(self, name, _check_seconds(name, getattr(self, name)))
 
+    def describe(self) -> str:
+        """One line for reports: what is published."""
+        if not self.enabled:
+            return "off (the raw model: argmax of every head, the intent head's intent)"
+        brake = f"brake held {self.brake_hold_s:g} s" if self.brake_hold_s > 0 \
+            else "brake as the model says"
+        return (f"on (blinkers ON from P(ON) >= {self.on_threshold:g} over >= "
+                f"{self.confirm_s:g} s, held {self.hold_s:g} s after the last; intent from "
+                f"the held blinkers; {brake})")
+
 
 @dataclass(frozen=True)
 class FilterOutput:

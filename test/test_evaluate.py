@@ -1,5 +1,6 @@
 """Streaming evaluation: warm-up and grace-window rules, and the evaluate command's files."""
 
+import dataclasses
 import json
 
 import cv2
@@ -187,6 +188,24 @@ def test_evaluate_command_writes_reports(tmp_path, capsys):
     md = (out / "metrics.md").read_text()
     assert "| task | frames |" in md and "Intent confusion matrix" in md and "By lighting" in md
     assert md in capsys.readouterr().out
+    # What the node publishes is scored by default, with the switches counted.
+    assert result["intent_filter"] == dataclasses.asdict(IntentFilterConfig())
+    switches = result["switches"]["intent"]
+    assert set(result["switches"]) == set(TASKS) and len(switches["per_track"]) == 3
+    assert switches["predicted"] == sum(v["predicted"] for v in switches["per_track"].values())
+    assert "Intent filter: on" in md and "Intent switches after the warm-up" in md
+    assert "### Switches" in md and "Intent changes per track" in md
+    # The raw model on request, with the filter's settings from the options.
+    raw = tmp_path / "raw"
+    assert main(["evaluate", "--checkpoint", str(ckpt), "--split", str(split), "--out", str(raw),
+                 "--no-intent-filter", "--filter-hold", "0.5", "--no-progress"]) == 0
+    raw_result = json.loads((raw / "metrics.json").read_text())
+    assert raw_result["intent_filter"]["enabled"] is False
+    assert raw_result["intent_filter"]["hold_s"] == 0.5
+    assert "Intent filter: off" in (raw / "metrics.md").read_text()
+    assert main(["evaluate", "--checkpoint", str(ckpt), "--split", str(split), "--out", str(raw),
+                 "--filter-on-threshold", "1.5", "--no-progress"]) == 2
+    assert "on_threshold" in capsys.readouterr().err
     img = cv2.imread(str(out / "confusion_intent.png"))
     assert img is not None and img.shape[0] > 300
     assert (out / "confusion_intent_grace.png").is_file()
