@@ -3,7 +3,9 @@
 The engine is what the ROS node and ``signal-light replay`` share. Per frame it crops
 every box with the shared crop code, gathers the tracks' recurrent states from the
 :class:`~signal_light_node.state_bank.StateBank`, runs ONE batched model step for all
-boxes that could be cropped, stores the new states and turns the probabilities into
+boxes that could be cropped, holds the outputs through blinks with the
+:class:`~signal_light_node.intent_filter.IntentFilter` (its per-track rows live in the
+state bank too), stores the new states and turns the probabilities into
 :class:`~signal_light_node.results.VehicleResult`\\ s. It never imports rclpy.
 """
 
@@ -22,6 +24,7 @@ import torch
 from signal_light_node.boxes import TrackBox
 from signal_light_node.crops import CropConfig, clip_roi, crop_region, crop_vehicles
 from signal_light_node.errors import ConfigError
+from signal_light_node.intent_filter import IntentFilter, IntentFilterConfig
 from signal_light_node.labels import LIGHT_CODES, LIGHT_TASKS, TASKS, Intent, LightStatus, View
 from signal_light_node.model.interface import to_input
 from signal_light_node.results import LightEstimate, VehicleResult
@@ -83,6 +86,8 @@ class EngineConfig:
         max_tracks: Most track states kept; the least recently seen one is evicted.
         max_gap_s: A forward stamp jump larger than this resets every track.
         device: Torch device of the model and the states ("cpu", "cuda", "cuda:1").
+        intent_filter: The hold over the model's light outputs and the intent derived
+            from it (``enabled=False`` publishes the raw model).
     """
 
     crop: Optional[CropConfig] = None
@@ -91,10 +96,14 @@ class EngineConfig:
     max_tracks: int = 128
     max_gap_s: float = 2.0
     device: str = "cpu"
+    intent_filter: IntentFilterConfig = field(default_factory=IntentFilterConfig)
 
     def __post_init__(self) -> None:
         if self.crop is not None and not isinstance(self.crop, CropConfig):
             raise ConfigError(f"crop must be a CropConfig or None, got {self.crop!r}")
+        if not isinstance(self.intent_filter, IntentFilterConfig):
+            raise ConfigError(f"intent_filter must be an IntentFilterConfig, got "
+                              f"{self.intent_filter!r}")
         object.__setattr__(self, "thresholds", normalize_thresholds(self.thresholds))
         limits = check_limits(self.track_timeout_s, self.max_tracks, self.max_gap_s)
         for name, value in zip(("track_timeout_s", "max_tracks", "max_gap_s"), limits):
@@ -182,9 +191,10 @@ class LightStateEngine:
             raise ConfigError(f"model light codes {codes} differ from {LIGHT_CODES}")
         self._thresholds = [(task, LIGHT_CODES[task], config.thresholds[LIGHT_CODES[task]])
                             for task in LIGHT_TASKS]
+        self.filter = IntentFilter(config.intent_filter)
         self.bank = StateBank(model, track_timeout_s=config.track_timeout_s,
                               max_tracks=config.max_tracks, max_gap_s=config.max_gap_s,
-                              device=device)
+                              device=device, filter_row=self.filter.initial_rows(1)[0])
         self._counts = {"frames": 0, "boxes": 0, "judged": 0, "unjudged": 0,
                         "duplicates": 0, "model_steps": 0}
 
@@ -253,8 +263,11 @@ class LightStateEngine:
                 x = to_input(batch).to(self.device)
                 probs, new_state = self.model.step(x, state)
                 self._counts["model_steps"] += 1
-                frames = self.bank.store(ids, new_state, stamp_ns)
-                table = _ProbTable({t: probs[t].detach().float().cpu().numpy() for t in TASKS})
+                out = self.filter.step({t: probs[t].detach().float().cpu().numpy()
+                                        for t in TASKS}, stamp_ns,
+                                       self.bank.gather_filter_rows(ids))
+                frames = self.bank.store(ids, new_state, stamp_ns, out.rows)
+                table = _ProbTable(out.probs, out.states)
             else:
                 frames = self.bank.store(ids, state, stamp_ns)
                 table = None
@@ -344,14 +357,15 @@ class LightStateEngine:
 
 
 class _ProbTable:
-    """One frame's probabilities as Python floats, with the argmax per task and row.
+    """One frame's published probabilities and classes as Python floats and ints.
 
     Converting once per frame keeps the per-box work free of numpy scalar overhead.
     """
 
-    def __init__(self, probs: Mapping[str, np.ndarray]) -> None:
-        self.rows = {t: p.tolist() for t, p in probs.items()}
-        self.best = {t: p.argmax(axis=1).tolist() for t, p in probs.items()}
+    def __init__(self, probs: Mapping[str, np.ndarray],
+                 states: Mapping[str, np.ndarray]) -> None:
+        self.rows = {t: np.asarray(p).tolist() for t, p in probs.items()}
+        self.best = {t: np.asarray(c).tolist() for t, c in states.items()}
 
 
 _RESET_TEXT = {"stamp_backwards": "the stamp jumped backwards (bag looped?)",
@@ -365,8 +379,9 @@ def engine_from_checkpoint(path: Optional[str] = None, device: str = "cpu",
     Args:
         path: Checkpoint file, or None for ``model.checkpoint.DEFAULT_WEIGHTS``.
         device: Torch device.
-        **overrides: Other ``EngineConfig`` fields (thresholds, track_timeout_s, ...); a
-            ``crop_margin`` key overrides only the margin of the model's crop config.
+        **overrides: Other ``EngineConfig`` fields (thresholds, track_timeout_s,
+            intent_filter, ...); a ``crop_margin`` key overrides only the margin of the
+            model's crop config.
 
     Returns:
         The engine.

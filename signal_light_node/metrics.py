@@ -26,6 +26,11 @@ report never claims a perfect score for something it did not see.
 :class:`MetricAccumulator` collects predictions task by task with per-frame group
 values (lighting, view, box-size band, occlusion band, ...) and reports the metrics
 overall and per group value.
+
+**Switches** (flicker): along each track, the number of frames whose class differs from
+the previous scored frame's, for the prediction and for the ground truth;
+:class:`SwitchCounter` sums them over tracks and reports their ratio (predicted / true
+changes: 1 is an output that changes as often as the truth, more is flicker).
 """
 
 from __future__ import annotations
@@ -364,6 +369,52 @@ class MetricAccumulator:
         }
 
 
+def count_changes(labels: ArrayLike) -> int:
+    """How often a sequence of classes changes from one element to the next."""
+    arr = _labels(labels, "labels")
+    return int(np.count_nonzero(arr[1:] != arr[:-1]))
+
+
+class SwitchCounter:
+    """Changes of the predicted and of the true class along tracks (see the module docstring).
+
+    The one place where switches are counted: the evaluation and the replay summary both
+    feed it through ``training.evaluation.TrackScorer``.
+    """
+
+    def __init__(self) -> None:
+        self._per_track: Dict[str, Tuple[int, int]] = {}
+
+    def add(self, track_id: str, y_true: ArrayLike, y_pred: ArrayLike) -> None:
+        """Count one track's changes.
+
+        Args:
+            track_id: The track's name (a repeated name adds to its counts).
+            y_true: Ground-truth classes of its scored frames, in time order; frames
+                with a negative (unlabelled) truth are left out of both sequences.
+            y_pred: Predicted classes of the same frames.
+
+        Raises:
+            ConfigError: The two differ in length or are not 1-D class indices.
+        """
+        t, p = _pair(y_true, y_pred)
+        keep = t >= 0
+        pred, true = self._per_track.get(track_id, (0, 0))
+        self._per_track[track_id] = (pred + count_changes(p[keep]),
+                                     true + count_changes(t[keep]))
+
+    def report(self) -> Dict[str, object]:
+        """``{"predicted", "true", "ratio", "per_track": {id: {"predicted", "true"}}}``.
+
+        ``ratio`` is predicted / true changes, ``None`` when the truth never changed.
+        """
+        pred = sum(p for p, _ in self._per_track.values())
+        true = sum(t for _, t in self._per_track.values())
+        return {"predicted": pred, "true": true, "ratio": _ratio(pred, true),
+                "per_track": {k: {"predicted": p, "true": t}
+                              for k, (p, t) in self._per_track.items()}}
+
+
 def selection_score(summary: Mapping[str, Optional[float]],
                     trained: Optional[Iterable[str]] = None) -> float:
     """Scalar used to pick the best checkpoint: mean of intent macro-F1 and brake accuracy.
@@ -458,6 +509,35 @@ def markdown_report(report: Mapping[str, object], title: Optional[str] = None) -
     for name, values in report.get("groups", {}).items():  # type: ignore[union-attr]
         lines += ["", f"By {name}:", ""]
         lines += _group_table(name, values)
+    return "\n".join(lines) + "\n"
+
+
+def switches_markdown(switches: Mapping[str, Mapping[str, object]],
+                      max_tracks: int = 20) -> str:
+    """Render switch reports (task -> :meth:`SwitchCounter.report`) as Markdown.
+
+    Args:
+        switches: One report per task.
+        max_tracks: Per-track intent counts are listed for at most this many tracks,
+            the most flickering first.
+
+    Returns:
+        A table of the changes per task and one of the intent's changes per track.
+    """
+    def ratio(value: object) -> str:
+        return "–" if value is None else f"{value:.2f}"
+
+    lines = ["| task | predicted changes | true changes | ratio |", "|---|---:|---:|---:|"]
+    for task, rep in switches.items():
+        lines.append(f"| {task} | {rep['predicted']} | {rep['true']} | {ratio(rep['ratio'])} |")
+    tracks = dict(switches.get("intent", {}).get("per_track", {}))  # type: ignore[union-attr]
+    if tracks:
+        shown = sorted(tracks.items(), key=lambda kv: (-kv[1]["predicted"], kv[0]))[:max_tracks]
+        more = f" ({len(shown)} of {len(tracks)}, most changes first)" \
+            if len(shown) < len(tracks) else ""
+        lines += ["", f"Intent changes per track{more}:", "",
+                  "| track | predicted | true |", "|---|---:|---:|"]
+        lines += [f"| {k} | {v['predicted']} | {v['true']} |" for k, v in shown]
     return "\n".join(lines) + "\n"
 
 

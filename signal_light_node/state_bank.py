@@ -6,6 +6,10 @@ pairs back. All layers of one track are kept flattened in one row of a single te
 so gathering or storing a whole frame costs one ``index_select`` / ``index_copy_``
 however many layers and tracks there are.
 
+Beside the model state, each track may own a fixed-size float64 row of the output
+filter (:mod:`signal_light_node.intent_filter`): created with the track, gathered and
+stored with it, and gone when the track is.
+
 Tracks unseen for longer than a timeout are dropped, the number of tracks is capped
 (least recently seen evicted), and the whole bank resets when the frame stamps jump
 backwards (a bag that loops) or forwards by more than a gap (a pause or a new bag).
@@ -91,6 +95,8 @@ class StateBank:
         max_tracks: Most tracks kept; the least recently seen one is evicted for a new one.
         max_gap_s: A forward stamp jump larger than this resets the bank.
         device: Where the states live (the model's device).
+        filter_row: The filter row a new track starts with (float64 ``[W]``); None
+            keeps rows of width 0.
 
     Raises:
         ConfigError: A limit is not a positive finite number.
@@ -98,7 +104,8 @@ class StateBank:
 
     def __init__(self, model: _HasInitialState, track_timeout_s: float = 1.0,
                  max_tracks: int = 128, max_gap_s: float = 2.0,
-                 device: str | torch.device = "cpu") -> None:
+                 device: str | torch.device = "cpu",
+                 filter_row: Optional[np.ndarray] = None) -> None:
         track_timeout_s, max_tracks, max_gap_s = check_limits(track_timeout_s, max_tracks,
                                                               max_gap_s)
         self.track_timeout_ns = int(round(track_timeout_s * 1e9))
@@ -115,6 +122,9 @@ class StateBank:
         # Row `capacity` is a scratch row that always holds the initial state: tracks that
         # find no free row (more tracks in one frame than max_tracks) read it and are not stored.
         self._rows = self._initial.repeat(self.capacity + 1, 1)
+        self._filter_initial = np.asarray([] if filter_row is None else filter_row,
+                                          np.float64).reshape(-1)
+        self._filter = np.tile(self._filter_initial, (self.capacity + 1, 1))
         self._slot: Dict[str, int] = {}
         self._free: List[int] = list(range(self.capacity - 1, -1, -1))
         self._last_seen = np.zeros(self.capacity, dtype=np.int64)
@@ -156,6 +166,7 @@ class StateBank:
         """Forget every track (and the last stamp); counted under ``reason``."""
         if self._slot:
             self._rows[: self.capacity] = self._initial
+            self._filter[:] = self._filter_initial
         self._slot.clear()
         self._free = list(range(self.capacity - 1, -1, -1))
         self._last_seen[:] = 0
@@ -238,19 +249,37 @@ class StateBank:
             slots[i] = slot
         if new_slots:
             self._rows[torch.as_tensor(new_slots, device=self.device)] = self._initial
+            self._filter[new_slots] = self._filter_initial
         self._pending = (ids, slots, int(stamp_ns))
         if not ids:
             return self.initial_state(0)
         index = torch.from_numpy(slots).to(self.device)
         return self._unflatten(self._rows.index_select(0, index))
 
-    def store(self, track_ids: Sequence[str], new_state: State, stamp_ns: int) -> np.ndarray:
+    def gather_filter_rows(self, track_ids: Sequence[str]) -> np.ndarray:
+        """Filter rows of the tracks of the last ``gather`` (a copy).
+
+        Args:
+            track_ids: The same IDs, in the same order, as passed to ``gather``.
+
+        Returns:
+            float64 ``[len(track_ids), W]``; a new track's (and a track without a row's)
+            is the initial row.
+
+        Raises:
+            ValueError: The IDs differ from the last ``gather``'s.
+        """
+        return self._filter[self._pending_slots(track_ids)]
+
+    def store(self, track_ids: Sequence[str], new_state: State, stamp_ns: int,
+              filter_rows: Optional[np.ndarray] = None) -> np.ndarray:
         """Keep the states the model returned for the tracks of the last ``gather``.
 
         Args:
             track_ids: The same IDs, in the same order, as passed to ``gather``.
             new_state: The model's new batched state.
             stamp_ns: The frame's stamp (the tracks' new last-seen stamp).
+            filter_rows: The tracks' new filter rows ``[N, W]``; None leaves them.
 
         Returns:
             Frames observed per track, this frame included (1 for a track that ran
@@ -259,30 +288,35 @@ class StateBank:
         Raises:
             ValueError: The IDs differ from the last ``gather``'s.
         """
-        ids = tuple(track_ids)
-        if self._pending is None or self._pending[0] != ids:
-            raise ValueError("store must follow gather with the same track IDs")
-        _, slots, _ = self._pending
+        slots = self._pending_slots(track_ids)
         self._pending = None
-        if not ids:
+        if not len(slots):
             return np.zeros(0, dtype=np.int64)
         kept = slots < self.capacity
+        if filter_rows is not None:
+            self._filter[slots[kept]] = np.asarray(filter_rows, np.float64)[kept]
         if kept.all():
-            rows = _flatten(new_state, len(ids))
+            rows = _flatten(new_state, len(slots))
             self._rows.index_copy_(0, torch.from_numpy(slots).to(self.device),
                                    rows.to(self._rows.dtype))
         elif kept.any():
-            rows = _flatten(new_state, len(ids))[torch.from_numpy(kept).to(self.device)]
+            rows = _flatten(new_state, len(slots))[torch.from_numpy(kept).to(self.device)]
             self._rows.index_copy_(0, torch.from_numpy(slots[kept]).to(self.device),
                                    rows.to(self._rows.dtype))
         held = slots[kept]
         self._last_seen[held] = int(stamp_ns)
         self._frames[held] += 1
-        frames = np.ones(len(ids), dtype=np.int64)
+        frames = np.ones(len(slots), dtype=np.int64)
         frames[kept] = self._frames[held]
         return frames
 
     # ---------------------------------------------------------------- internals
+    def _pending_slots(self, track_ids: Sequence[str]) -> np.ndarray:
+        if self._pending is None or self._pending[0] != tuple(track_ids):
+            raise ValueError("store and gather_filter_rows must follow gather with the same "
+                             "track IDs")
+        return self._pending[1]
+
     def _unflatten(self, rows: torch.Tensor) -> State:
         n = rows.shape[0]
         parts = torch.split(rows, self._layout.widths, dim=1)

@@ -14,6 +14,7 @@ from signal_light_node.crops import CropConfig, clip_roi
 from signal_light_node.engine import (EngineConfig, LightStateEngine, engine_from_checkpoint,
                                       normalize_thresholds)
 from signal_light_node.errors import CheckpointError, ConfigError, CropError
+from signal_light_node.intent_filter import IntentFilter, IntentFilterConfig
 from signal_light_node.labels import Intent, LightStatus
 from signal_light_node.results import LightEstimate
 
@@ -197,12 +198,78 @@ def test_thresholds_control_classification():
 
 
 def test_probabilities_and_argmax_fill_the_result():
-    frame = _engine().process(_image(30), 0, [_box("a")])
+    # The raw model's outputs (filter off): the intent is the intent head's argmax.
+    frame = _engine(intent_filter=IntentFilterConfig(enabled=False)).process(
+        _image(30), 0, [_box("a")])
     res = frame.results[0]
     assert res.brake.state == LightStatus.OFF
     assert res.brake.off + res.brake.on + res.brake.unknown == pytest.approx(1.0)
     assert res.intent == Intent.LEFT  # fake: phase = steps % 5 = 1
     assert 0.5 < res.intent_probability <= 1.0 and 0.0 < res.view_probability <= 1.0
+
+
+class _BlinkModel(FakeLightModel):
+    """The fake model, with the left blinker's P(ON) following the crop's brightness."""
+
+    def step(self, crops, state):
+        probs, new_state = super().step(crops, state)
+        b = crops.mean(dim=(1, 2, 3)).clamp(0.0, 1.0) * 0.98
+        probs["left"] = torch.stack([0.98 - b, b, torch.full_like(b, 0.02)], dim=1)
+        probs["right"] = torch.tensor([[0.93, 0.05, 0.02]]).repeat(len(b), 1)
+        return probs, new_state
+
+
+def _blink_frames(n=40, fps=10.0, hz=1.5, stop_s=2.5):
+    """A 1.5 Hz, 50 % duty blink of track "a" until ``stop_s``; "b" stays dark."""
+    frames = []
+    for k in range(n):
+        t = k / fps
+        lit = t < stop_s and (t * hz) % 1.0 < 0.5
+        frames.append((_image(250 if lit else 10), int(t * 1e9)))
+    return frames
+
+
+def test_engine_publishes_the_filtered_lights_and_intent():
+    config = IntentFilterConfig()
+    on = LightStateEngine(_BlinkModel(), EngineConfig(intent_filter=config))
+    raw = LightStateEngine(_BlinkModel(), EngineConfig(
+        intent_filter=IntentFilterConfig(enabled=False)))
+    filt = IntentFilter(config)
+    rows = filt.initial_rows(1)
+    intents = []
+    for image, stamp in _blink_frames():
+        got = on.process(image, stamp, [_box("a")]).results[0]
+        want = raw.process(image, stamp, [_box("a")]).results[0]
+        probs = {"intent": np.full((1, 5), 0.2), "view": np.full((1, 4), 0.25)}
+        for task in ("brake", "left", "right"):
+            light = getattr(want, task)
+            probs[task] = np.array([[light.off, light.on, light.unknown]])
+        out = filt.step(probs, stamp, rows)
+        rows = out.rows
+        for task in ("brake", "left", "right"):
+            light = getattr(got, task)
+            assert light.state == out.states[task][0], (stamp, task)
+            assert (light.off, light.on, light.unknown) == pytest.approx(
+                tuple(out.probs[task][0]), abs=1e-6)
+        assert got.intent == out.states["intent"][0]
+        assert got.intent_probability == pytest.approx(
+            out.probs["intent"][0, got.intent], abs=1e-6)
+        intents.append(got.intent)
+    # Held through every dark half: OFF, then LEFT without a gap, then OFF for good.
+    runs = [k for k, prev in zip(intents[1:], intents) if k != prev]
+    assert runs == [Intent.LEFT, Intent.OFF]
+
+
+@pytest.mark.parametrize("back_ms, state", [(2_150, LightStatus.ON), (2_250, LightStatus.OFF)])
+def test_filter_rows_follow_the_track_state(back_ms, state):
+    engine = LightStateEngine(_BlinkModel(), EngineConfig(track_timeout_s=0.3, max_gap_s=5.0))
+    for image, stamp in _blink_frames(n=20, stop_s=10.0):
+        last = engine.process(image, stamp, [_box("a")]).results[0]
+    assert last.left.state == LightStatus.ON  # last flash at 1.6 s, held at 1.9 s
+    # Dark and back within the 0.3 s track timeout: still held (0.55 s after the flash);
+    # after it (0.65 s after the flash, still within hold_s): the track starts fresh.
+    back = engine.process(_image(10), back_ms * MS, [_box("a")]).results[0]
+    assert back.left.state == state and (back.frames_observed == 1) == (state == LightStatus.OFF)
 
 
 def test_counters_cover_resets_evictions_and_active_tracks():

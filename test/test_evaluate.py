@@ -1,5 +1,6 @@
 """Streaming evaluation: warm-up and grace-window rules, and the evaluate command's files."""
 
+import dataclasses
 import json
 
 import cv2
@@ -9,12 +10,14 @@ import torch
 
 from signal_light_node.cli import main
 from signal_light_node.crops import CropConfig
+from signal_light_node.intent_filter import IntentFilter, IntentFilterConfig
 from signal_light_node.labels import TASKS, Intent
 from signal_light_node.model import ModelConfig, build_model, save_checkpoint
 from signal_light_node.training.evaluation import (
     EvalSettings,
     evaluate_tracks,
     grace_mask,
+    predict_track_batch,
     warmup_mask,
 )
 from signal_light_node.training.sources import TrackSequence
@@ -78,8 +81,19 @@ def test_streaming_evaluation_counts_and_scores():
     model = CountingModel()
     # Track b misses frame 3, so its step counter lags by one and intent flips to LEFT at
     # frame 16 instead of 15: exactly one wrong frame, inside the grace window.
+    # The raw model (filter off): the intent comes from the intent head alone.
+    raw = IntentFilterConfig(enabled=False)
     res = evaluate_tracks(model, [make_track("a"), make_track("b", masked=[3])], s,
-                          progress=False)
+                          progress=False, intent_filter=raw)
+    assert res["intent_filter"]["enabled"] is False
+    # One change of the intent per track, predicted and true, after the warm-up.
+    switches = res["switches"]["intent"]
+    assert (switches["predicted"], switches["true"], switches["ratio"]) == (2, 2, 1.0)
+    assert switches["per_track"] == {"a": {"predicted": 1, "true": 1},
+                                     "b": {"predicted": 1, "true": 1}}
+    assert res["switches"]["brake"] == {"predicted": 0, "true": 0, "ratio": None,
+                                        "per_track": {"a": {"predicted": 0, "true": 0},
+                                                      "b": {"predicted": 0, "true": 0}}}
     assert model.stepped == 59  # the masked frame is never stepped
     c = res["counts"]
     assert (c["tracks"], c["frames"], c["stepped"], c["scored"]) == (2, 60, 59, 39)
@@ -97,6 +111,51 @@ def test_streaming_evaluation_counts_and_scores():
     assert groups["box_size"]["32-64px"]["intent"]["n"] == 39
     assert groups["view"]["BEHIND"]["intent"]["n"] == 39
     assert groups["occlusion"]["none"]["intent"]["n"] == 39
+
+
+class BlinkModel(CountingModel):
+    """Fake model: the left blinker's P(ON) is the crop's brightness, the rest OFF."""
+
+    def step(self, crops, state):
+        probs, new_state = super().step(crops, state)
+        b = crops.mean(dim=(1, 2, 3)) * 0.98
+        probs["left"] = torch.stack([0.98 - b, b, torch.full_like(b, 0.02)], dim=1)
+        return probs, new_state
+
+
+def blink_track(name, fps, n, masked=()):
+    """A left blink at 1.5 Hz, 50 % duty, from 1 s to 3 s; labels as the node should say."""
+    track = make_track(name, n=n, fps=fps, change_at=n, masked=masked)
+    t = track.stamps_ns / 1e9
+    lit = (t >= 1.0) & (t < 3.0) & (((t - 1.0) * 1.5) % 1.0 < 0.5)
+    track.crops[lit] = 255
+    return track
+
+
+def test_evaluation_applies_the_engine_filter_with_each_tracks_stamps():
+    tracks = [blink_track("slow", 10.0, 50, masked=[12]), blink_track("fast", 30.0, 150)]
+    preds = predict_track_batch(BlinkModel(), tracks, torch.device("cpu"))
+    for track, pred in zip(tracks, preds):
+        filt = IntentFilter()
+        rows = filt.initial_rows(1)
+        for i in np.flatnonzero(track.mask):
+            b = track.crops[i].mean() / 255 * 0.98
+            probs = {t: np.eye(k)[[0]] for t, k in zip(TASKS, (5, 3, 3, 3, 4))}
+            probs["left"] = np.array([[0.98 - b, b, 0.02]])
+            out = filt.step(probs, track.stamps_ns[i], rows)
+            rows = out.rows
+            assert pred[i].tolist() == [int(out.states[t][0]) for t in TASKS], (track.track_id, i)
+        assert (pred[~track.mask] == -1).all()
+        # Held through the blink: LEFT in one piece, at both frame rates.
+        intent = pred[track.mask, 0]
+        assert [k for k, prev in zip(intent[1:], intent) if k != prev] == [Intent.LEFT,
+                                                                          Intent.OFF]
+    raw = predict_track_batch(BlinkModel(), tracks, torch.device("cpu"),
+                              IntentFilterConfig(enabled=False))
+    # The raw model: the left blinker is ON in the lit frames only, flickering.
+    lit = tracks[0].crops.reshape(len(tracks[0]), -1).max(axis=1) > 0
+    valid = tracks[0].mask
+    assert raw[0][valid, 2].tolist() == np.where(lit[valid], 1, 0).tolist()
 
 
 def test_evaluate_command_writes_reports(tmp_path, capsys):
@@ -129,6 +188,24 @@ def test_evaluate_command_writes_reports(tmp_path, capsys):
     md = (out / "metrics.md").read_text()
     assert "| task | frames |" in md and "Intent confusion matrix" in md and "By lighting" in md
     assert md in capsys.readouterr().out
+    # What the node publishes is scored by default, with the switches counted.
+    assert result["intent_filter"] == dataclasses.asdict(IntentFilterConfig())
+    switches = result["switches"]["intent"]
+    assert set(result["switches"]) == set(TASKS) and len(switches["per_track"]) == 3
+    assert switches["predicted"] == sum(v["predicted"] for v in switches["per_track"].values())
+    assert "Intent filter: on" in md and "Intent switches after the warm-up" in md
+    assert "### Switches" in md and "Intent changes per track" in md
+    # The raw model on request, with the filter's settings from the options.
+    raw = tmp_path / "raw"
+    assert main(["evaluate", "--checkpoint", str(ckpt), "--split", str(split), "--out", str(raw),
+                 "--no-intent-filter", "--filter-hold", "0.5", "--no-progress"]) == 0
+    raw_result = json.loads((raw / "metrics.json").read_text())
+    assert raw_result["intent_filter"]["enabled"] is False
+    assert raw_result["intent_filter"]["hold_s"] == 0.5
+    assert "Intent filter: off" in (raw / "metrics.md").read_text()
+    assert main(["evaluate", "--checkpoint", str(ckpt), "--split", str(split), "--out", str(raw),
+                 "--filter-on-threshold", "1.5", "--no-progress"]) == 2
+    assert "on_threshold" in capsys.readouterr().err
     img = cv2.imread(str(out / "confusion_intent.png"))
     assert img is not None and img.shape[0] > 300
     assert (out / "confusion_intent_grace.png").is_file()

@@ -154,3 +154,39 @@ def test_markdown_and_png(tmp_path):
     assert dark[2] < 50 and white.tolist() == [255, 255, 255]
     with pytest.raises(ConfigError, match="does not match"):
         M.render_confusion_png(np.zeros((2, 2)), ["a", "b", "c"], str(path))
+
+
+def test_count_changes_by_hand():
+    assert M.count_changes([]) == 0 and M.count_changes([3]) == 0
+    assert M.count_changes([2, 0, 2, 0, 2, 2, 1]) == 5
+    with pytest.raises(ConfigError):
+        M.count_changes([[1, 2]])
+
+
+def test_switch_counter_sums_tracks_skips_unlabelled_frames_and_reports_the_ratio():
+    counter = M.SwitchCounter()
+    assert counter.report() == {"predicted": 0, "true": 0, "ratio": None, "per_track": {}}
+    # RIGHT, off, RIGHT, off ... against a truth that stays RIGHT, then turns OFF once.
+    counter.add("33", [2, 2, 2, 2, 2, 0], [2, 0, 2, 0, 2, 0])
+    # The unlabelled (-1) frame is left out of both: 1 -> 1 is no change.
+    counter.add("7", [1, -1, 1, 0], [1, 3, 1, 1])
+    counter.add("7", [0, 0], [0, 1])
+    rep = counter.report()
+    assert rep["per_track"] == {"33": {"predicted": 5, "true": 1},
+                                "7": {"predicted": 1, "true": 1}}
+    assert (rep["predicted"], rep["true"]) == (6, 2) and rep["ratio"] == pytest.approx(3.0)
+    with pytest.raises(ConfigError, match="differ in length"):
+        counter.add("x", [1, 2], [1])
+
+
+def test_switches_markdown_lists_tasks_and_the_most_flickering_tracks():
+    counter = M.SwitchCounter()
+    for k in range(5):
+        counter.add(f"t{k}", [0] * 6, [0, 1] * k + [0] * (6 - 2 * k) if k < 4 else [0] * 6)
+    brake = M.SwitchCounter()
+    brake.add("t0", [0, 1], [0, 1])
+    md = M.switches_markdown({"intent": counter.report(), "brake": brake.report()},
+                             max_tracks=2)
+    assert "| intent | 11 | 0 | – |" in md and "| brake | 1 | 1 | 1.00 |" in md
+    assert "(2 of 5, most changes first)" in md
+    assert md.index("| t3 | 5 | 0 |") < md.index("| t2 | 4 | 0 |") and "| t1 |" not in md

@@ -58,6 +58,9 @@ def test_int_for_float_is_accepted_and_converted():
     ({"sync_slop_s": 0.5, "sync_timeout_s": 0.2}, ["sync_timeout_s", "exceed sync_slop_s"]),
     ({"model_path": 3}, ["model_path", "string"]),
     ({"thresold_brake": 0.3}, ["unknown parameter 'thresold_brake'"]),
+    ({"filter_hold_s": -0.5}, ["filter_hold_s", ">= 0.0"]),
+    ({"filter_on_threshold": 0.0}, ["filter_on_threshold", ">= 0.01"]),
+    ({"intent_filter": "yes"}, ["intent_filter", "true or false"]),
 ])
 def test_bad_values_are_refused_with_a_reason(changes, words):
     with pytest.raises(ConfigError) as info:
@@ -154,3 +157,4 @@ def test_node_defaults_equal_the_engine_and_crop_defaults():
     assert (params.track_timeout_s, params.max_tracks, params.max_gap_s, params.device) == (
         engine.track_timeout_s, engine.max_tracks, engine.max_gap_s, engine.device)
     assert params.crop_margin == CropConfig().margin
+    assert params.intent_filter_config == engine.intent_filter

@@ -235,6 +235,11 @@ def test_ground_truth_is_matched_per_track_and_scored(small_bag, tmp_path):
 
     result = score_summary(summary, EvalSettings(warmup_frames=0, warmup_seconds=0.0))
     assert result["counts"]["scored"] == 2 * (N_FRAMES - 1)
+    # Switches, per track segment: the brake truth changes once in each.
+    brake = result["switches"]["brake"]
+    assert brake["true"] == 2 and set(brake["per_track"]) == {"3@0", "7@0"}
+    assert brake["predicted"] == sum(int(np.count_nonzero(np.diff([int(p[1]) for p in r.pred])))
+                                     for r in summary.tracks.values())
     brake = result["no_grace"]["overall"]["brake"]
     want = sum(int(p[1] == t[1]) for r in summary.tracks.values()
                for p, t in zip(r.pred, r.truth)) / (2 * (N_FRAMES - 1))
@@ -318,7 +323,13 @@ def test_cli_replay_prints_summary_and_metrics(small_bag, tmp_path, capsys):
     assert code == 0
     assert f"{N_FRAMES} messages on {OUTPUT_TOPIC}" in text
     assert "Agreement with the ground truth" in text and "scored after the warm-up" in text
+    assert "Intent filter: on" in text and "### Switches" in text
+    assert "| intent | " in text and "Intent changes per track" in text
     assert _check_structure(small_bag, out, IMAGE_T, DET_T) == N_FRAMES
+    raw = tmp_path / "raw"
+    assert main(["replay", str(small_bag), "-o", str(raw), "--checkpoint", str(ckpt),
+                 "--no-progress", "--no-intent-filter"]) == 0
+    assert "Intent filter: off" in capsys.readouterr().out
     # An existing output without --overwrite is a clear error, not a traceback.
     assert main(["replay", str(small_bag), "-o", str(out), "--checkpoint", str(ckpt),
                  "--no-progress"]) == 2

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -146,3 +147,75 @@ def test_contract_violations_are_refused():
 def test_bad_limits_are_config_errors(kwargs):
     with pytest.raises(ConfigError):
         StateBank(FakeLightModel(), **kwargs)
+
+
+# ------------------------------------------------------------------ filter rows
+INITIAL_ROW = np.array([np.nan, -1.0, 0.5])
+
+
+def _filter_bank(**kwargs) -> StateBank:
+    return StateBank(FakeLightModel(), filter_row=INITIAL_ROW, **kwargs)
+
+
+def _filter_step(bank, ids, stamp_ns, values):
+    """One frame: returns the rows gathered, stores rows filled with ``values``."""
+    bank.gather(ids, stamp_ns)
+    rows = bank.gather_filter_rows(ids)
+    bank.store(ids, _state_of([0.0] * len(ids)), stamp_ns,
+               np.repeat(np.asarray(values, float)[:, None], len(INITIAL_ROW), axis=1))
+    return rows
+
+
+def _is_initial(rows) -> list:
+    return [bool(np.array_equal(r, INITIAL_ROW, equal_nan=True)) for r in rows]
+
+
+def test_filter_rows_start_initial_and_round_trip_by_track():
+    bank = _filter_bank()
+    assert _is_initial(_filter_step(bank, ["a", "b"], 0, [1.0, 2.0])) == [True, True]
+    rows = _filter_step(bank, ["b", "new", "a"], 10 * MS, [20.0, 30.0, 10.0])
+    assert rows[0].tolist() == [2.0] * 3 and _is_initial(rows[1:2]) == [True]
+    assert rows[2].tolist() == [1.0] * 3
+    bank.gather(["a"], 20 * MS)
+    assert bank.gather_filter_rows(["a"]).tolist() == [[10.0] * 3]
+    # store without rows leaves them as they were
+    bank.store(["a"], _state_of([0.0]), 20 * MS)
+    bank.gather(["a"], 30 * MS)
+    assert bank.gather_filter_rows(["a"]).tolist() == [[10.0] * 3]
+
+
+def test_filter_rows_go_with_expired_evicted_and_reset_tracks():
+    bank = _filter_bank(track_timeout_s=0.5, max_tracks=2, max_gap_s=10.0)
+    _filter_step(bank, ["a", "b"], 0, [1.0, 2.0])
+    _filter_step(bank, ["b"], 400 * MS, [3.0])
+    # "a" expires at 600 ms; "c" evicts nobody (a's row is free again).
+    rows = _filter_step(bank, ["a", "b"], 600 * MS, [4.0, 5.0])
+    assert _is_initial(rows) == [True, False] and rows[1].tolist() == [3.0] * 3
+    rows = _filter_step(bank, ["c"], 700 * MS, [6.0])  # full: evicts "a" or "b"
+    assert _is_initial(rows) == [True] and bank.counters["evictions"] == 1
+    kept = bank.track_ids
+    bank.gather(kept, 800 * MS)
+    assert sorted(bank.gather_filter_rows(kept)[:, 0].tolist()) == sorted(
+        {"a": 4.0, "b": 5.0, "c": 6.0}[t] for t in kept)
+    bank.store(kept, _state_of([0.0] * len(kept)), 800 * MS)
+    bank.reset()
+    bank.gather(kept, 900 * MS)
+    assert _is_initial(bank.gather_filter_rows(kept)) == [True, True]
+
+
+def test_filter_rows_of_overflowing_tracks_are_not_kept():
+    bank = _filter_bank(max_tracks=1)
+    _filter_step(bank, ["a", "b"], 0, [1.0, 2.0])
+    bank.gather(["a", "b"], 10 * MS)
+    rows = bank.gather_filter_rows(["a", "b"])
+    assert rows[0].tolist() == [1.0] * 3 and _is_initial(rows[1:]) == [True]
+
+
+def test_filter_rows_need_the_gathered_ids_and_default_to_width_zero():
+    bank = _filter_bank()
+    bank.gather(["a"], 0)
+    with pytest.raises(ValueError, match="same track IDs"):
+        bank.gather_filter_rows(["b"])
+    plain = StateBank(FakeLightModel())
+    plain.gather(["a", "b"], 0)
+    assert plain.gather_filter_rows(["a", "b"]).shape == (2, 0)

@@ -4,10 +4,13 @@ Data (one of): a materialised split (``--split DIR``), labelled bags (``--bags``
 UC Merced layout (``--ucm``), or synthetic tracks rendered on the fly
 (``--synthetic-seed N --tracks N``; the same seed always gives the same tracks).
 
-Every track is stepped through ``model.step`` from a fresh state; frames in the warm-up
-(the first ``max(--warmup-frames, --warmup-seconds)`` of each track) are not scored, and
-a second report also leaves out ``--grace`` seconds after each ground-truth change (see
-:mod:`signal_light_node.training.evaluation`). Writes ``metrics.json``, ``metrics.md``,
+Every track is stepped through ``model.step`` from a fresh state and its outputs through
+the node's intent filter (``--no-intent-filter`` scores the raw model); frames in the
+warm-up (the first ``max(--warmup-frames, --warmup-seconds)`` of each track) are not
+scored, and a second report also leaves out ``--grace`` seconds after each ground-truth
+change (see :mod:`signal_light_node.training.evaluation`). The reports also count the
+switches (class changes along the tracks, predicted against true). Writes
+``metrics.json``, ``metrics.md``,
 ``confusion_intent.png`` (no grace window) and ``confusion_intent_grace.png`` into
 ``--out`` and prints the Markdown.
 
@@ -26,7 +29,9 @@ from itertools import islice
 from pathlib import Path
 from typing import Any, Dict, Iterable, Iterator, Optional, Tuple
 
-from signal_light_node.commands.options import add_labelled_data_options, add_torch_options
+from signal_light_node.commands.options import (add_intent_filter_options,
+                                                add_labelled_data_options, add_torch_options,
+                                                intent_filter_from_args)
 from signal_light_node.errors import ConfigError
 
 logger = logging.getLogger(__name__)
@@ -64,6 +69,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="score the ideal causal observer (perfect per-frame sight, known "
                             "flasher timing) instead of a checkpoint: the ceiling of every "
                             "metric (--split or --synthetic-seed)")
+    add_intent_filter_options(parser.add_argument_group("intent filter (as the node's)"))
     parser.add_argument("--batch-tracks", type=int, default=EvalSettings.batch_tracks,
                         help="tracks stepped together")
     add_torch_options(parser)
@@ -141,9 +147,11 @@ def _headline(result: Dict[str, Any]) -> str:
 
 def render_markdown(result: Dict[str, Any]) -> str:
     """The whole evaluation as Markdown (headline, then both full reports)."""
-    from signal_light_node.metrics import markdown_report
+    from signal_light_node.metrics import markdown_report, switches_markdown
 
     st, counts = result["settings"], result["counts"]
+    intent = result["switches"]["intent"]
+    ratio = "–" if intent["ratio"] is None else f"{intent['ratio']:.2f}"
     parts = [
         f"## Evaluation of `{result['checkpoint']}`", "",
         f"Data: `{json.dumps(result['data_brief'])}`", "",
@@ -151,11 +159,17 @@ def render_markdown(result: Dict[str, Any]) -> str:
         f"{'judged' if result.get('ideal_observer') else 'stepped through `model.step`'}, "
         f"{counts['scored']} scored after the warm-up (first max({st['warmup_frames']} frames, "
         f"{st['warmup_seconds']:g} s) of each track, {counts['warmup_excluded']} frames). "
-        f"Grace window: {st['grace_seconds']:g} s after each ground-truth change of a head.", "",
+        f"Grace window: {st['grace_seconds']:g} s after each ground-truth change of a head."
+        + (f" Intent filter: {result['intent_filter_text']}."
+           if result.get("intent_filter_text") else ""), "",
         _headline(result), "",
+        f"Intent switches after the warm-up: {intent['predicted']} predicted, "
+        f"{intent['true']} true (ratio {ratio}).", "",
         markdown_report(result["no_grace"], "After warm-up (no grace window)"),
         markdown_report(result["grace"],
                         f"After warm-up, {st['grace_seconds']:g} s grace window after label changes"),
+        "### Switches (after warm-up: class changes along the tracks)", "",
+        switches_markdown(result["switches"]),
     ]
     return "\n".join(parts)
 
@@ -186,9 +200,12 @@ def run(args: argparse.Namespace) -> int:
         result = score_ideal_observer(items, settings)
         checkpoint = "the ideal observer"
     else:
+        intent_filter = intent_filter_from_args(args)
         tracks, total, data = _tracks(args, loaded.config.crop_config())
         result = evaluate_tracks(loaded.model.to(args.device), tracks, settings, args.device,
-                                 progress=not args.no_progress, total=total)
+                                 progress=not args.no_progress, total=total,
+                                 intent_filter=intent_filter)
+        result["intent_filter_text"] = intent_filter.describe()
     result = {"checkpoint": str(checkpoint), "ideal_observer": bool(args.ideal_observer),
               "data": data,
               "data_brief": {k: v for k, v in data.items()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 # The common base of ArgumentParser and argument groups (what add_argument lives on).
 ArgumentContainer = argparse._ActionsContainer
@@ -27,3 +28,40 @@ def add_torch_options(group: ArgumentContainer) -> None:
     group.add_argument("--threads", type=int, default=None,
                        help="torch CPU threads (unset: torch's choice)")
     group.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def add_intent_filter_options(group: ArgumentContainer) -> None:
+    """``--intent-filter`` / ``--no-intent-filter`` and the filter's settings.
+
+    Defaults come from ``intent_filter.IntentFilterConfig`` (as the node's parameters do).
+    """
+    from signal_light_node.intent_filter import IntentFilterConfig
+
+    d = IntentFilterConfig()
+    group.add_argument("--intent-filter", action=argparse.BooleanOptionalAction,
+                       default=d.enabled,
+                       help="hold the blinkers through the dark half of a blink and derive "
+                            "the intent from them, as the node does (--no-intent-filter: "
+                            "the raw model)")
+    group.add_argument("--filter-on-threshold", type=float, default=d.on_threshold,
+                       metavar="P", help="P(ON) of a frame that counts as a flash")
+    group.add_argument("--filter-hold", type=float, default=d.hold_s, metavar="S",
+                       help="seconds a blinker stays ON after its last flash")
+    group.add_argument("--filter-confirm", type=float, default=d.confirm_s, metavar="S",
+                       help="seconds a blinker's flashes must span before it turns ON")
+    group.add_argument("--filter-brake-hold", type=float, default=d.brake_hold_s, metavar="S",
+                       help="seconds the brake stays ON after its last ON frame (0: as the "
+                            "model says)")
+
+
+def intent_filter_from_args(args: argparse.Namespace) -> Any:
+    """The ``IntentFilterConfig`` of :func:`add_intent_filter_options`' options.
+
+    Raises:
+        ConfigError: A value is out of range.
+    """
+    from signal_light_node.intent_filter import IntentFilterConfig
+
+    return IntentFilterConfig(enabled=args.intent_filter, on_threshold=args.filter_on_threshold,
+                              hold_s=args.filter_hold, confirm_s=args.filter_confirm,
+                              brake_hold_s=args.filter_brake_hold)

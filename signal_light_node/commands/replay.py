@@ -7,7 +7,8 @@ import logging
 from pathlib import Path
 from typing import Dict
 
-from signal_light_node.commands.options import add_torch_options
+from signal_light_node.commands.options import (add_intent_filter_options, add_torch_options,
+                                                intent_filter_from_args)
 from signal_light_node.errors import ConfigError
 
 LOG = logging.getLogger(__name__)
@@ -49,6 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--track-timeout", type=float, default=1.0, metavar="S",
                         help="seconds a track may stay unseen before its state is dropped")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    add_intent_filter_options(parser.add_argument_group("intent filter (as the node's)"))
     add_torch_options(parser)
 
 
@@ -67,7 +69,8 @@ def run(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     thresholds: Dict[str, float] = dict(args.threshold)
     engine = engine_from_checkpoint(args.checkpoint, device=args.device, thresholds=thresholds,
-                                    track_timeout_s=args.track_timeout)
+                                    track_timeout_s=args.track_timeout,
+                                    intent_filter=intent_filter_from_args(args))
     summary = replay_bag(args.bag, args.output, engine, image_topic=args.image_topic,
                          detections_topic=args.detections_topic, with_inputs=args.with_inputs,
                          video=args.video, video_attention=args.attention,
@@ -78,22 +81,32 @@ def run(args: argparse.Namespace) -> int:
         if result is None:
             print("ground truth present, but no judged detection matched it")
         else:
-            print(render_scores(result, args.bag))
+            print(render_scores(result, args.bag, engine.config.intent_filter.describe()))
     return 0
 
 
-def render_scores(result: dict, bag: Path) -> str:
-    """The replay's agreement with the ground truth as Markdown."""
-    from signal_light_node.metrics import markdown_report
+def render_scores(result: dict, bag: Path, intent_filter: str = "") -> str:
+    """The replay's agreement with the ground truth as Markdown.
+
+    Args:
+        result: ``replay.score_summary``'s result.
+        bag: The bag replayed.
+        intent_filter: ``IntentFilterConfig.describe()`` of the engine, if known.
+    """
+    from signal_light_node.metrics import markdown_report, switches_markdown
 
     st, c = result["settings"], result["counts"]
     head = (f"Agreement with the ground truth of {bag}: {c['frames']} judged frames with ground "
             f"truth in {c['tracks']} track segments, {c['scored']} scored after the warm-up "
             f"(first max({st['warmup_frames']} frames, {st['warmup_seconds']:g} s) of each "
             f"track state).")
+    if intent_filter:
+        head += f" Intent filter: {intent_filter}."
     if c["scored"] == 0:
         return head + " Nothing left to score."
     return "\n".join([head, "", markdown_report(result["no_grace"], "After warm-up"),
                       markdown_report(result["grace"], f"After warm-up, "
                                       f"{st['grace_seconds']:g} s grace window after label "
-                                      f"changes")])
+                                      f"changes"),
+                      "### Switches (after warm-up: class changes along the tracks)", "",
+                      switches_markdown(result["switches"])])

@@ -92,7 +92,7 @@ class SignalLightDetector(Node):
         self.engine = engine_from_checkpoint(
             p.model_path or None, device=p.device, thresholds=p.thresholds,
             track_timeout_s=p.track_timeout_s, max_tracks=p.max_tracks, max_gap_s=p.max_gap_s,
-            crop_margin=p.crop_margin)
+            crop_margin=p.crop_margin, intent_filter=p.intent_filter_config)
 
         self._pairer = StampPairer(int(p.sync_slop_s * _NS), int(p.sync_timeout_s * _NS),
                                    p.image_queue_size, p.detection_queue_size)

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any, Dict, Mapping, Optional, Tuple, Union
 
 from signal_light_node.errors import ConfigError
+from signal_light_node.intent_filter import IntentFilterConfig
 from signal_light_node.labels import LIGHT_CODES
 
 #: The node's name; also the top-level key of ``config/detector.yaml``.
@@ -46,6 +47,14 @@ class DetectorParams:
         max_tracks: At most this many track states; the longest unseen is evicted.
         max_gap_s: A forward stamp jump larger than this resets every track.
         crop_margin: Context added around each box before cropping, as a fraction of its size.
+        intent_filter: Hold the blinkers through blinks and derive the intent from them
+            (``intent_filter.IntentFilterConfig``, whose defaults these are); false
+            publishes the raw model.
+        filter_on_threshold: P(ON) of a frame that counts as a flash.
+        filter_hold_s: A blinker stays ON this long after its last flash.
+        filter_confirm_s: A blinker's flashes must span this long before it turns ON.
+        filter_brake_hold_s: The brake stays ON this long after its last ON frame (0: as
+            the model says).
         publish_debug_image: Publish the annotated frame on ``~/output/debug/image``.
         diagnostics_period_s: Period of the ``/diagnostics`` status.
         num_threads: torch intra-op threads; 0 keeps torch's default.
@@ -67,6 +76,11 @@ class DetectorParams:
     max_tracks: int = 128
     max_gap_s: float = 2.0
     crop_margin: float = 0.15
+    intent_filter: bool = IntentFilterConfig.enabled
+    filter_on_threshold: float = IntentFilterConfig.on_threshold
+    filter_hold_s: float = IntentFilterConfig.hold_s
+    filter_confirm_s: float = IntentFilterConfig.confirm_s
+    filter_brake_hold_s: float = IntentFilterConfig.brake_hold_s
     publish_debug_image: bool = False
     diagnostics_period_s: float = 1.0
     num_threads: int = 0
@@ -77,6 +91,14 @@ class DetectorParams:
         return {LIGHT_CODES["brake"]: self.threshold_brake,
                 LIGHT_CODES["left"]: self.threshold_left_blinker,
                 LIGHT_CODES["right"]: self.threshold_right_blinker}
+
+    @property
+    def intent_filter_config(self) -> IntentFilterConfig:
+        """The engine's filter settings."""
+        return IntentFilterConfig(enabled=self.intent_filter,
+                                  on_threshold=self.filter_on_threshold,
+                                  hold_s=self.filter_hold_s, confirm_s=self.filter_confirm_s,
+                                  brake_hold_s=self.filter_brake_hold_s)
 
     def as_dict(self) -> Dict[str, Any]:
         """Name -> value, in declaration order."""
@@ -137,6 +159,18 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
                            "tracks (backward jumps always do).", low=0.01, high=3600.0),
     "crop_margin": ParamSpec("Context added around each box before cropping, as a fraction of "
                              "the box size.", low=0.0, high=1.0),
+    "intent_filter": ParamSpec("Hold the blinkers ON through the dark half of a blink and "
+                               "derive the intent from them (HAZARD only when both are held); "
+                               "false publishes the model's per-frame outputs."),
+    "filter_on_threshold": ParamSpec("P(ON) from which a frame counts as a flash of a light.",
+                                     low=0.01, high=1.0),
+    "filter_hold_s": ParamSpec("A blinker stays ON this many seconds (stamp time) after its "
+                               "last flash: about one blink period.", low=0.0, high=10.0),
+    "filter_confirm_s": ParamSpec("A blinker turns ON only once its flashes span this many "
+                                  "seconds, so a single spike never makes one.",
+                                  low=0.0, high=5.0),
+    "filter_brake_hold_s": ParamSpec("The brake stays ON this many seconds after its last ON "
+                                     "frame; 0 = as the model says.", low=0.0, high=10.0),
     "publish_debug_image": ParamSpec("Publish the annotated frame on ~/output/debug/image "
                                      "(costs CPU)."),
     "diagnostics_period_s": ParamSpec("Period of the status published on /diagnostics.",

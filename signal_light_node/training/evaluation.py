@@ -5,7 +5,10 @@ observed frame (frames with ``mask`` False, e.g. a box that could not be cropped
 neither stepped nor scored, as the engine never judges them). Tracks are batched only
 for speed: at frame index ``t`` every track of the batch that has a frame ``t`` is
 stepped together, which gives the same outputs as stepping each track alone. The
-predicted class of a head is the argmax of its probabilities, as in the engine.
+model's outputs go through the same :class:`~signal_light_node.intent_filter.IntentFilter`
+as in the engine, driven by each track's own stamps, so what is scored is what the node
+publishes; with the filter disabled, the predicted class of a head is the argmax of its
+probabilities (the raw model).
 
 Scoring rules (documented in the report's ``settings``):
 
@@ -20,6 +23,10 @@ Scoring rules (documented in the report's ``settings``):
 
 Breakdowns: lighting (the track's), view (the ground-truth view of the frame), box-size
 band and occlusion band (:mod:`signal_light_node.metrics`).
+
+Switches (flicker): per head and track, how often the predicted and the true class
+change from one scored frame to the next (after the warm-up, no grace window);
+reported per track and summed, with their ratio (``metrics.SwitchCounter``).
 """
 
 from __future__ import annotations
@@ -33,8 +40,10 @@ import torch
 from tqdm import tqdm
 
 from signal_light_node.errors import ConfigError
+from signal_light_node.intent_filter import IntentFilter, IntentFilterConfig
 from signal_light_node.labels import CLASS_NAMES, TASKS
-from signal_light_node.metrics import MetricAccumulator, box_size_band, occlusion_band
+from signal_light_node.metrics import (MetricAccumulator, SwitchCounter, box_size_band,
+                                       occlusion_band)
 from signal_light_node.model import select_state, to_input
 from signal_light_node.training.sources import TrackSequence
 
@@ -102,16 +111,27 @@ def grace_mask(track: TrackSequence, task_index: int, settings: EvalSettings) ->
 
 
 @torch.no_grad()
-def predict_track_batch(model: Any, tracks: Sequence[TrackSequence],
-                        device: torch.device) -> List[np.ndarray]:
+def predict_track_batch(model: Any, tracks: Sequence[TrackSequence], device: torch.device,
+                        intent_filter: Optional[IntentFilterConfig] = None) -> List[np.ndarray]:
     """Step a batch of tracks frame by frame; returns int64 ``[T_i, len(TASKS)]`` each.
 
-    Rows of frames that are not stepped (mask False) are -1.
+    Args:
+        model: A ``LightStateModel``.
+        tracks: The tracks (crops, mask, stamps).
+        device: Where to run the model.
+        intent_filter: The filter over the model's outputs, as in the engine (default:
+            its defaults; ``enabled=False`` gives the raw model's argmax).
+
+    Returns:
+        Published classes per frame; rows of frames that are not stepped (mask False)
+        are -1.
     """
     n = len(tracks)
     length = max(len(t) for t in tracks)
     preds = [np.full((len(t), len(TASKS)), -1, np.int64) for t in tracks]
     state = model.initial_state(n)
+    light_filter = IntentFilter(intent_filter)
+    rows = light_filter.initial_rows(n)
     for i in range(length):
         active = [k for k, t in enumerate(tracks) if i < len(t) and bool(t.mask[i])]
         if not active:
@@ -120,7 +140,11 @@ def predict_track_batch(model: Any, tracks: Sequence[TrackSequence],
         index = torch.as_tensor(active, dtype=torch.long, device=device)
         sub = select_state(state, index) if len(active) < n else state
         probs, new_sub = model.step(to_input(crops).to(device), sub)
-        labels = np.stack([probs[t].argmax(1).cpu().numpy() for t in TASKS], axis=1)
+        out = light_filter.step({t: probs[t].detach().float().cpu().numpy() for t in TASKS},
+                                np.array([tracks[k].stamps_ns[i] for k in active], np.int64),
+                                rows[active])
+        rows[active] = out.rows
+        labels = np.stack([out.states[t] for t in TASKS], axis=1)
         for row, k in enumerate(active):
             preds[k][i] = labels[row]
         if len(active) == n:
@@ -166,6 +190,8 @@ class TrackScorer:
         settings: The rules.
         strict: Metrics after the warm-up.
         graced: Metrics after the warm-up, without the grace windows.
+        switches: Per head, the changes of the predicted and true classes along the
+            tracks' scored frames.
         counts: Tracks and frames seen, frames stepped, excluded by the warm-up, scored,
             and per head excluded by the grace window.
     """
@@ -173,6 +199,7 @@ class TrackScorer:
     def __init__(self, settings: EvalSettings = EvalSettings()) -> None:
         self.settings = settings
         self.strict, self.graced = MetricAccumulator(), MetricAccumulator()
+        self.switches = {task: SwitchCounter() for task in TASKS}
         self.counts: Dict[str, Any] = {"tracks": 0, "frames": 0, "stepped": 0,
                                        "warmup_excluded": 0, "scored": 0,
                                        "grace_excluded": {t: 0 for t in TASKS}}
@@ -199,6 +226,7 @@ class TrackScorer:
         for i, task in enumerate(TASKS):
             y, p = track.labels[rows, i], pred[rows, i]
             self.strict.add(task, y, p, groups)
+            self.switches[task].add(track.track_id, y, p)
             keep = grace_mask(track, i, self.settings)[rows]
             counts["grace_excluded"][task] += int((~keep).sum())
             self.graced.add(task, y[keep], p[keep],
@@ -206,18 +234,21 @@ class TrackScorer:
                              for k, v in groups.items()})
 
     def result(self) -> Dict[str, Any]:
-        """``{"settings", "counts", "no_grace": report, "grace": report}``.
+        """``{"settings", "counts", "no_grace": report, "grace": report, "switches"}``.
 
-        The reports come from :meth:`MetricAccumulator.report`.
+        The reports come from :meth:`MetricAccumulator.report`, the switches (task ->
+        report) from :meth:`SwitchCounter.report`.
         """
         return {"settings": asdict(self.settings), "counts": self.counts,
-                "no_grace": self.strict.report(), "grace": self.graced.report()}
+                "no_grace": self.strict.report(), "grace": self.graced.report(),
+                "switches": {t: c.report() for t, c in self.switches.items()}}
 
 
 def evaluate_tracks(model: Any, tracks: Iterable[TrackSequence],
                     settings: EvalSettings = EvalSettings(),
                     device: "str | torch.device" = "cpu", progress: bool = True,
-                    total: Optional[int] = None) -> Dict[str, Any]:
+                    total: Optional[int] = None,
+                    intent_filter: Optional[IntentFilterConfig] = None) -> Dict[str, Any]:
     """Score a model on tracks with and without the grace window.
 
     Tracks are consumed lazily, ``settings.batch_tracks`` at a time, so a long test set
@@ -230,25 +261,29 @@ def evaluate_tracks(model: Any, tracks: Iterable[TrackSequence],
         device: Where to run the model.
         progress: Show a progress bar.
         total: Number of tracks, for the progress bar.
+        intent_filter: The filter over the model's outputs (default: its defaults, as
+            the node runs; ``enabled=False`` scores the raw model).
 
     Returns:
         :meth:`TrackScorer.result`: ``{"settings", "counts", "no_grace": report, "grace":
-        report}`` where ``counts`` says how many frames were stepped, excluded by the
-        warm-up and (per head) by the grace window.
+        report, "switches"}`` where ``counts`` says how many frames were stepped,
+        excluded by the warm-up and (per head) by the grace window, plus
+        ``"intent_filter"``: the filter's settings.
 
     Raises:
         ConfigError: There were no tracks.
     """
     device = torch.device(device)
+    intent_filter = intent_filter or IntentFilterConfig()
     model.eval()
     scorer = TrackScorer(settings)
     bar = tqdm(total=total, desc="evaluate", unit="track", disable=not progress)
     for batch in _chunks(tracks, settings.batch_tracks):
-        preds = predict_track_batch(model, batch, device)
+        preds = predict_track_batch(model, batch, device, intent_filter)
         for track, pred in zip(batch, preds):
             scorer.add(track, pred)
         bar.update(len(batch))
     bar.close()
     if scorer.counts["tracks"] == 0:
         raise ConfigError("nothing to evaluate: no tracks")
-    return scorer.result()
+    return {**scorer.result(), "intent_filter": asdict(intent_filter)}

@@ -1,0 +1,264 @@
+"""A time-based hold over the model's per-frame light outputs: intent that holds.
+
+The model's blinker probabilities sag in the dark half of every blink, so the published
+states and the intent flicker (RIGHT, OFF, RIGHT, OFF, ...), and a short spike of one
+side, or both, can make a blinker or a HAZARD for a frame. :class:`IntentFilter` is a
+small explicit filter over those outputs, per track and per light, driven by the frame
+stamps (scenes run at 10-30 fps, so frame counts mean nothing):
+
+* a frame is **strong** for a light when its P(ON) >= ``on_threshold``; strong frames
+  no more than ``hold_s`` apart form one **episode**;
+* a light is **ON** while its episode is alive (the last strong frame is at most
+  ``hold_s`` old) and confirmed (its strong frames span at least ``confirm_s``, so a
+  single short flash or one-frame spike never makes a blinker); it goes OFF ``hold_s``
+  after the last strong frame. ``hold_s`` is about one blink period (blinks run at
+  1.0-2.2 Hz with 30-70 % duty: the dark half lasts at most 0.7 s);
+* when both blinkers are ON but one side had no strong frame since the other side's
+  episode began, the silent side was switched off (a change from RIGHT to LEFT): it is
+  released at once instead of making HAZARD for ``hold_s``;
+* the published probabilities agree with the published state: an ON light keeps the
+  largest of its current and its last strong P(ON) (and at least enough to be the most
+  likely class), OFF and UNKNOWN sharing the rest in the model's proportions; a light
+  held back from ON is OFF, its P(ON) capped at P(OFF), the excess moved to OFF. The
+  three still sum to 1. A frame the model judges UNKNOWN passes through unchanged;
+* the intent is derived from the published left and right states with
+  :func:`~signal_light_node.labels.intent_from_lights` (HAZARD only when both sides are
+  ON), its probability from the two published distributions taken as independent;
+* the brake is held the same way over ``brake_hold_s`` (without confirmation), or
+  passed through as the model says it when that is 0.
+
+Everything is vectorised over the tracks of a frame. The per-track state is a fixed
+row of :data:`ROW_WIDTH` floats (per light: stamp of the last strong frame, stamp of
+the episode's first strong frame, last strong P(ON)), owned by the caller: the
+:class:`~signal_light_node.state_bank.StateBank` in the engine, the evaluation's own
+array per batch of tracks. The filter itself keeps no per-track state.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Dict, Mapping, Union
+
+import numpy as np
+
+from signal_light_node.errors import ConfigError
+from signal_light_node.labels import (CLASS_NAMES, LIGHT_TASKS, TASKS, Intent, LightStatus,
+                                      intent_from_lights)
+
+#: Fields of one light in a filter row.
+_LAST, _START, _HELD = range(3)
+_FIELDS = 3
+#: Floats per track: the three fields of each of ``LIGHT_TASKS``.
+ROW_WIDTH = _FIELDS * len(LIGHT_TASKS)
+
+_OFF, _ON, _UNKNOWN = int(LightStatus.OFF), int(LightStatus.ON), int(LightStatus.UNKNOWN)
+_LEFT, _RIGHT = LIGHT_TASKS.index("left"), LIGHT_TASKS.index("right")
+
+#: ``INTENT_OF[left_state, right_state]``: the one rule of ``labels.intent_from_lights``.
+INTENT_OF = np.array([[int(intent_from_lights(a, b)) for b in LightStatus] for a in LightStatus],
+                     dtype=np.int64)
+#: ``[3, 3, 5]`` one-hot of ``INTENT_OF``, to turn two light distributions into an intent one.
+_INTENT_ONE_HOT = np.eye(len(Intent))[INTENT_OF]
+
+
+def _check_seconds(name: str, value: float) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+            or not math.isfinite(value) or value < 0:
+        raise ConfigError(f"{name} must be a finite number of seconds >= 0, got {value!r}")
+    return float(value)
+
+
+@dataclass(frozen=True)
+class IntentFilterConfig:
+    """Settings of the :class:`IntentFilter`; the one place of their defaults.
+
+    Attributes:
+        enabled: False publishes the model's outputs as they are (argmax states, the
+            intent head's intent).
+        on_threshold: P(ON) from which a frame counts as strong evidence of a light.
+        hold_s: A blinker stays ON this long after its last strong frame: about one
+            blink period, longer than the dark half of the slowest blink (0.7 s).
+        confirm_s: A blinker turns ON only once its strong frames span this long, so
+            a single short flash or spike never makes a blinker (or HAZARD); the
+            default asks for two strong frames at 10-20 fps, three at 30 fps.
+        brake_hold_s: The same hold for the brake light (no confirmation); 0 publishes
+            the brake as the model says it.
+    """
+
+    enabled: bool = True
+    on_threshold: float = 0.5
+    hold_s: float = 0.8
+    confirm_s: float = 0.05
+    brake_hold_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.enabled, (bool, np.bool_)):
+            raise ConfigError(f"enabled must be true or false, got {self.enabled!r}")
+        value = self.on_threshold
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+                or not (math.isfinite(value) and 0.0 < value <= 1.0):
+            raise ConfigError(f"on_threshold must be a probability in (0, 1], got {value!r}")
+        object.__setattr__(self, "enabled", bool(self.enabled))
+        object.__setattr__(self, "on_threshold", float(value))
+        for name in ("hold_s", "confirm_s", "brake_hold_s"):
+            object.__setattr__(self, name, _check_seconds(name, getattr(self, name)))
+
+    def describe(self) -> str:
+        """One line for reports: what is published."""
+        if not self.enabled:
+            return "off (the raw model: argmax of every head, the intent head's intent)"
+        brake = f"brake held {self.brake_hold_s:g} s" if self.brake_hold_s > 0 \
+            else "brake as the model says"
+        return (f"on (blinkers ON from P(ON) >= {self.on_threshold:g} over >= "
+                f"{self.confirm_s:g} s, held {self.hold_s:g} s after the last; intent from "
+                f"the held blinkers; {brake})")
+
+
+@dataclass(frozen=True)
+class FilterOutput:
+    """What the filter publishes for the tracks of one step.
+
+    Attributes:
+        probs: Task -> ``[N, K]`` probabilities (``TASKS``; rows sum to 1), the lights
+            and the intent as published, the view as the model gave it.
+        states: Task -> int64 ``[N]`` published classes.
+        rows: float64 ``[N, ROW_WIDTH]``: the tracks' new filter rows.
+    """
+
+    probs: Dict[str, np.ndarray]
+    states: Dict[str, np.ndarray]
+    rows: np.ndarray
+
+
+def argmax_states(probs: Mapping[str, np.ndarray]) -> Dict[str, np.ndarray]:
+    """The most likely class of every task and row: what the raw model says."""
+    return {t: np.asarray(p).argmax(axis=1).astype(np.int64) for t, p in probs.items()}
+
+
+class IntentFilter:
+    """The hold filter (see the module docstring); stateless, vectorised over tracks.
+
+    Args:
+        config: Settings; the defaults when None.
+    """
+
+    def __init__(self, config: IntentFilterConfig | None = None) -> None:
+        self.config = config or IntentFilterConfig()
+        c = self.config
+        self._threshold = c.on_threshold
+        hold = {"brake": c.brake_hold_s, "left": c.hold_s, "right": c.hold_s}
+        confirm = {"brake": 0.0, "left": c.confirm_s, "right": c.confirm_s}
+        self._hold = np.array([hold[t] for t in LIGHT_TASKS])
+        self._confirm = np.array([confirm[t] for t in LIGHT_TASKS])
+        self._filtered = [t != "brake" or c.brake_hold_s > 0 for t in LIGHT_TASKS]
+
+    @staticmethod
+    def initial_rows(n: int) -> np.ndarray:
+        """float64 ``[n, ROW_WIDTH]``: the rows of tracks that have shown nothing yet."""
+        rows = np.zeros((n, len(LIGHT_TASKS), _FIELDS))
+        rows[:, :, (_LAST, _START)] = np.nan
+        return rows.reshape(n, ROW_WIDTH)
+
+    def step(self, probs: Mapping[str, np.ndarray], stamps_ns: Union[int, np.ndarray],
+             rows: np.ndarray) -> FilterOutput:
+        """Filter one frame of every track.
+
+        Args:
+            probs: Task -> ``[N, K]`` model probabilities (every task of ``TASKS``).
+            stamps_ns: The frame stamp of each track (``[N]``), or one for all.
+            rows: float64 ``[N, ROW_WIDTH]``: the tracks' filter rows before this frame.
+
+        Returns:
+            The published probabilities and states and the new rows (``rows`` itself is
+            not modified). With the filter disabled: the model's probabilities, their
+            argmax and the rows unchanged.
+
+        Raises:
+            ConfigError: A task is missing or the shapes disagree.
+        """
+        rows = _check_inputs(probs, rows)
+        if not self.config.enabled:
+            return FilterOutput(dict(probs), argmax_states(probs), rows.copy())
+        n = rows.shape[0]
+        now = np.broadcast_to(np.asarray(stamps_ns, np.int64), (n,)) * 1e-9
+        p = np.stack([np.asarray(probs[t], np.float64) for t in LIGHT_TASKS], axis=1)
+        state = rows.reshape(n, len(LIGHT_TASKS), _FIELDS).copy()
+        on = self._advance(state, p, now[:, None])
+        q, light_states = _publish(p, on, state[..., _HELD])
+        raw = argmax_states({t: p[:, i] for i, t in enumerate(LIGHT_TASKS)})
+        out_probs, out_states = dict(probs), {"view": np.asarray(probs["view"]).argmax(1)}
+        for i, task in enumerate(LIGHT_TASKS):
+            keep = self._filtered[i]
+            out_probs[task] = q[:, i] if keep else p[:, i]
+            out_states[task] = light_states[:, i] if keep else raw[task]
+        out_probs["intent"], out_states["intent"] = _intent(out_probs, out_states)
+        return FilterOutput(out_probs, {t: out_states[t] for t in TASKS},
+                            state.reshape(n, ROW_WIDTH))
+
+    def _advance(self, state: np.ndarray, p: np.ndarray, now: np.ndarray) -> np.ndarray:
+        """Update the rows in place with this frame; returns bool ``[N, lights]`` ON."""
+        last, start, held = state[..., _LAST], state[..., _START], state[..., _HELD]
+        strong = p[..., _ON] >= self._threshold
+        with np.errstate(invalid="ignore"):
+            alive = (now - last) <= self._hold
+        new_episode = strong & ~alive
+        start[new_episode] = np.broadcast_to(now, start.shape)[new_episode]
+        last[strong] = np.broadcast_to(now, last.shape)[strong]
+        held[strong] = p[..., _ON][strong]
+        with np.errstate(invalid="ignore"):
+            on = ((now - last) <= self._hold) & ((last - start) >= self._confirm)
+        # Both blinkers ON, one silent since the other's episode began: it was switched off.
+        both = on[:, _LEFT] & on[:, _RIGHT]
+        for side, other in ((_LEFT, _RIGHT), (_RIGHT, _LEFT)):
+            released = both & (last[:, side] < start[:, other])
+            on[released, side] = False
+            state[released, side] = (np.nan, np.nan, 0.0)
+        return on
+
+
+def _check_inputs(probs: Mapping[str, np.ndarray], rows: np.ndarray) -> np.ndarray:
+    rows = np.asarray(rows, np.float64)
+    if rows.ndim != 2 or rows.shape[1] != ROW_WIDTH:
+        raise ConfigError(f"filter rows must be [N, {ROW_WIDTH}], got shape {rows.shape}")
+    for task in TASKS:
+        if task not in probs:
+            raise ConfigError(f"filter input lacks the {task!r} probabilities")
+        shape = np.shape(probs[task])
+        if shape != (rows.shape[0], len(CLASS_NAMES[task])):
+            raise ConfigError(f"{task} probabilities must be [{rows.shape[0]}, "
+                              f"{len(CLASS_NAMES[task])}], got {shape}")
+    return rows
+
+
+def _publish(p: np.ndarray, on: np.ndarray, held: np.ndarray) -> tuple:
+    """Published ``[N, lights, 3]`` probabilities and ``[N, lights]`` states.
+
+    ON keeps max(P(ON), held P(ON), the least that makes ON the most likely class), OFF
+    and UNKNOWN sharing the rest in the model's proportions. Otherwise the light is OFF:
+    P(ON) is capped at P(OFF) (a no-op where the model said OFF), the excess moved to
+    OFF. A frame whose most likely class is UNKNOWN passes through.
+    """
+    off, p_on, unknown = p[..., _OFF], p[..., _ON], p[..., _UNKNOWN]
+    rest = off + unknown
+    has_rest = rest > 0
+    safe = np.where(has_rest, rest, 1.0)
+    top = np.where(has_rest, np.maximum(off, unknown) / safe, 1.0)
+    tie = top / (1.0 + top)  # P(ON) equal to the larger of the rescaled OFF and UNKNOWN
+    held_on = np.maximum(np.maximum(p_on, held), tie)
+    scale = (1.0 - held_on) / safe
+    capped = np.minimum(p_on, (1.0 - unknown) / 2.0)
+    q_on = np.where(on, held_on, capped)
+    q_off = np.where(on, np.where(has_rest, off * scale, 1.0 - held_on), 1.0 - unknown - capped)
+    q_unknown = np.where(on, unknown * scale, unknown)
+    q = np.stack([q_off, q_on, q_unknown], axis=-1)
+    # Held back from ON: OFF, unless UNKNOWN outweighs both (the model all but said it).
+    states = np.where(on, _ON, np.where(q_off >= q_unknown, _OFF, _UNKNOWN))
+    passed = p.argmax(axis=-1) == _UNKNOWN
+    return np.where(passed[..., None], p, q), np.where(passed, _UNKNOWN, states).astype(np.int64)
+
+
+def _intent(probs: Mapping[str, np.ndarray], states: Mapping[str, np.ndarray]) -> tuple:
+    """Intent ``[N, 5]`` probabilities and ``[N]`` classes from the published blinkers."""
+    dist = np.einsum("na,nb,abk->nk", probs["left"], probs["right"], _INTENT_ONE_HOT)
+    return dist, INTENT_OF[states["left"], states["right"]]
