@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
-# Produce the shipped weights signal_light_node/weights/default.pt -- the one documented
-# command (about 83 minutes from nothing on a 2-core CPU with the defaults below):
+# The base recipe (until 2026-11-22 the shipped one): per-frame stage + lanes, from nothing.
+# scripts/train_default.sh starts from its weights (about 83 minutes on a 2-core CPU):
 #
-#   scripts/train_default.sh
+#   WEIGHTS=runs/base/default.pt scripts/train_base.sh
 #
 # Steps:
 #   1. materialise the training pool (POOL_TRACKS whole tracks per seed of POOL_SEEDS,
@@ -41,7 +41,7 @@
 # Every setting can be overridden from the environment, e.g. a 3-minute smoke run:
 #   RUN=runs/smoke POOL_TRACKS=16 FRAME_POOL_TRACKS=32 FRAME_MINUTES=1 LANE_MINUTES=1 \
 #     VAL_SEQUENCES=16 TEST_TRACKS=12 TEST_FRAMES=40 WEIGHTS=runs/smoke/default.pt \
-#     scripts/train_default.sh
+#     scripts/train_base.sh
 # DATA keeps the rendered splits apart from RUN (the checkpoints), TRAIN_ARGS adds options
 # to both stages and FRAME_STEPS / LANE_STEPS cap them by steps: scripts/ablations.sh uses
 # these to train variants on the same data with the same number of steps; DATA_ONLY=1
@@ -57,7 +57,7 @@ fi
 RUN=${RUN:-runs/default}
 DATA=${DATA:-$RUN}                   # where the pool, validation and test splits live
 TRAIN_ARGS=${TRAIN_ARGS:-}           # extra `signal-light train` options for both stages
-WEIGHTS=${WEIGHTS:-signal_light_node/weights/default.pt}
+WEIGHTS=${WEIGHTS:-$RUN/default.pt}
 SEED=${SEED:-1}                      # model init and sampling
 POOL_SEEDS=${POOL_SEEDS:-"11 12 13 14"}  # training pool: one split per seed
 POOL_TRACKS=${POOL_TRACKS:-800}      # whole tracks per pool seed

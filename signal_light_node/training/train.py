@@ -77,6 +77,8 @@ from signal_light_node.model import (
     to_input,
 )
 from signal_light_node.model.interface import State, state_batch_size
+from signal_light_node.model.warm_start import warm_start
+from signal_light_node.data.camera_response import randomise_camera
 from signal_light_node.training.sampling import (
     STRATA,
     ClassFrequency,
@@ -176,6 +178,8 @@ class TrainOptions:
             without bags/UCM and 0 with them.
         mirror_prob: Probability that a sequence is mirrored.
         jitter: Colour/brightness jitter per sequence.
+        camera_response: A random camera response per sequence (tone curve, saturation,
+            clipping, noise, blur, resolution, JPEG; ``data.camera_response``).
         reuse: Average number of times a rendered synthetic sequence is served
             (:class:`ReplayStream`; rendering costs more than a training step).
         replay_capacity: Rendered sequences kept for reuse, per data worker.
@@ -227,6 +231,7 @@ class TrainOptions:
     synthetic_fraction: Optional[float] = None
     mirror_prob: float = 0.5
     jitter: bool = True
+    camera_response: bool = False
     reuse: float = 2.0
     replay_capacity: int = 1500
     model: Dict[str, Any] = field(default_factory=dict)
@@ -366,15 +371,20 @@ def _worker_init(worker_id: int) -> None:
 class _Augment:
     """Mirroring and colour jitter of a sequence item, the stream's own functions."""
 
-    def __init__(self, mirror_prob: float, jitter: bool) -> None:
+    def __init__(self, mirror_prob: float, jitter: bool, camera: bool = False) -> None:
         self.mirror_prob = mirror_prob
         self.jitter = jitter
+        self.camera = camera
 
     def __call__(self, item: Dict[str, Any], rng: np.random.Generator) -> Dict[str, Any]:
         if self.mirror_prob > 0 and rng.random() < self.mirror_prob:
             item = mirror_sequence(item)
         if self.jitter:
             crops = jitter_colours(item["crops"], rng)
+            crops[~item["mask"]] = 0
+            item = dict(item, crops=crops)
+        if self.camera:
+            crops = randomise_camera(item["crops"], rng)
             crops[~item["mask"]] = 0
             item = dict(item, crops=crops)
         return item
@@ -741,8 +751,13 @@ class Trainer:
             self.meta_from_init = {"init_from": str(init),
                                    "init_training_data": loaded.meta.get("training_data")}
             if opts.model:
-                logger.warning("model options %s ignored: the architecture comes from %s",
-                               sorted(opts.model), init)
+                # A grown architecture (e.g. temporal_input) starts from the old weights.
+                self.config = loaded.config.replace(**opts.model)
+                model = build_model(self.config)
+                grown = warm_start(model, loaded.model.state_dict())
+                self.meta_from_init["init_model_changes"] = dict(opts.model)
+                logger.info("warm start from %s with %s; new input channels in %s",
+                            init, dict(opts.model), grown)
         else:
             self.config = ModelConfig().replace(**opts.model) if opts.model else ModelConfig()
             model = build_model(self.config)
@@ -808,7 +823,7 @@ class Trainer:
         opts = self.opts
         parts, probs = [], []
         frac = self._synthetic_fraction()
-        augment = _Augment(opts.mirror_prob, opts.jitter)
+        augment = _Augment(opts.mirror_prob, opts.jitter, opts.camera_response)
         if opts.mode != "windows":
             # In-process: lanes must stay in the order of the state the trainer keeps,
             # and the tracks are already in memory (nothing to render).
