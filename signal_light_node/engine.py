@@ -127,6 +127,23 @@ class FrameResult:
     n_judged: int
 
 
+def require_device(device: "str | torch.device") -> torch.device:
+    """The torch device, checked to be usable here.
+
+    Raises:
+        ConfigError: Not a torch device, or CUDA is asked for on a machine (or torch
+            build) without it.
+    """
+    try:
+        device = torch.device(device)
+    except (RuntimeError, TypeError) as exc:
+        raise ConfigError(f"device {device!r} is not a torch device: {exc}") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"CUDA requested but not available (device {str(device)!r}); "
+                          "use device cpu")
+    return device
+
+
 def unjudged_result(box: TrackBox, width: int, height: int,
                     frames_observed: int = 0) -> VehicleResult:
     """The result of a box that could not be judged: every light UNKNOWN with P(ON) = 0."""
@@ -166,9 +183,7 @@ class LightStateEngine:
         if trained_margin is not None and abs(crop.margin - trained_margin) > 1e-9:
             LOG.warning("crop margin %.3f differs from the %.3f the model was trained with",
                         crop.margin, trained_margin)
-        device = torch.device(config.device)
-        if device.type == "cuda" and not torch.cuda.is_available():
-            raise ConfigError(f"device {config.device!r} requested but CUDA is not available")
+        device = require_device(config.device)
         if hasattr(model, "to"):
             model = model.to(device)
         if hasattr(model, "eval"):
@@ -377,6 +392,7 @@ def engine_from_checkpoint(path: Optional[str] = None, device: str = "cpu",
     """
     from signal_light_node.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint
 
+    require_device(device)  # before loading: torch would blame the file
     loaded = load_checkpoint(DEFAULT_WEIGHTS if path is None else path, map_location=device)
     margin = overrides.pop("crop_margin", None)
     if margin is not None and overrides.get("crop") is None:

@@ -10,7 +10,6 @@ with one log line and a non-zero exit code.
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +17,7 @@ import pytest
 import yaml
 
 from node_harness import (COMPRESSED_TYPE, DEBUG_TOPIC, RAW_TYPE, REPO, DetectorProcess,
-                          LiveClient, load_frames, model_args, scene_bag)
+                          LiveClient, load_frames, model_args, run_until_exit, scene_bag)
 from signal_light_node.node.params import NODE_NAME
 
 rclpy = pytest.importorskip("rclpy")
@@ -204,30 +203,19 @@ def test_raw_images_with_an_edited_params_file(tmp_path, rclpy_isolated_env):
               debug_image=True)
 
 
-def _run_until_exit(args, env, tmp_path, timeout_s: float = 60.0):
-    """Start the detector with ``args``, poll until it exits (or time out) and return
-    its exit code and non-empty log lines."""
-    node = DetectorProcess(args, env, tmp_path / "detector.log")
-    deadline = time.monotonic() + timeout_s
-    while node.proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)
-    code = node.stop()
-    return code, [line for line in node.text().splitlines() if line.strip()]
-
-
 @pytest.mark.parametrize("content", [None, b"not a torch checkpoint"],
                          ids=["missing", "incompatible"])
 def test_missing_or_bad_model_stops_with_one_clear_line(tmp_path, rclpy_isolated_env, content):
     missing = tmp_path / "no_such_model.pt"
     if content is not None:
         missing.write_bytes(content)
-    code, lines = _run_until_exit(["-p", f"model_path:={missing}"], rclpy_isolated_env(), tmp_path)
+    code, lines = run_until_exit(["-p", f"model_path:={missing}"], rclpy_isolated_env(), tmp_path)
     assert code != 0
     assert len(lines) == 1, lines
     assert "no_such_model.pt" in lines[0] and "FATAL" in lines[0]
 
 
 def test_bad_parameter_stops_with_one_clear_line(tmp_path, rclpy_isolated_env):
-    code, lines = _run_until_exit(["-p", "image_transport:=theora"], rclpy_isolated_env(), tmp_path)
+    code, lines = run_until_exit(["-p", "image_transport:=theora"], rclpy_isolated_env(), tmp_path)
     assert code != 0 and len(lines) == 1, lines
     assert "image_transport" in lines[0] and "raw, compressed" in lines[0]

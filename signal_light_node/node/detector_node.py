@@ -16,6 +16,7 @@ message layout beyond the topic types.
 from __future__ import annotations
 
 import logging
+import re
 import sys
 import time
 from typing import Any, Dict, List, Optional
@@ -23,14 +24,15 @@ from typing import Any, Dict, List, Optional
 import rclpy
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy_impl
 from rclpy.node import Node
 
 from signal_light_node.conversions import (detections_to_boxes, rclpy_make, stamp_to_ns,
                                            vehicle_light_array)
 from signal_light_node.errors import ConfigError, ImageConversionError, SignalLightError
 from signal_light_node.node.pairing import StampPairer
-from signal_light_node.node.params import (NODE_NAME, DetectorParams, read_parameters,
-                                           updated)
+from signal_light_node.node.params import (NODE_NAME, DetectorParams, foreign_params_file,
+                                           params_file_paths, read_parameters, updated)
 from signal_light_node.node.ros_io import message_class, qos
 from signal_light_node.node.stats import ERROR, OK, WARN, LatencyWindow, Snapshot, health
 from signal_light_node.node.worker import DropOldestQueue, Worker
@@ -245,18 +247,47 @@ def _decoder(image_transport: str) -> Any:
     return compressed_msg_to_bgr if image_transport == "compressed" else image_msg_to_bgr
 
 
+def _init_ros(args: Optional[List[str]]) -> None:
+    """``rclpy.init`` with rcl's own error line silenced, so a bad argument is one line.
+
+    Raises:
+        ConfigError: The ROS arguments cannot be parsed (bad rule, missing params file...).
+    """
+    from rclpy.logging import LoggingSeverity, get_logger_level, set_logger_level
+
+    before = get_logger_level("rcl")
+    set_logger_level("rcl", LoggingSeverity.FATAL)
+    try:
+        rclpy.init(args=args)
+    except _rclpy_impl.RCLError as exc:
+        # rcl appends ", at <source file>:<line>" for every frame; the user needs none.
+        text = re.sub(r", at \S+:\d+", "", str(exc).splitlines()[0])
+        raise ConfigError(f"bad ROS arguments: {text}") from None
+    finally:
+        set_logger_level("rcl", before)
+
+
+def _warn_foreign_params_files(node: Node, args: Optional[List[str]]) -> None:
+    for path in params_file_paths(list(sys.argv if args is None else args)):
+        problem = foreign_params_file(path, node.get_fully_qualified_name())
+        if problem is not None:
+            node.get_logger().warning(problem)
+
+
 def main(args: Optional[List[str]] = None) -> int:
     """Run the node until Ctrl-C or a shutdown request; returns the exit code.
 
-    A configuration or model problem at start-up is reported in ONE log line and gives
-    exit code 1.
+    Any start-up problem (bad ROS arguments, parameters, model, device) is reported in
+    ONE log line and gives exit code 1; a params file without a section for this node
+    is warned about.
     """
     logging.basicConfig(level=logging.INFO, format="[%(levelname)s] [%(name)s]: %(message)s")
-    rclpy.init(args=args)
     node: Optional[SignalLightDetector] = None
     code = 0
     try:
+        _init_ros(args)
         node = SignalLightDetector()
+        _warn_foreign_params_files(node, args)
         node.setup()
         rclpy.spin(node)
     except SignalLightError as exc:

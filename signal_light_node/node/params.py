@@ -11,8 +11,9 @@ lazily, so the rest is usable and testable without ROS.
 from __future__ import annotations
 
 import dataclasses
+import re
 from dataclasses import dataclass
-from typing import Any, Dict, Mapping, Optional, Tuple, Union
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
 from signal_light_node.errors import ConfigError
 from signal_light_node.labels import LIGHT_CODES
@@ -290,3 +291,44 @@ def read_parameters(node: Any) -> DetectorParams:
         raise ConfigError(f"invalid parameters: unknown parameter(s) {', '.join(extra)} "
                           f"(known: {', '.join(PARAM_SPECS)})")
     return validate_params({name: node.get_parameter(name).value for name in PARAM_SPECS})
+
+
+def params_file_paths(args: Sequence[str]) -> List[str]:
+    """The files named by ``--params-file FILE`` in a command line, in order."""
+    return [args[i + 1] for i, arg in enumerate(args[:-1]) if arg == "--params-file"]
+
+
+def _node_pattern(key: str) -> "re.Pattern[str]":
+    """A params-file section name (``/**``, ``/ns/*``, ``name``) as a regex over node names."""
+    key = key if key.startswith("/") else "/" + key
+    parts = re.split(r"(/\*\*|\*)", key)
+    regex = "".join("(/[^/]+)*" if p == "/**" else "[^/]+" if p == "*" else re.escape(p)
+                    for p in parts)
+    return re.compile(regex + r"\Z")
+
+
+def foreign_params_file(path: str, node_name: str) -> Optional[str]:
+    """Why a params file gives this node nothing, or None when it has a section for it.
+
+    rcl silently ignores sections for other nodes; a file written for another node name
+    (or a renamed node) would leave every parameter at its default without a word.
+
+    Args:
+        path: The params file (read with PyYAML; rcl has already parsed it).
+        node_name: The node's fully qualified name, e.g. ``/signal_light_detector``.
+
+    Returns:
+        A one-line warning, or None.
+    """
+    import yaml
+
+    try:
+        with open(path, encoding="utf-8") as stream:
+            sections = yaml.safe_load(stream)
+    except (OSError, yaml.YAMLError) as exc:
+        return f"params file {path} cannot be read ({type(exc).__name__}); it was not checked"
+    names = [str(k) for k in sections] if isinstance(sections, dict) else []
+    if any(_node_pattern(name).match(node_name) for name in names):
+        return None
+    return (f"params file {path} has no section for node {node_name} (it has: "
+            f"{', '.join(names) or 'none'}); none of its values apply to this node")
