@@ -26,9 +26,9 @@ from signal_light_node.bagio import BagWriter, find_topic, make, open_bag
 from signal_light_node.boxes import TrackBox
 from signal_light_node.conversions import (detections_to_boxes, result_row, stamp_to_ns,
                                            truth_row, vehicle_light_array)
-from signal_light_node.engine import FrameResult, LightStateEngine, unjudged_result
+from signal_light_node.engine import FrameResult, LightStateEngine
 from signal_light_node.errors import ImageConversionError
-from signal_light_node.image_codec import msg_to_bgr
+from signal_light_node.image_codec import DEFAULT_MAX_IMAGE_PIXELS, msg_to_bgr
 from signal_light_node.results import VehicleResult
 from signal_light_node.topics import (DETECTIONS_TYPE, GROUND_TRUTH_TOPIC, IMAGE_TYPES,
                                       OUTPUT_TOPIC, VEHICLE_LIGHTS_TYPE)
@@ -67,7 +67,8 @@ class ReplaySummary:
         entries: Vehicle entries written (one per box).
         images_without_detections: Images with no detection message of their stamp.
         detections_without_image: Detection messages whose stamp has no image.
-        bad_images: Images that could not be decoded (their boxes are written unjudged).
+        bad_images: Images that could not be decoded or exceed the pixel limit (their
+            boxes are written unjudged).
         skipped: Per topic, messages skipped because they could not be deserialized or
             converted (an image skipped so has no output: images in = outputs + skipped).
         recovered: Messages recovered from a cut MCAP file; None for an intact bag.
@@ -176,18 +177,11 @@ def _collect(bag: Any, topic: Optional[str], key: Callable[[Any], Any]) -> Dict[
     return out
 
 
-def _bad_image_results(msg: Any, boxes: Sequence[TrackBox],
-                       engine: LightStateEngine) -> List[VehicleResult]:
-    width, height = int(getattr(msg, "width", 0) or 0), int(getattr(msg, "height", 0) or 0)
-    return [unjudged_result(box, width, height, engine.bank.frames_observed(box.track_id))
-            for box in boxes]
-
-
 def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateEngine,
                image_topic: Optional[str] = None, detections_topic: Optional[str] = None,
                with_inputs: bool = False, video: "str | Path | None" = None,
                video_attention: bool = False, overwrite: bool = False,
-               progress: bool = True,
+               progress: bool = True, max_pixels: Optional[int] = DEFAULT_MAX_IMAGE_PIXELS,
                on_frame: Optional[Callable[[Any, List[TrackBox], FrameResult], None]] = None
                ) -> ReplaySummary:
     """Replay a bag through the engine and write the output bag.
@@ -204,6 +198,7 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
         video_attention: Overlay the attention masks in the video (one more model pass).
         overwrite: Replace an existing output bag.
         progress: Show a tqdm progress bar.
+        max_pixels: Images of more pixels are not decoded (counted as bad images).
         on_frame: Called as ``on_frame(image_bgr_or_None, boxes, frame_result)`` per image.
 
     Returns:
@@ -266,14 +261,15 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
                     summary.images_without_detections += 1
                     boxes = []
                 try:
-                    image = msg_to_bgr(m.msg, img_t, stamp)
+                    image = msg_to_bgr(m.msg, img_t, stamp, max_pixels)
                 except ImageConversionError as exc:
                     LOG.warning("%s", exc)
                     summary.bad_images += 1
                     image = None
                 if image is None:
-                    results = _bad_image_results(m.msg, boxes, engine)
-                    frame = FrameResult(stamp, results, ["image could not be decoded"], 0.0, 0)
+                    frame = engine.unjudged_frame(stamp, boxes, int(getattr(m.msg, "width", 0)),
+                                                  int(getattr(m.msg, "height", 0)),
+                                                  "image could not be decoded")
                 else:
                     frame = engine.process(image, stamp, boxes)
                     summary.engine_s += frame.latency_s

@@ -350,3 +350,308 @@ def test_bag_unusable_bags_are_one_line_errors(tmp_path, capsys, case):
     code = main(["replay", str(bag), "-o", str(tmp_path / "out"), "--no-progress"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "error" in err[0], err
+
+
+# --------------------------------------------------------------------------- limits
+def _peak_mb(fn) -> float:
+    import tracemalloc
+
+    tracemalloc.start()
+    try:
+        fn()
+        return tracemalloc.get_traced_memory()[1] / 1e6
+    finally:
+        tracemalloc.stop()
+
+
+@pytest.mark.parametrize("side, size", [(10_000, (320, 180)), (15_000, (640, 360))])
+def test_limits_attention_overlay_memory_is_bounded_by_the_image(side, size):
+    """Defect 4: the overlay took (1.3 x box side)^2 floats per box (965 MB, 1.76 GB)."""
+    from signal_light_node.boxes import TrackBox
+    from signal_light_node.visualize import draw_results
+
+    engine = _fake_engine()
+    image = np.full((size[1], size[0], 3), 120, np.uint8)
+    box = TrackBox.from_center("huge", size[0] / 2, size[1] / 2, side, side)
+
+    def overlay():
+        heat = engine.attention_masks(image, [box])
+        assert heat.shape == image.shape[:2] and 0.0 < heat.max() <= 1.0
+        draw_results(image, engine.process(image, T0, [box]).results, heat)
+
+    start = time.perf_counter()
+    assert _peak_mb(overlay) < 40
+    assert time.perf_counter() - start < 2.0
+
+
+def test_limits_boxes_beyond_the_limit_are_reported_unjudged_and_counted():
+    """Defect 5: 1,000 boxes took 4.9 s a frame; now at most max_boxes are judged."""
+    from signal_light_node.boxes import TrackBox
+
+    engine = _fake_engine(max_boxes=50, max_tracks=20)
+    image = np.full((360, 640, 3), 100, np.uint8)
+    boxes = [TrackBox(f"t{k}", k % 600, 10, k % 600 + 30, 40) for k in range(1000)]
+    frame = engine.process(image, T0, boxes)
+    assert [r.track_id for r in frame.results] == [b.track_id for b in boxes]
+    assert frame.n_judged == 50 and sum(r.judged for r in frame.results) == 50
+    counters = engine.counters
+    assert counters["over_limit"] == 950
+    assert counters["overflow"] == 30  # 50 judged tracks, 20 of them keep a state
+    assert sum("over the limit of 50" in w for w in frame.warnings) == 1
+
+
+def _png_bomb(width: int, height: int) -> bytes:
+    """A valid greyscale PNG of ``width x height`` zeros, built row by row (a few hundred kB)."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return (struct.pack(">I", len(data)) + kind + data
+                + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF))
+
+    packer = zlib.compressobj(9)
+    row = bytes(width + 1)
+    body = b"".join(packer.compress(row) for _ in range(height)) + packer.flush()
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", body)
+            + chunk(b"IEND", b""))
+
+
+def test_limits_huge_png_is_refused_before_decoding():
+    """Defect 5: a 420 kB PNG of 12000 x 12000 took the node to 1.12 GB, 2 s a frame."""
+    from signal_light_node.errors import ImageTooLargeError
+    from signal_light_node.image_codec import DEFAULT_MAX_IMAGE_PIXELS, compressed_msg_to_bgr
+
+    class Msg:
+        format = "png"
+        data = _png_bomb(12_000, 12_000)
+
+    assert len(Msg.data) < 1_000_000
+    start = time.perf_counter()
+    with pytest.raises(ImageTooLargeError, match="12000x12000"):
+        compressed_msg_to_bgr(Msg, "/camera", T0, max_pixels=DEFAULT_MAX_IMAGE_PIXELS)
+    assert time.perf_counter() - start < 0.5
+
+
+@pytest.mark.parametrize("kind", ["png", "jpeg", "progressive_jpeg"])
+def test_limits_header_sizes_are_read_without_decoding(kind):
+    import cv2
+
+    from signal_light_node.image_codec import compressed_dimensions
+
+    image = np.zeros((37, 53, 3), np.uint8)
+    params = [cv2.IMWRITE_JPEG_PROGRESSIVE, 1] if kind == "progressive_jpeg" else []
+    ok, data = cv2.imencode(".png" if kind == "png" else ".jpg", image, params)
+    assert ok and compressed_dimensions(data.tobytes()) == (53, 37)
+    assert compressed_dimensions(b"GIF89a....") is None
+
+
+# ------------------------------------------------------------------------ live node
+RAW_TYPE = "sensor_msgs/msg/Image"
+LIVE_LIMITS = {"max_image_pixels": 200_000, "max_boxes_per_frame": 64, "max_tracks": 16}
+
+
+class Live:
+    """The detector (raw images, reliable, small limits) and a client, shared by the cases."""
+
+    def __init__(self, node: DetectorProcess, client) -> None:
+        self.node, self.client = node, client
+        self.stamp = T0
+
+    def next_stamp(self) -> int:
+        self.stamp += 100 * MS
+        return self.stamp
+
+    def image(self, stamp: int, fields: dict):
+        from signal_light_node.conversions import make_header, rclpy_make
+
+        return rclpy_make(RAW_TYPE, header=make_header(stamp, "cam", rclpy_make), **fields)
+
+    def detections(self, stamp: int, boxes: list):
+        from signal_light_node.conversions import boxes_to_detections, make_header, rclpy_make
+
+        return boxes_to_detections(make_header(stamp, "cam", rclpy_make), boxes, rclpy_make)
+
+    def send(self, fields: Optional[dict], boxes: Optional[list], stamp: Optional[int] = None,
+             timeout: float = 20.0):
+        """Publish an image and / or detections; the output for the stamp, or None."""
+        stamp = self.next_stamp() if stamp is None else stamp
+        if fields is not None:
+            self.client.image_pub.publish(self.image(stamp, fields))
+        if boxes is not None:
+            self.client.det_pub.publish(self.detections(stamp, boxes))
+        if fields is None or boxes is None:
+            return None
+        assert self.client.spin_until(lambda: stamp in self.client.outputs, timeout), \
+            self.node.text()[-3000:]
+        return self.client.outputs[stamp][-1]
+
+    def diag(self) -> Dict[str, str]:
+        if not self.client.diagnostics:
+            return {}
+        return {kv.key: kv.value for kv in self.client.diagnostics[-1].status[0].values}
+
+    def count(self, key: str) -> int:
+        return int(self.diag().get(key, 0))
+
+    def wait_count(self, key: str, at_least: int, timeout: float = 10.0) -> int:
+        self.client.spin_until(lambda: self.count(key) >= at_least, timeout)
+        return self.count(key)
+
+
+@pytest.fixture(scope="module")
+def live(tmp_path_factory):
+    from conftest import isolated_ros_env
+    from node_harness import LiveClient
+
+    tmp = tmp_path_factory.mktemp("live")
+    env = isolated_ros_env()
+    args = ["-p", f"model_path:={tiny_checkpoint(tmp / 'tiny.pt')}", "-p",
+            "reliability:=reliable", "-p", "sync_timeout_s:=0.5", "-p",
+            "diagnostics_period_s:=0.2", "-p", "publish_debug_image:=true"]
+    args += [a for k, v in LIVE_LIMITS.items() for a in ("-p", f"{k}:={v}")]
+    node = DetectorProcess(args, env, tmp / "detector.log")
+    try:
+        node.wait_ready()
+        with LiveClient(int(env["ROS_DOMAIN_ID"]), RAW_TYPE) as client:
+            client.wait_connected()
+            client.spin_until(lambda: client.node.count_publishers(
+                "/signal_light_detector/output/debug/image") > 0, 20.0)
+            client.warm_up(T0, "cam")
+            yield Live(node, client)
+            assert node.proc.poll() is None, node.text()[-3000:]
+    finally:
+        code = node.stop()
+    assert code == 0 and "Traceback" not in node.text(), node.text()[-3000:]
+
+
+def _raw(enc: str = "bgr8", size=(160, 96), **changes) -> dict:
+    """Image fields of a noise image encoded as ``enc``, with ``changes`` (bad fields) applied."""
+    from signal_light_node.image_codec import bgr_to_image_fields
+
+    image = np.random.default_rng(7).integers(0, 255, (size[1], size[0], 3), dtype=np.uint8)
+    fields = bgr_to_image_fields(image, enc)
+    fields.update(changes)
+    return fields
+
+
+def _padded() -> dict:
+    fields = _raw()
+    rows = fields["data"].reshape(96, 480)
+    fields.update(step=500, data=np.concatenate([rows, np.zeros((96, 20), np.uint8)], 1)
+                  .reshape(-1))
+    return fields
+
+
+def _box(track_id: str, x0: float, y0: float, x1: float, y1: float):
+    from signal_light_node.boxes import TrackBox
+
+    return TrackBox(track_id, x0, y0, x1, y1)
+
+
+TWO = [("a", 10, 10, 60, 50), ("b", 80, 20, 150, 90)]
+
+#: name -> (image fields, boxes, counter that grows by one or None, judged)
+IMAGE_CASES = {
+    "rgb8": (lambda: _raw("rgb8"), None, True),
+    "bgra8": (lambda: _raw("bgra8"), None, True),
+    "mono8": (lambda: _raw("mono8"), None, True),
+    "mono16": (lambda: _raw("mono16"), None, True),
+    "opencv_alias_8UC3": (lambda: _raw("8UC3"), None, True),
+    "row_padding": (_padded, None, True),
+    "unsupported_yuv422": (lambda: _raw(encoding="yuv422"), "bad_images", False),
+    "float_32FC1": (lambda: _raw(encoding="32FC1"), "bad_images", False),
+    "truncated_data": (lambda: _raw(data=_raw()["data"][:1000]), "bad_images", False),
+    "step_too_small": (lambda: _raw(step=100), "bad_images", False),
+    "zero_size": (lambda: _raw(width=0, height=0, step=0, data=np.zeros(0, np.uint8)),
+                  "bad_images", False),
+    "oversized": (lambda: _raw(size=(600, 400)), "oversized_images", False),
+}
+
+
+@pytest.mark.parametrize("name", list(IMAGE_CASES))
+def test_live_image_encodings(live, name):
+    make_fields, counter, judged = IMAGE_CASES[name]
+    before = live.count(counter) if counter else 0
+    out = live.send(make_fields(), [_box(*b) for b in TWO])
+    check_sane(out, ["a", "b"])
+    assert all((v.view_probability > 0) == judged for v in out.vehicles)
+    if counter:
+        assert live.wait_count(counter, before + 1) == before + 1
+
+
+BOX_CASES = {
+    "nan": ([("n", math.nan, 10, 50, 40)], [False]),
+    "outside": ([("o", 500, 300, 600, 400)], [False]),
+    "zero_size": ([("z", 20, 20, 20, 20)], [False]),
+    "negative_size": ([("neg", 60, 60, 20, 20)], [False]),
+    "infinite": ([("inf", 0, 0, math.inf, 50)], [False]),
+    "huge_10000px": ([("huge", -4840, -4910, 5160, 5090)], [True]),
+    "duplicate_ids": ([("d", 10, 10, 60, 50), ("d", 80, 20, 150, 90)], [True, False]),
+    "empty_id": ([("", 10, 10, 60, 50)], [True]),
+    "long_id": ([("x" * 5000, 10, 10, 60, 50)], [True]),
+    "unicode_id": (["\u8eca-\U0001F697-\u00e9", 10, 10, 60, 50], None),
+    "no_detections": ([], []),
+}
+
+
+@pytest.mark.parametrize("name", list(BOX_CASES))
+def test_live_boxes_and_ids(live, name):
+    from signal_light_node.conversions import stamp_to_ns
+
+    boxes, judged = BOX_CASES[name]
+    if judged is None:  # a single box given flat
+        boxes, judged = [tuple(boxes)], [True]
+    before = int(_vm_hwm_kb(live.node.proc.pid))
+    out = live.send(_raw(size=(320, 180)), [_box(*b) for b in boxes])
+    check_sane(out, [b[0] for b in boxes])
+    assert [v.view_probability > 0 for v in out.vehicles] == judged
+    # The debug overlay (published: the client watches it) stays within the image's size.
+    stamp = live.stamp
+    assert live.client.spin_until(lambda: any(
+        stamp_to_ns(m.header.stamp) == stamp for m in live.client.debug_images), 20.0)
+    assert _vm_hwm_kb(live.node.proc.pid) - before < 150_000
+
+
+def _vm_hwm_kb(pid: int) -> int:
+    """Peak resident memory of a process, kB."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1])
+    raise AssertionError("no VmHWM")
+
+
+def test_live_too_many_boxes_are_counted(live):
+    before = live.count("boxes_over_limit")
+    boxes = [_box(f"m{k}", k % 140, 10, k % 140 + 20, 40) for k in range(300)]
+    out = live.send(_raw(), boxes)
+    check_sane(out, [b.track_id for b in boxes])
+    assert sum(v.view_probability > 0 for v in out.vehicles) == 64
+    assert live.wait_count("boxes_over_limit", before + 236) == before + 236
+
+
+def test_live_tracks_beyond_max_tracks_are_counted(live):
+    """Defect 5: tracks past max_tracks started fresh every frame, unreported."""
+    before = live.count("track_overflow")
+    boxes = [_box(f"ov{k}", 5 * k, 10, 5 * k + 20, 40) for k in range(30)]
+    for _ in range(2):
+        check_sane(live.send(_raw(), boxes), [b.track_id for b in boxes])
+    assert live.wait_count("track_overflow", before + 28) == before + 28
+
+
+def test_live_stamp_jumping_back_resets_and_goes_on(live):
+    before = live.count("track_resets")
+    out = live.send(_raw(), [_box(*TWO[0])], stamp=live.stamp - 5 * S)
+    check_sane(out, ["a"])
+    assert live.wait_count("track_resets", before + 1) >= before + 1
+    check_sane(live.send(_raw(), [_box(*TWO[0])]), ["a"])
+
+
+@pytest.mark.parametrize("half", ["image", "detections"])
+def test_live_unpaired_half_is_dropped_and_counted(live, half):
+    key = f"dropped_{half}_timeout"
+    before = live.count(key)
+    live.send(_raw() if half == "image" else None,
+              [_box(*TWO[0])] if half == "detections" else None)
+    assert live.wait_count(key, before + 1) == before + 1
+    check_sane(live.send(_raw(), [_box(*TWO[0])]), ["a"])

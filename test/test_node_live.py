@@ -4,7 +4,7 @@ Each test starts the real executable on a random ROS domain and talks to it over
 (reliable QoS, frame by frame, so a slow CI machine drops nothing): one output per input
 frame, stamped and ordered like the inputs, track IDs equal to the detections', only the
 codes 100/101/102; a frame without detections gives an empty array, an undecodable image
-is skipped and counted without killing the node, and a missing model stops it at start
+is published with its boxes unjudged and counted without killing the node, and a missing model stops it at start
 with one log line and a non-zero exit code.
 """
 
@@ -106,7 +106,8 @@ def _diag_values(client: LiveClient) -> dict:
 
 def _extra_frames(last_stamp_ns: int, frame_id: str, compressed: bool):
     """(bad image, its detections), (good image, empty detections) stamped after the bag."""
-    from signal_light_node.conversions import make_header, rclpy_make
+    from signal_light_node.boxes import TrackBox
+    from signal_light_node.conversions import boxes_to_detections, make_header, rclpy_make
     from signal_light_node.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
 
     bad_stamp, empty_stamp = last_stamp_ns + 100_000_000, last_stamp_ns + 200_000_000
@@ -122,8 +123,8 @@ def _extra_frames(last_stamp_ns: int, frame_id: str, compressed: bool):
         bad = rclpy_make(RAW_TYPE, header=make_header(bad_stamp, frame_id, rclpy_make), **fields)
         good = rclpy_make(RAW_TYPE, header=make_header(empty_stamp, frame_id, rclpy_make),
                           **bgr_to_image_fields(image))
-    box = rclpy_make("vision_msgs/msg/Detection2DArray",
-                     header=make_header(bad_stamp, frame_id, rclpy_make))
+    box = boxes_to_detections(make_header(bad_stamp, frame_id, rclpy_make),
+                              [TrackBox("bad", 10, 10, 60, 50)], rclpy_make)
     empty = rclpy_make("vision_msgs/msg/Detection2DArray",
                        header=make_header(empty_stamp, frame_id, rclpy_make))
     return (bad_stamp, bad, box), (empty_stamp, good, empty)
@@ -163,19 +164,21 @@ def _run_live(tmp_path: Path, env: dict, raw: bool, extra_args, expect_params=No
             client.det_pub.publish(empty)
             assert client.spin_until(lambda: empty_stamp in client.outputs, 20.0), node.text()
             assert list(client.outputs[empty_stamp][0].vehicles) == []
-            assert bad_stamp not in client.outputs
+            # An undecodable image is published like replay writes it: its boxes unjudged.
+            assert [v.track_id for v in client.outputs[bad_stamp][0].vehicles] == ["bad"]
+            assert client.outputs[bad_stamp][0].vehicles[0].view_probability == 0.0
             # The next diagnostics report counts the bad image; the node is still alive.
             assert client.spin_until(
                 lambda: client.diagnostics and _diag_values(client)["bad_images"] == "1", 10.0)
             values = _diag_values(client)
-            assert int(values["outputs"]) == warm + len(frames) + 1
+            assert int(values["outputs"]) == warm + len(frames) + 2
             assert int(values["images"]) == warm + len(frames) + 2
             assert float(values["latency_p95_ms"]) > 0
             assert values["model_path"].endswith(".pt")
             assert node.proc.poll() is None
         assert node.stop() == 0, node.text()
         assert "Traceback" not in node.text()
-        assert "skipping frame" in node.text()
+        assert "frame published unjudged" in node.text()
     finally:
         node.stop()
 

@@ -19,7 +19,7 @@ import logging
 import re
 import sys
 import time
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, List, Optional, Tuple
 
 import rclpy
 from rcl_interfaces.msg import SetParametersResult
@@ -29,7 +29,8 @@ from rclpy.node import Node
 
 from signal_light_node.conversions import (detections_to_boxes, rclpy_make, stamp_to_ns,
                                            vehicle_light_array)
-from signal_light_node.errors import ConfigError, ImageConversionError, SignalLightError
+from signal_light_node.errors import (ConfigError, ImageConversionError, ImageTooLargeError,
+                                      SignalLightError)
 from signal_light_node.node.pairing import StampPairer
 from signal_light_node.node.params import (NODE_NAME, DetectorParams, foreign_params_file,
                                            params_file_paths, read_parameters, updated)
@@ -67,7 +68,8 @@ class SignalLightDetector(Node):
         self.engine: Any = None
         self.model_path = ""
         self._worker: Optional[Worker] = None
-        self._counts: Dict[str, int] = {"outputs": 0, "bad_images": 0, "debug_images": 0}
+        self._counts: Dict[str, int] = {"outputs": 0, "bad_images": 0, "oversized_images": 0,
+                                        "debug_images": 0}
         self._latency = LatencyWindow()
         self._processing = LatencyWindow()
         self._engine_time = LatencyWindow()
@@ -94,7 +96,7 @@ class SignalLightDetector(Node):
         self.engine = engine_from_checkpoint(
             p.model_path or None, device=p.device, thresholds=p.thresholds,
             track_timeout_s=p.track_timeout_s, max_tracks=p.max_tracks, max_gap_s=p.max_gap_s,
-            crop_margin=p.crop_margin)
+            crop_margin=p.crop_margin, max_boxes=p.max_boxes_per_frame)
 
         self._pairer = StampPairer(int(p.sync_slop_s * _NS), int(p.sync_timeout_s * _NS),
                                    p.image_queue_size, p.detection_queue_size)
@@ -147,15 +149,25 @@ class SignalLightDetector(Node):
             self._queue.put(pair)
 
     # ------------------------------------------------------------------- worker
-    def _process(self, pair: Any) -> None:
+    def _run_engine(self, pair: Any, boxes: List[Any]) -> Tuple[Any, Any]:
+        """``(image or None, frame)``: an image that cannot be used gives every box unjudged."""
         try:
-            image = self._decode(pair.image, self._image_topic, pair.stamp_ns)
+            image = self._decode(pair.image, self._image_topic, pair.stamp_ns,
+                                 self.params.max_image_pixels)
         except ImageConversionError as exc:
-            self._counts["bad_images"] += 1
-            self.get_logger().warning(f"skipping frame: {exc}", throttle_duration_sec=5.0)
-            return
+            self._counts["oversized_images" if isinstance(exc, ImageTooLargeError)
+                         else "bad_images"] += 1
+            self.get_logger().warning(f"frame published unjudged: {exc}",
+                                      throttle_duration_sec=5.0)
+            msg = pair.image
+            return None, self.engine.unjudged_frame(
+                pair.stamp_ns, boxes, int(getattr(msg, "width", 0)),
+                int(getattr(msg, "height", 0)), str(exc))
+        return image, self.engine.process(image, pair.stamp_ns, boxes)
+
+    def _process(self, pair: Any) -> None:
         boxes = detections_to_boxes(pair.detections)
-        frame = self.engine.process(image, pair.stamp_ns, boxes)
+        image, frame = self._run_engine(pair, boxes)
         out = vehicle_light_array(pair.image.header, frame.results, rclpy_make)
         if not rclpy.ok(context=self.context):
             return  # shutting down: the publisher may already be gone
@@ -166,6 +178,8 @@ class SignalLightDetector(Node):
         self._processing.add(
             (done - max(pair.image_received_ns, pair.detections_received_ns)) / _NS)
         self._engine_time.add(frame.latency_s)
+        if image is None:
+            return
         if frame.warnings:
             self.get_logger().warning(f"stamp {pair.stamp_ns}: {'; '.join(frame.warnings)}",
                                       throttle_duration_sec=5.0)
@@ -206,6 +220,8 @@ class SignalLightDetector(Node):
             "unjudged_boxes": engine.get("unjudged", 0),
             "duplicate_track_ids": engine.get("duplicates", 0),
             "track_resets": engine.get("resets", 0),
+            "track_overflow": engine.get("overflow", 0),
+            "boxes_over_limit": engine.get("over_limit", 0),
             "work_queue_length": len(self._queue),
             "pending_images": self._pairer.pending[0],
             "pending_detections": self._pairer.pending[1],

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
 from signal_light_node.errors import ConfigError
+from signal_light_node.image_codec import DEFAULT_MAX_IMAGE_PIXELS
 from signal_light_node.labels import LIGHT_CODES
 
 #: The node's name; also the top-level key of ``config/detector.yaml``.
@@ -50,6 +51,8 @@ class DetectorParams:
         publish_debug_image: Publish the annotated frame on ``~/output/debug/image``.
         diagnostics_period_s: Period of the ``/diagnostics`` status.
         num_threads: torch intra-op threads; 0 keeps torch's default.
+        max_image_pixels: Larger images (width x height) are refused before decoding.
+        max_boxes_per_frame: Boxes judged per frame; later ones are reported unjudged.
     """
 
     model_path: str = ""
@@ -71,6 +74,8 @@ class DetectorParams:
     publish_debug_image: bool = False
     diagnostics_period_s: float = 1.0
     num_threads: int = 0
+    max_image_pixels: int = DEFAULT_MAX_IMAGE_PIXELS
+    max_boxes_per_frame: int = 256
 
     @property
     def thresholds(self) -> Dict[int, float]:
@@ -143,6 +148,12 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
     "diagnostics_period_s": ParamSpec("Period of the status published on /diagnostics.",
                                       low=0.1, high=60.0),
     "num_threads": ParamSpec("Torch intra-op threads; 0 keeps torch's default.", low=0, high=256),
+    "max_image_pixels": ParamSpec("Images of more pixels (width x height) are refused before "
+                                  "decoding (counted as oversized_images); their boxes are "
+                                  "published unjudged.", low=1, high=2**31 - 1),
+    "max_boxes_per_frame": ParamSpec("Boxes judged per frame; the ones after are published "
+                                     "unjudged (counted as boxes_over_limit).", low=1,
+                                     high=100000),
 }
 
 
