@@ -31,6 +31,7 @@ from signal_light_node.conversions import (detections_to_boxes, rclpy_make, stam
                                            vehicle_light_array)
 from signal_light_node.errors import (ConfigError, ImageConversionError, ImageTooLargeError,
                                       SignalLightError)
+from signal_light_node.node.gaps import SequenceGaps
 from signal_light_node.node.pairing import StampPairer
 from signal_light_node.node.params import (NODE_NAME, DetectorParams, foreign_params_file,
                                            params_file_paths, read_parameters, updated)
@@ -70,6 +71,7 @@ class SignalLightDetector(Node):
         self._worker: Optional[Worker] = None
         self._counts: Dict[str, int] = {"outputs": 0, "bad_images": 0, "oversized_images": 0,
                                         "debug_images": 0}
+        self._gaps = {"image": SequenceGaps(), "detections": SequenceGaps()}
         self._latency = LatencyWindow()
         self._processing = LatencyWindow()
         self._engine_time = LatencyWindow()
@@ -137,12 +139,16 @@ class SignalLightDetector(Node):
             self._worker.stop(drain=False, timeout=5.0)
 
     # ---------------------------------------------------------------- callbacks
-    def _on_image(self, msg: Any) -> None:
+    # Both take the message info: its publication sequence numbers reveal what the
+    # middleware dropped (a full keep-last reader queue drops the oldest, silently).
+    def _on_image(self, msg: Any, info: Any) -> None:
+        self._gaps["image"].add(info.get("publication_sequence_number"))
         pair = self._pairer.add_image(stamp_to_ns(msg.header.stamp), msg, time.monotonic_ns())
         if pair is not None:
             self._queue.put(pair)
 
-    def _on_detections(self, msg: Any) -> None:
+    def _on_detections(self, msg: Any, info: Any) -> None:
+        self._gaps["detections"].add(info.get("publication_sequence_number"))
         pair = self._pairer.add_detections(stamp_to_ns(msg.header.stamp), msg,
                                            time.monotonic_ns())
         if pair is not None:
@@ -204,6 +210,8 @@ class SignalLightDetector(Node):
         out = dict(self._pairer.counters)
         out.update(self._counts)
         out["dropped_work_queue"] = self._queue.dropped
+        for kind, gaps in self._gaps.items():
+            out[f"dropped_{kind}_middleware"] = gaps.lost
         out["processing_errors"] = self._worker.errors if self._worker else 0
         out["worker_alive"] = int(bool(self._worker and self._worker.alive))
         return out
@@ -222,6 +230,7 @@ class SignalLightDetector(Node):
             "track_resets": engine.get("resets", 0),
             "track_overflow": engine.get("overflow", 0),
             "boxes_over_limit": engine.get("over_limit", 0),
+            "middleware_drops_counted": _yes_no(self._gaps["image"].supported),
             "work_queue_length": len(self._queue),
             "pending_images": self._pairer.pending[0],
             "pending_detections": self._pairer.pending[1],
@@ -255,6 +264,11 @@ class SignalLightDetector(Node):
                                int(self.params.sync_timeout_s * _NS))
         self.get_logger().info("parameters changed: " + ", ".join(
             f"{c.name}={c.value}" for c in changes))
+
+
+def _yes_no(supported: Optional[bool]) -> str:
+    return {True: "yes", False: "no (the middleware gives no sequence numbers)"}.get(
+        supported, "not yet known")
 
 
 def _decoder(image_transport: str) -> Any:
