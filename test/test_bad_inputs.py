@@ -758,3 +758,54 @@ def test_live_steady_rates_are_accounted_for(live, rate_hz):
 
     d = _accounted(live, send)
     assert d["outputs"] > 0
+
+
+# ------------------------------------------------------------- compressed payloads
+def _jpeg(size=(160, 96)) -> bytes:
+    import cv2
+
+    image = np.random.default_rng(3).integers(0, 255, (size[1], size[0], 3), dtype=np.uint8)
+    return cv2.imencode(".jpg", image)[1].tobytes()
+
+
+def _png(image: np.ndarray) -> bytes:
+    import cv2
+
+    return cv2.imencode(".png", image)[1].tobytes()
+
+
+#: name -> (format, payload, decoded)
+PAYLOAD_CASES = {
+    "garbage": ("jpeg", lambda: b"definitely not a jpeg" * 20, False),
+    "truncated_jpeg": ("jpeg", lambda: _jpeg()[:200], False),
+    "empty": ("jpeg", lambda: b"", False),
+    "unsupported_format": ("h264", lambda: _jpeg(), False),
+    "png_labelled_jpeg": ("jpeg", lambda: _png(np.zeros((96, 160, 3), np.uint8)), True),
+    "unnamed_format": ("", lambda: _jpeg(), True),
+    "grey_png": ("png", lambda: _png(np.zeros((96, 160), np.uint8)), True),
+    "png_16bit_alpha": ("png", lambda: _png(np.zeros((96, 160, 4), np.uint16)), True),
+    "png_bomb_12000px": ("png", lambda: _png_bomb(12_000, 12_000), False),
+}
+
+
+@pytest.mark.parametrize("name", list(PAYLOAD_CASES))
+def test_payload_compressed_images_in_replay(tmp_path, name):
+    """Each damaged payload costs its frame only: written unjudged, counted as bad."""
+    from signal_light_node.bagio import make
+
+    fmt, payload, decoded = PAYLOAD_CASES[name]
+    messages = []
+    for i in range(3):
+        img, det = _frame(i)
+        if i == 1:
+            img = (*img[:3], make("sensor_msgs/msg/CompressedImage", header=img[3].header,
+                                  format=fmt, data=np.frombuffer(payload(), np.uint8)))
+        messages += [img, det]
+    start = time.perf_counter()
+    summary, outputs = replay(write_bag(tmp_path / "bag", messages), tmp_path)
+    assert time.perf_counter() - start < 10.0
+    assert summary.outputs == 3 and summary.bad_images == (0 if decoded else 1)
+    for stamp, msg in outputs.items():
+        check_sane(msg, ["car0", "car1"])
+        judged = decoded or stamp != T0 + 100 * MS
+        assert all((v.view_probability > 0) == judged for v in msg.vehicles), name
