@@ -4,8 +4,8 @@ Each test starts the real executable on a random ROS domain and talks to it over
 (reliable QoS, frame by frame, so a slow CI machine drops nothing): one output per input
 frame, stamped and ordered like the inputs, track IDs equal to the detections', only the
 codes 100/101/102; a frame without detections gives an empty array, an undecodable image
-is published with its boxes unjudged and counted without killing the node, and a missing model stops it at start
-with one log line and a non-zero exit code.
+is published with its boxes unjudged and counted without killing the node, and a missing
+model stops it at start with one log line and a non-zero exit code.
 """
 
 from __future__ import annotations
