@@ -809,3 +809,21 @@ def test_payload_compressed_images_in_replay(tmp_path, name):
         check_sane(msg, ["car0", "car1"])
         judged = decoded or stamp != T0 + 100 * MS
         assert all((v.view_probability > 0) == judged for v in msg.vehicles), name
+
+
+def test_bag_info_and_play_skip_what_cannot_be_read(tmp_path, capsys):
+    """``info`` and ``play`` read the damaged bag of defect 3 too, skipping one message."""
+    from signal_light_node.bagio import open_bag
+    from signal_light_node.cli import main
+    from signal_light_node.node.bag_player import play_items
+
+    messages = []
+    for i in range(3):
+        img, det = _frame(i, raw=True)
+        messages += [(*img[:3], _serialized(img)[:300]) if i == 0 else img, det]
+    bag = write_bag(tmp_path / "bag", messages)
+    assert main(["info", str(bag)]) == 0
+    assert f"skipped:    1 undecodable on {RAW_T}" in capsys.readouterr().out
+    with open_bag(bag) as reader:
+        items = list(play_items(reader, {RAW_T: "sensor_msgs/msg/Image", DET_T: DET_TYPE}))
+        assert len(items) == 5 and reader.skipped == {RAW_T: 1}
