@@ -93,7 +93,7 @@ class EngineConfig:
     max_tracks: int = 128
     max_gap_s: float = 2.0
     device: str = "cpu"
-    max_boxes: int = 256
+    max_boxes: int = 128
 
     def __post_init__(self) -> None:
         if isinstance(self.max_boxes, bool) or not isinstance(self.max_boxes, (int, np.integer)) \

@@ -75,7 +75,7 @@ class DetectorParams:
     diagnostics_period_s: float = 1.0
     num_threads: int = 0
     max_image_pixels: int = DEFAULT_MAX_IMAGE_PIXELS
-    max_boxes_per_frame: int = 256
+    max_boxes_per_frame: int = 128
 
     @property
     def thresholds(self) -> Dict[int, float]:
