@@ -183,9 +183,9 @@ class SignalLightDetector(Node):
         self._latency.add((done - pair.image_received_ns) / _NS)
         self._processing.add(
             (done - max(pair.image_received_ns, pair.detections_received_ns)) / _NS)
-        self._engine_time.add(frame.latency_s)
         if image is None:
-            return
+            return  # no engine run, no debug image
+        self._engine_time.add(frame.latency_s)
         if frame.warnings:
             self.get_logger().warning(f"stamp {pair.stamp_ns}: {'; '.join(frame.warnings)}",
                                       throttle_duration_sec=5.0)
