@@ -737,7 +737,9 @@ def test_live_burst_of_200_frames_is_accounted_for(live):
         return len(frames)
 
     d = _accounted(live, send)
-    assert d["outputs"] > 0 and d["dropped_image_middleware"] > 0, d
+    # Depth 10 against 200 at once: the middleware drops (here, always so far), or a
+    # machine fast enough took them all.
+    assert d["outputs"] > 0 and (d["dropped_image_middleware"] > 0 or d["outputs"] == 200), d
     assert live.diag()["middleware_drops_counted"] == "yes"
     for image, _ in frames:
         stamp = image.header.stamp.sec * S + image.header.stamp.nanosec
