@@ -829,3 +829,18 @@ def test_bag_info_and_play_skip_what_cannot_be_read(tmp_path, capsys):
     with open_bag(bag) as reader:
         items = list(play_items(reader, {RAW_T: "sensor_msgs/msg/Image", DET_T: DET_TYPE}))
         assert len(items) == 5 and reader.skipped == {RAW_T: 1}
+
+
+def test_live_invalid_utf8_track_id_keeps_the_node_going(live):
+    """The detections of defect 3, live: the array is taken (or counted), the node goes on."""
+    from rclpy.serialization import serialize_message
+
+    stamp = live.next_stamp()
+    raw = serialize_message(live.detections(stamp, [_box("XXXX", 10, 10, 60, 50)]))
+    live.client.image_pub.publish(live.image(stamp, _raw()))
+    live.client.det_pub.publish(raw.replace(b"XXXX", b"\xff\xfe\xfd\xfc"))
+    if live.client.spin_until(lambda: stamp in live.client.outputs, 5.0):
+        (vehicle,) = live.client.outputs[stamp][-1].vehicles
+        assert vehicle.track_id  # decoded somehow (rclpy replaces what is not UTF-8)
+    check_sane(live.send(_raw(), [_box(*TWO[0])]), ["a"])
+    assert live.node.proc.poll() is None

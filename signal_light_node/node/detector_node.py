@@ -175,9 +175,8 @@ class SignalLightDetector(Node):
         boxes = detections_to_boxes(pair.detections)
         image, frame = self._run_engine(pair, boxes)
         out = vehicle_light_array(pair.image.header, frame.results, rclpy_make)
-        if not rclpy.ok(context=self.context):
-            return  # shutting down: the publisher may already be gone
-        self._out.publish(out)
+        if not self._publish(self._out, out):
+            return
         done = time.monotonic_ns()
         self._counts["outputs"] += 1
         self._latency.add((done - pair.image_received_ns) / _NS)
@@ -201,8 +200,21 @@ class SignalLightDetector(Node):
                              caption=f"{pair.stamp_ns / 1e9:.3f}")
         msg = rclpy_make(IMAGE_TYPE, header=pair.image.header,
                          **bgr_to_image_fields(drawn))
-        self._debug.publish(msg)
-        self._counts["debug_images"] += 1
+        if self._publish(self._debug, msg):
+            self._counts["debug_images"] += 1
+
+    def _publish(self, publisher: Any, msg: Any) -> bool:
+        """Publish from the worker; False when the node is shutting down (then the context
+        can go away between any two calls, so a publish may fail)."""
+        if not rclpy.ok(context=self.context):
+            return False
+        try:
+            publisher.publish(msg)
+        except _rclpy_impl.RCLError:
+            if rclpy.ok(context=self.context):
+                raise
+            return False
+        return True
 
     # -------------------------------------------------------------- diagnostics
     def counters(self) -> Dict[str, int]:
