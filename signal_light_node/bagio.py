@@ -193,11 +193,20 @@ class BagReader:
 
     Attributes:
         path: The bag's path as given.
+        recovered: Messages recovered from a cut MCAP file; None for an intact bag.
+        skipped: Per topic, messages skipped because they could not be deserialized
+            (only by ``messages(..., skip_undecodable=True)``).
     """
+
+    #: Skipped messages warned about one by one; later ones only at debug level.
+    MAX_SKIP_WARNINGS = 20
 
     def __init__(self, path: Path, reader: Any) -> None:
         self.path = path
         self._reader = reader
+        self.recovered: Optional[int] = (reader.message_count
+                                         if isinstance(reader, _RecoveredMcap) else None)
+        self.skipped: Dict[str, int] = {}
         self._store = typestore()
         self._conns: Dict[str, List[Any]] = {}
         for conn in reader.connections:
@@ -290,19 +299,24 @@ class BagReader:
         return out
 
     def messages(self, topics: Optional[Iterable[str]] = None, start_ns: Optional[int] = None,
-                 stop_ns: Optional[int] = None) -> Iterator[BagMessage]:
+                 stop_ns: Optional[int] = None,
+                 skip_undecodable: bool = False) -> Iterator[BagMessage]:
         """Deserialized messages in log-time order.
 
         Args:
             topics: Only these topics (all when None); topics absent from the bag are ignored.
             start_ns: Only messages logged at or after this time.
             stop_ns: Only messages logged before this time.
+            skip_undecodable: Skip a message that cannot be deserialized (truncated,
+                invalid UTF-8...) with a one-line warning, counted in ``skipped``,
+                instead of raising.
 
         Yields:
             One ``BagMessage`` per message.
 
         Raises:
-            BagIOError: If a message cannot be read or deserialized.
+            BagIOError: If the bag cannot be read, or a message cannot be deserialized
+                and ``skip_undecodable`` is False.
         """
         if topics is None:
             conns = [c for cs in self._conns.values() for c in cs]
@@ -325,10 +339,24 @@ class BagReader:
                                  "which is neither known nor defined in the bag")
             try:
                 msg = store.deserialize_cdr(raw, conn.msgtype)
-            except errors as exc:
-                raise BagIOError(f"{self.path}: cannot deserialize {conn.msgtype} on "
-                                 f"{conn.topic} at {stamp} ns: {exc}") from exc
+            except (*errors, UnicodeDecodeError, IndexError, TypeError) as exc:
+                text = (f"{self.path}: cannot deserialize {conn.msgtype} on {conn.topic} at "
+                        f"{stamp} ns: {type(exc).__name__}: {str(exc)[:200]}")
+                if not skip_undecodable:
+                    raise BagIOError(text) from exc
+                self.note_skipped(conn.topic, text)
+                continue
             yield BagMessage(conn.topic, conn.msgtype, int(stamp), msg)
+
+    def note_skipped(self, topic: str, text: str) -> None:
+        """Count a message of ``topic`` skipped (by the reader or a caller that could not
+        convert it) and warn in one line; after ``MAX_SKIP_WARNINGS`` only count."""
+        self.skipped[topic] = self.skipped.get(topic, 0) + 1
+        n = sum(self.skipped.values())
+        level = logging.WARNING if n <= self.MAX_SKIP_WARNINGS else logging.DEBUG
+        LOG.log(level, "skipping a message: %s", text)
+        if n == self.MAX_SKIP_WARNINGS:
+            LOG.warning("%s: further skipped messages are only counted", self.path)
 
     def close(self) -> None:
         """Close the bag's files."""
@@ -388,21 +416,13 @@ class _RecoveredMcap:
         self.end_time = last + 1 if last is not None else 0
 
     def _records(self) -> Iterator[Any]:
-        from mcap.exceptions import McapError
-        from mcap.stream_reader import StreamReader
+        import mmap
 
         with open(self.path, "rb") as stream:
-            records = StreamReader(stream, skip_magic=False).records
-            while True:
-                try:
-                    record = next(records)
-                except StopIteration:
-                    return
-                except (McapError, EOFError, ValueError, OSError, struct.error) as exc:
-                    # The cut: everything before it has been read.
-                    LOG.debug("%s: stream ends: %s", self.path, exc)
-                    return
-                yield record
+            if os.fstat(stream.fileno()).st_size == 0:
+                return
+            with mmap.mmap(stream.fileno(), 0, access=mmap.ACCESS_READ) as data:
+                yield from _mcap_records(data, self.path)
 
     def messages(self, connections: Iterable[Any], start: Optional[int] = None,
                  stop: Optional[int] = None) -> Iterator[Tuple[Any, int, bytes]]:
@@ -418,32 +438,132 @@ class _RecoveredMcap:
         self.is_open = False
 
 
+_MCAP_MAGIC = b"\x89MCAP0\r\n"
+_RECORD_HEAD = struct.Struct("<BQ")  # opcode, content length
+_CHUNK_HEAD = struct.Struct("<QQQI")  # start time, end time, uncompressed size, CRC
+
+
+def _mcap_records(data: Any, path: Path) -> Iterator[Any]:
+    """Schema, Channel and Message records of MCAP bytes, up to the last complete one.
+
+    Tolerates a cut anywhere: a record the file ends in is dropped, except a chunk,
+    whose complete inner records are read (uncompressed or zstd chunks).
+    """
+    from mcap.opcode import Opcode
+
+    if bytes(data[:8]) != _MCAP_MAGIC:
+        LOG.debug("%s: no MCAP magic", path)
+        return
+    pos, end = 8, len(data)
+    while pos + _RECORD_HEAD.size <= end:
+        opcode, length = _RECORD_HEAD.unpack_from(data, pos)
+        body = data[pos + _RECORD_HEAD.size: pos + _RECORD_HEAD.size + length]
+        cut = len(body) < length
+        if opcode == Opcode.CHUNK:
+            yield from _chunk_records(body, path)
+        elif opcode == Opcode.DATA_END:
+            return
+        elif not cut:
+            record = _parse_record(opcode, body)
+            if record is not None:
+                yield record
+        if cut:
+            LOG.debug("%s: the file ends inside a record at byte %d", path, pos)
+            return
+        pos += _RECORD_HEAD.size + length
+
+
+def _parse_record(opcode: int, body: bytes) -> Any:
+    """A Schema, Channel or Message record from its content; None for other kinds."""
+    import io
+
+    from mcap.data_stream import ReadDataStream
+    from mcap.opcode import Opcode
+    from mcap.records import Channel, Message, Schema
+
+    stream = ReadDataStream(io.BytesIO(body))
+    if opcode == Opcode.MESSAGE:
+        return Message.read(stream, len(body))
+    if opcode == Opcode.SCHEMA:
+        return Schema.read(stream)
+    if opcode == Opcode.CHANNEL:
+        return Channel.read(stream)
+    return None
+
+
+def _chunk_records(body: bytes, path: Path) -> Iterator[Any]:
+    """The complete records of a chunk, which may itself be cut short."""
+    head = _CHUNK_HEAD.size + 4
+    if len(body) < head:
+        return
+    (name_len,) = struct.unpack_from("<I", body, _CHUNK_HEAD.size)
+    compression = bytes(body[head:head + name_len]).decode("utf-8", "replace")
+    payload = bytes(body[head + name_len + 8:])  # after the records' length
+    if compression == "zstd":
+        import zstandard
+
+        try:
+            payload = zstandard.ZstdDecompressor().decompressobj().decompress(payload)
+        except zstandard.ZstdError as exc:
+            LOG.warning("%s: a zstd chunk cannot be decompressed (%s); skipped", path, exc)
+            return
+    elif compression:
+        LOG.warning("%s: chunk compression %r is not supported here; chunk skipped", path,
+                    compression)
+        return
+    pos = 0
+    while pos + _RECORD_HEAD.size <= len(payload):
+        opcode, length = _RECORD_HEAD.unpack_from(payload, pos)
+        inner = payload[pos + _RECORD_HEAD.size: pos + _RECORD_HEAD.size + length]
+        if len(inner) < length:
+            return
+        record = _parse_record(opcode, inner)
+        if record is not None:
+            yield record
+        pos += _RECORD_HEAD.size + length
+
+
+def _single_mcap(path: Path) -> Path:
+    """The one ``.mcap`` file of a bag directory.
+
+    Raises:
+        BagIOError: There is none, or more than one.
+    """
+    files = sorted(path.glob("*.mcap"))
+    if len(files) != 1:
+        raise BagIOError(f"{path} is a directory without metadata.yaml (or with one that "
+                         f"cannot be used) and {len(files)} .mcap files; cannot tell what "
+                         "to read")
+    return files[0]
+
+
 def _open_rosbags_reader(path: Path) -> Any:
     from rosbags.rosbag2 import Reader
 
     target = path
     if path.is_dir() and not (path / "metadata.yaml").exists():
         # A recording that died before writing metadata.yaml still has readable MCAP data.
-        files = sorted(path.glob("*.mcap"))
-        if len(files) != 1:
-            raise BagIOError(f"{path} is a directory without metadata.yaml and "
-                             f"{len(files)} .mcap files; cannot tell what to read")
-        LOG.warning("%s has no metadata.yaml; reading %s directly", path, files[0].name)
-        target = files[0]
+        target = _single_mcap(path)
+        LOG.warning("%s has no metadata.yaml; reading %s directly", path, target.name)
     if target.is_file() and target.suffix not in (".mcap", ".db3"):
         raise BagIOError(f"{path} is neither a rosbag2 directory nor an .mcap/.db3 file")
     reader = Reader(target)
     try:
         reader.open()
     except _reader_errors() as exc:
-        if target.suffix != ".mcap" or target.stat().st_size == 0:
+        # A cut MCAP (a killed recorder), bare or inside a bag directory with metadata.yaml.
+        try:
+            mcap = target if target.suffix == ".mcap" else _single_mcap(target)
+        except BagIOError:
+            raise exc from None
+        if (target.is_file() and target.suffix != ".mcap") or mcap.stat().st_size == 0:
             raise
         try:
-            recovered = _RecoveredMcap(target)
+            recovered = _RecoveredMcap(mcap)
         except BagIOError:
             raise exc from None
         LOG.warning("%s is incomplete (%s); recovered %d messages up to where it ends",
-                    target, exc, recovered.message_count)
+                    mcap, exc, recovered.message_count)
         return recovered
     return reader
 

@@ -79,19 +79,33 @@ def rclpy_make(msgtype: str, **fields: Any) -> Any:
     return rclpy_class(msgtype)(**fields)
 
 
+def _center_xy(center: Any) -> Tuple[float, float]:
+    """A box centre's (x, y): ``vision_msgs/Pose2D`` (``position.x``; vision_msgs >= 4) or
+    the older ``geometry_msgs/Pose2D`` (``x``, ``y``, ``theta``)."""
+    point = getattr(center, "position", center)
+    return float(point.x), float(point.y)
+
+
+def _class_id(result: Any) -> str:
+    """``hypothesis.class_id`` of an ``ObjectHypothesisWithPose``, or the older ``id`` field."""
+    hypothesis = getattr(result, "hypothesis", None)
+    return str(hypothesis.class_id if hypothesis is not None else getattr(result, "id", ""))
+
+
 def detections_to_boxes(msg: Any) -> List[TrackBox]:
     """Track boxes of a ``vision_msgs/Detection2DArray``, in message order.
 
     ``Detection2D.id`` is the track ID; the class is ``results[0].hypothesis.class_id``
-    (empty when there are no results).
+    (empty when there are no results). Boxes whose centre is a ``geometry_msgs/Pose2D``
+    (the layout before vision_msgs 4) are read too.
     """
     boxes = []
     for det in msg.detections:
         bbox = det.bbox
-        class_id = det.results[0].hypothesis.class_id if len(det.results) else ""
-        boxes.append(TrackBox.from_center(str(det.id), float(bbox.center.position.x),
-                                          float(bbox.center.position.y), float(bbox.size_x),
-                                          float(bbox.size_y), str(class_id)))
+        class_id = _class_id(det.results[0]) if len(det.results) else ""
+        x, y = _center_xy(bbox.center)
+        boxes.append(TrackBox.from_center(str(det.id), x, y, float(bbox.size_x),
+                                          float(bbox.size_y), class_id))
     return boxes
 
 

@@ -204,8 +204,11 @@ class DemoReport:
                 f"ms, p95 {d.get('processing_p95_ms')} ms (engine alone: mean "
                 f"{d.get('engine_mean_ms')} ms, p95 {d.get('engine_p95_ms')} ms)",
                 "node:       received {images} images, {detections} detection arrays, paired "
-                "{paired}, published {outputs}; dropped: pairing timeouts {t}, overflow {o}, "
-                "work queue {q}, bad images {b}; unjudged boxes {u}; model {m}".format(
+                "{paired}, published {outputs} (undecodable images among them {b}); dropped: "
+                "in the middleware {w}, pairing timeouts {t}, overflow {o}, work queue {q}; "
+                "unjudged boxes {u}; model {m}".format(
+                    w=int(d.get("dropped_image_middleware", 0))
+                    + int(d.get("dropped_detections_middleware", 0)),
                     t=int(d.get("dropped_image_timeout", 0))
                     + int(d.get("dropped_detections_timeout", 0)),
                     o=int(d.get("dropped_image_overflow", 0))

@@ -88,6 +88,8 @@ class EngineConfig:
         device: Torch device of the model and the states ("cpu", "cuda", "cuda:1").
         intent_filter: The hold over the model's light outputs and the intent derived
             from it (``enabled=False`` publishes the raw model).
+        max_boxes: Boxes judged per frame; later ones are reported unjudged and counted
+            (``over_limit``), so a flood of boxes cannot stall the frame.
     """
 
     crop: Optional[CropConfig] = None
@@ -97,8 +99,12 @@ class EngineConfig:
     max_gap_s: float = 2.0
     device: str = "cpu"
     intent_filter: IntentFilterConfig = field(default_factory=IntentFilterConfig)
+    max_boxes: int = 128
 
     def __post_init__(self) -> None:
+        if isinstance(self.max_boxes, bool) or not isinstance(self.max_boxes, (int, np.integer)) \
+                or self.max_boxes < 1:
+            raise ConfigError(f"max_boxes must be a positive integer, got {self.max_boxes!r}")
         if self.crop is not None and not isinstance(self.crop, CropConfig):
             raise ConfigError(f"crop must be a CropConfig or None, got {self.crop!r}")
         if not isinstance(self.intent_filter, IntentFilterConfig):
@@ -134,6 +140,23 @@ class FrameResult:
     warnings: List[str]
     latency_s: float
     n_judged: int
+
+
+def require_device(device: "str | torch.device") -> torch.device:
+    """The torch device, checked to be usable here.
+
+    Raises:
+        ConfigError: Not a torch device, or CUDA is asked for on a machine (or torch
+            build) without it.
+    """
+    try:
+        device = torch.device(device)
+    except (RuntimeError, TypeError) as exc:
+        raise ConfigError(f"device {device!r} is not a torch device: {exc}") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"CUDA requested but not available (device {str(device)!r}); "
+                          "use device cpu")
+    return device
 
 
 def unjudged_result(box: TrackBox, width: int, height: int,
@@ -175,9 +198,7 @@ class LightStateEngine:
         if trained_margin is not None and abs(crop.margin - trained_margin) > 1e-9:
             LOG.warning("crop margin %.3f differs from the %.3f the model was trained with",
                         crop.margin, trained_margin)
-        device = torch.device(config.device)
-        if device.type == "cuda" and not torch.cuda.is_available():
-            raise ConfigError(f"device {config.device!r} requested but CUDA is not available")
+        device = require_device(config.device)
         if hasattr(model, "to"):
             model = model.to(device)
         if hasattr(model, "eval"):
@@ -196,13 +217,15 @@ class LightStateEngine:
                               max_tracks=config.max_tracks, max_gap_s=config.max_gap_s,
                               device=device, filter_row=self.filter.initial_rows(1)[0])
         self._counts = {"frames": 0, "boxes": 0, "judged": 0, "unjudged": 0,
-                        "duplicates": 0, "model_steps": 0}
+                        "duplicates": 0, "over_limit": 0, "model_steps": 0}
 
     # -------------------------------------------------------------- diagnostics
     @property
     def counters(self) -> Dict[str, int]:
-        """Running totals: frames, boxes, judged, unjudged, duplicates, model_steps,
-        resets, evictions, expired, overflow and the current active_tracks."""
+        """Running totals: frames, boxes, judged, unjudged, duplicates, over_limit (boxes
+        past ``max_boxes``), model_steps, resets, evictions, expired, overflow (tracks run
+        without a kept state because ``max_tracks`` were in the frame) and the current
+        active_tracks."""
         out = dict(self._counts)
         for key in ("resets", "evictions", "expired", "overflow"):
             out[key] = int(self.bank.counters[key])
@@ -248,6 +271,9 @@ class LightStateEngine:
                 continue
             first_index[box.track_id] = i
             unique.append(i)
+        limit = self.config.max_boxes
+        over = {i: f"over the limit of {limit} boxes per frame" for i in unique[limit:]}
+        unique = unique[:limit]
         crops, reasons = crop_vehicles(image, [boxes[i] for i in unique], self.crop)
         valid = [k for k, reason in enumerate(reasons) if reason is None]
         ids = [boxes[unique[k]].track_id for k in valid]
@@ -273,6 +299,7 @@ class LightStateEngine:
                 table = None
         row_of = {unique[k]: j for j, k in enumerate(valid)}
         reason_of = {i: reasons[k] for k, i in enumerate(unique)}
+        reason_of.update(over)
         results: List[VehicleResult] = []
         n_dup = n_bad = 0
         for i, box in enumerate(boxes):
@@ -286,18 +313,39 @@ class LightStateEngine:
                                 f"{first_index[box.track_id]}); reported unjudged")
             else:
                 n_bad += 1
-                warnings.append(f"box {i} not judged: {reason_of[i]}")
+                if i not in over:
+                    warnings.append(f"box {i} not judged: {reason_of[i]}")
             results.append(unjudged_result(box, width, height,
                                            self.bank.frames_observed(box.track_id)))
 
+        if over:
+            warnings.append(f"{len(over)} boxes not judged: {over[min(over)]}")
         self._counts["frames"] += 1
         self._counts["boxes"] += len(boxes)
         self._counts["judged"] += len(ids)
         self._counts["unjudged"] += n_bad + n_dup
         self._counts["duplicates"] += n_dup
+        self._counts["over_limit"] += len(over)
         for text in warnings:
             LOG.debug("%s", text)
         return FrameResult(stamp_ns, results, warnings, time.perf_counter() - start, len(ids))
+
+    def unjudged_frame(self, stamp_ns: int, boxes: Sequence[TrackBox], width: int, height: int,
+                       reason: str) -> FrameResult:
+        """The result of a frame whose image cannot be used (undecodable, too large).
+
+        Every box is reported unjudged, its ID kept; no track state changes.
+
+        Args:
+            stamp_ns: The frame's stamp.
+            boxes: The frame's boxes.
+            width: Image width the ROIs are clipped to (0 when unknown).
+            height: Image height (0 when unknown).
+            reason: Why, for the warnings.
+        """
+        results = [unjudged_result(box, width, height, self.bank.frames_observed(box.track_id))
+                   for box in boxes]
+        return FrameResult(int(stamp_ns), results, [reason], 0.0, 0)
 
     def _judged(self, box: TrackBox, width: int, height: int, table: "_ProbTable",
                 j: int, frames_observed: int) -> VehicleResult:
@@ -335,6 +383,7 @@ class LightStateEngine:
         attention = getattr(self.model, "attention", None)
         if attention is None or not boxes:
             return heat
+        boxes = list(boxes)[:self.config.max_boxes]
         crops, reasons = crop_vehicles(image, boxes, self.crop)
         valid = [k for k, reason in enumerate(reasons) if reason is None]
         if not valid:
@@ -345,15 +394,29 @@ class LightStateEngine:
         masks = np.ascontiguousarray(masks, dtype=np.float32)
         for mask, k in zip(masks, valid):
             # The crop's own square, so the mask lands where it was cut.
-            x0, y0, side = crop_region(boxes[k], width, height, self.crop)
-            resized = cv2.resize(mask, (side, side), interpolation=cv2.INTER_LINEAR)
-            cx0, cy0 = max(x0, 0), max(y0, 0)
-            cx1, cy1 = min(x0 + side, width), min(y0 + side, height)
-            if cx1 <= cx0 or cy1 <= cy0:
-                continue
-            patch = resized[cy0 - y0:cy1 - y0, cx0 - x0:cx1 - x0]
-            np.maximum(heat[cy0:cy1, cx0:cx1], patch, out=heat[cy0:cy1, cx0:cx1])
+            _paste_mask(heat, mask, *crop_region(boxes[k], width, height, self.crop))
         return np.clip(heat, 0.0, 1.0)
+
+
+def _paste_mask(heat: np.ndarray, mask: np.ndarray, x0: int, y0: int, side: int) -> None:
+    """Scale ``mask`` to the square ``(x0, y0, side)`` and max it into ``heat`` in place.
+
+    Only the part of the square inside ``heat`` is computed (as ``cv2.resize`` would
+    sample it), so memory stays bounded by the image whatever the box size.
+    """
+    height, width = heat.shape
+    cx0, cy0 = max(x0, 0), max(y0, 0)
+    cx1, cy1 = min(x0 + side, width), min(y0 + side, height)
+    if cx1 <= cx0 or cy1 <= cy0:
+        return
+    scale = mask.shape[1] / side
+    # Output pixel u of the visible part samples the mask at (u + offset + 0.5) * scale - 0.5.
+    affine = np.array([[scale, 0.0, (cx0 - x0 + 0.5) * scale - 0.5],
+                       [0.0, scale, (cy0 - y0 + 0.5) * scale - 0.5]])
+    patch = cv2.warpAffine(mask, affine, (cx1 - cx0, cy1 - cy0),
+                           flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                           borderMode=cv2.BORDER_REPLICATE)
+    np.maximum(heat[cy0:cy1, cx0:cx1], patch, out=heat[cy0:cy1, cx0:cx1])
 
 
 class _ProbTable:
@@ -392,6 +455,7 @@ def engine_from_checkpoint(path: Optional[str] = None, device: str = "cpu",
     """
     from signal_light_node.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint
 
+    require_device(device)  # before loading: torch would blame the file
     loaded = load_checkpoint(DEFAULT_WEIGHTS if path is None else path, map_location=device)
     margin = overrides.pop("crop_margin", None)
     if margin is not None and overrides.get("crop") is None:

@@ -23,3 +23,7 @@ class ConfigError(SignalLightError):
 
 class ImageConversionError(BagIOError):
     """An image message cannot be turned into a BGR array (or back); the message names topic and stamp."""
+
+
+class ImageTooLargeError(ImageConversionError):
+    """An image exceeds the configured pixel limit; refused before it is decoded."""

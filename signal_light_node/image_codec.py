@@ -7,13 +7,18 @@ Duck-typed: only attribute access is used, so ``rosbags`` and rclpy messages of
 
 from __future__ import annotations
 
+import struct
 from typing import Any, Dict, Optional, Tuple
 
 import cv2
 import numpy as np
 
 from signal_light_node.conversions import stamp_to_ns
-from signal_light_node.errors import ImageConversionError
+from signal_light_node.errors import ImageConversionError, ImageTooLargeError
+
+#: Default largest image (width x height) decoded: 4096 x 4096. Larger ones are refused
+#: before decoding, so a small PNG of a huge blank image cannot take gigabytes.
+DEFAULT_MAX_IMAGE_PIXELS = 4096 * 4096
 
 # encoding -> (channels, bytes per channel, conversion of the raw pixels to BGR or None)
 _ENCODINGS: Dict[str, Tuple[int, int, Optional[int]]] = {
@@ -55,13 +60,51 @@ def _buffer(data: Any) -> np.ndarray:
         return np.asarray(list(data), dtype=np.uint8)
 
 
+def _check_size(width: int, height: int, max_pixels: Optional[int], where: Any) -> None:
+    if max_pixels is not None and width * height > max_pixels:
+        raise ImageTooLargeError(f"{where()}: {width}x{height} = {width * height} pixels "
+                                 f"exceeds the limit of {max_pixels} (max_image_pixels)")
+
+
+_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+# JPEG start-of-frame markers (baseline, progressive, lossless...; not DHT/JPG/DAC).
+_SOF_MARKERS = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+
+
+def compressed_dimensions(data: Any) -> Optional[Tuple[int, int]]:
+    """``(width, height)`` from a PNG or JPEG header without decoding; None if not found."""
+    head = bytes(_buffer(data)[:65536])
+    if head.startswith(_PNG_MAGIC) and len(head) >= 24 and head[12:16] == b"IHDR":
+        width, height = struct.unpack(">II", head[16:24])
+        return int(width), int(height)
+    if not head.startswith(b"\xff\xd8"):
+        return None
+    pos = 2
+    while pos + 9 <= len(head):
+        if head[pos] != 0xFF:
+            return None
+        marker = head[pos + 1]
+        if marker == 0xFF:  # fill byte
+            pos += 1
+            continue
+        if marker == 0x01 or 0xD0 <= marker <= 0xD8:  # markers without a length
+            pos += 2
+            continue
+        if marker in _SOF_MARKERS:
+            height, width = struct.unpack(">HH", head[pos + 5:pos + 9])
+            return int(width), int(height)
+        pos += 2 + struct.unpack(">H", head[pos + 2:pos + 4])[0]
+    return None
+
+
 def _canonical(encoding: str) -> Optional[str]:
     enc = str(encoding).strip()
     enc = _ALIASES.get(enc, enc.lower())
     return enc if enc in _ENCODINGS else None
 
 
-def image_msg_to_bgr(msg: Any, topic: str = "", stamp_ns: Optional[int] = None) -> np.ndarray:
+def image_msg_to_bgr(msg: Any, topic: str = "", stamp_ns: Optional[int] = None,
+                     max_pixels: Optional[int] = None) -> np.ndarray:
     """Decode a ``sensor_msgs/Image`` into a BGR image.
 
     ``mono16`` is scaled to 8 bits by its high byte; ``step`` padding is honoured.
@@ -70,12 +113,14 @@ def image_msg_to_bgr(msg: Any, topic: str = "", stamp_ns: Optional[int] = None) 
         msg: The message.
         topic: Topic name, for error messages.
         stamp_ns: Stamp for error messages (default: the message header's).
+        max_pixels: Refuse images of more pixels than this (None: no limit).
 
     Returns:
         A writable C-contiguous ``(height, width, 3)`` uint8 array.
 
     Raises:
         ImageConversionError: Unknown encoding, empty image, bad step or short data.
+        ImageTooLargeError: More pixels than ``max_pixels``.
     """
     where = lambda: _where(msg, topic, stamp_ns)  # noqa: E731 (built only on error)
     enc = _canonical(msg.encoding)
@@ -86,6 +131,7 @@ def image_msg_to_bgr(msg: Any, topic: str = "", stamp_ns: Optional[int] = None) 
     height, width, step = int(msg.height), int(msg.width), int(msg.step)
     if height <= 0 or width <= 0:
         raise ImageConversionError(f"{where()}: empty image ({width}x{height})")
+    _check_size(width, height, max_pixels, where)
     row = width * channels * depth
     if step < row:
         raise ImageConversionError(f"{where()}: step {step} is smaller than width {width} x "
@@ -118,15 +164,18 @@ def _format_kind(fmt: str) -> Optional[str]:
     return None
 
 
-def compressed_msg_to_bgr(msg: Any, topic: str = "", stamp_ns: Optional[int] = None
-                          ) -> np.ndarray:
+def compressed_msg_to_bgr(msg: Any, topic: str = "", stamp_ns: Optional[int] = None,
+                          max_pixels: Optional[int] = None) -> np.ndarray:
     """Decode a ``sensor_msgs/CompressedImage`` (JPEG or PNG) into a BGR image.
 
     Formats such as ``"jpeg"``, ``"png"`` or image_transport's ``"rgb8; jpeg compressed
     bgr8"`` are accepted; the payload is decoded by OpenCV, which yields BGR either way.
+    With ``max_pixels`` the size is read from the PNG / JPEG header and a larger image is
+    refused before decoding (other payloads are checked after).
 
     Raises:
         ImageConversionError: Unsupported format, empty or undecodable data.
+        ImageTooLargeError: More pixels than ``max_pixels``.
     """
     where = lambda: _where(msg, topic, stamp_ns)  # noqa: E731
     kind = _format_kind(msg.format)
@@ -136,18 +185,23 @@ def compressed_msg_to_bgr(msg: Any, topic: str = "", stamp_ns: Optional[int] = N
     buf = _buffer(msg.data)
     if buf.size == 0:
         raise ImageConversionError(f"{where()}: compressed data is empty")
+    size = compressed_dimensions(buf) if max_pixels is not None else None
+    if size is not None:
+        _check_size(size[0], size[1], max_pixels, where)
     image = cv2.imdecode(buf, cv2.IMREAD_COLOR)
     if image is None or image.size == 0:
         raise ImageConversionError(f"{where()}: {kind or 'compressed'} data "
                                    f"({buf.size} bytes) cannot be decoded")
+    _check_size(image.shape[1], image.shape[0], max_pixels, where)
     return image
 
 
-def msg_to_bgr(msg: Any, topic: str = "", stamp_ns: Optional[int] = None) -> np.ndarray:
+def msg_to_bgr(msg: Any, topic: str = "", stamp_ns: Optional[int] = None,
+               max_pixels: Optional[int] = None) -> np.ndarray:
     """Decode either image type: a message with ``format`` is compressed, else raw."""
     if hasattr(msg, "format") and not hasattr(msg, "encoding"):
-        return compressed_msg_to_bgr(msg, topic, stamp_ns)
-    return image_msg_to_bgr(msg, topic, stamp_ns)
+        return compressed_msg_to_bgr(msg, topic, stamp_ns, max_pixels)
+    return image_msg_to_bgr(msg, topic, stamp_ns, max_pixels)
 
 
 def _check_bgr(image: np.ndarray) -> np.ndarray:

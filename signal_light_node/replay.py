@@ -26,9 +26,9 @@ from signal_light_node.bagio import BagWriter, find_topic, make, open_bag
 from signal_light_node.boxes import TrackBox
 from signal_light_node.conversions import (detections_to_boxes, result_row, stamp_to_ns,
                                            truth_row, vehicle_light_array)
-from signal_light_node.engine import FrameResult, LightStateEngine, unjudged_result
+from signal_light_node.engine import FrameResult, LightStateEngine
 from signal_light_node.errors import ImageConversionError
-from signal_light_node.image_codec import msg_to_bgr
+from signal_light_node.image_codec import DEFAULT_MAX_IMAGE_PIXELS, msg_to_bgr
 from signal_light_node.results import VehicleResult
 from signal_light_node.topics import (DETECTIONS_TYPE, GROUND_TRUTH_TOPIC, IMAGE_TYPES,
                                       OUTPUT_TOPIC, VEHICLE_LIGHTS_TYPE)
@@ -67,7 +67,11 @@ class ReplaySummary:
         entries: Vehicle entries written (one per box).
         images_without_detections: Images with no detection message of their stamp.
         detections_without_image: Detection messages whose stamp has no image.
-        bad_images: Images that could not be decoded (their boxes are written unjudged).
+        bad_images: Images that could not be decoded or exceed the pixel limit (their
+            boxes are written unjudged).
+        skipped: Per topic, messages skipped because they could not be deserialized or
+            converted (an image skipped so has no output: images in = outputs + skipped).
+        recovered: Messages recovered from a cut MCAP file; None for an intact bag.
         elapsed_s: Wall time of the second pass (decode, engine, write).
         engine_s: Time spent in ``engine.process``.
         latencies_s: ``latency_s`` of every processed frame.
@@ -87,6 +91,8 @@ class ReplaySummary:
     images_without_detections: int = 0
     detections_without_image: int = 0
     bad_images: int = 0
+    skipped: Dict[str, int] = field(default_factory=dict)
+    recovered: Optional[int] = None
     elapsed_s: float = 0.0
     engine_s: float = 0.0
     latencies_s: List[float] = field(default_factory=list)
@@ -129,41 +135,53 @@ class ReplaySummary:
             f"throughput: {self.frames_per_s:.1f} frames/s, {self.track_steps_per_s:.1f} "
             f"track-steps/s; engine latency mean {mean:.1f} ms, p95 {p95:.1f} ms",
         ]
+        if self.skipped:
+            lines.append("skipped messages (undecodable or unconvertible): " + ", ".join(
+                f"{n} on {topic}" for topic, n in sorted(self.skipped.items())))
+        if self.recovered is not None:
+            lines.append(f"the bag's MCAP file is cut short: recovered {self.recovered} "
+                         "messages up to the last complete record")
         if self.video is not None:
             lines.append(f"video: {self.video}")
         return "\n".join(lines)
 
 
+#: What a message of an unexpected layout raises in a conversion.
+_CONVERSION_ERRORS = (AttributeError, TypeError, ValueError, OverflowError)
+
+
 def _collect(bag: Any, topic: Optional[str], key: Callable[[Any], Any]) -> Dict[int, Any]:
-    """``stamp -> key(msg)`` of every message on ``topic`` (the first one of a stamp)."""
+    """``stamp -> key(msg)`` of every message on ``topic`` (the first one of a stamp).
+
+    A message that cannot be deserialized or converted is skipped, counted in ``bag.skipped``.
+    """
     out: Dict[int, Any] = {}
     if topic is None:
         return out
     duplicates = 0
-    for m in bag.messages([topic]):
-        stamp = stamp_to_ns(m.msg.header.stamp)
+    for m in bag.messages([topic], skip_undecodable=True):
+        try:
+            stamp = stamp_to_ns(m.msg.header.stamp)
+            value = key(m.msg)
+        except _CONVERSION_ERRORS as exc:
+            bag.note_skipped(topic, f"cannot convert {m.msgtype} on {topic} at "
+                             f"{m.log_time_ns} ns: {type(exc).__name__}: {exc}")
+            continue
         if stamp in out:
             duplicates += 1
             continue
-        out[stamp] = key(m.msg)
+        out[stamp] = value
     if duplicates:
         LOG.warning("%s: %d messages repeat an earlier header stamp; the first one is used",
                     topic, duplicates)
     return out
 
 
-def _bad_image_results(msg: Any, boxes: Sequence[TrackBox],
-                       engine: LightStateEngine) -> List[VehicleResult]:
-    width, height = int(getattr(msg, "width", 0) or 0), int(getattr(msg, "height", 0) or 0)
-    return [unjudged_result(box, width, height, engine.bank.frames_observed(box.track_id))
-            for box in boxes]
-
-
 def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateEngine,
                image_topic: Optional[str] = None, detections_topic: Optional[str] = None,
                with_inputs: bool = False, video: "str | Path | None" = None,
                video_attention: bool = False, overwrite: bool = False,
-               progress: bool = True,
+               progress: bool = True, max_pixels: Optional[int] = DEFAULT_MAX_IMAGE_PIXELS,
                on_frame: Optional[Callable[[Any, List[TrackBox], FrameResult], None]] = None
                ) -> ReplaySummary:
     """Replay a bag through the engine and write the output bag.
@@ -180,6 +198,7 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
         video_attention: Overlay the attention masks in the video (one more model pass).
         overwrite: Replace an existing output bag.
         progress: Show a tqdm progress bar.
+        max_pixels: Images of more pixels are not decoded (counted as bad images).
         on_frame: Called as ``on_frame(image_bgr_or_None, boxes, frame_result)`` per image.
 
     Returns:
@@ -208,6 +227,7 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
         detections = _collect(bag, det_t, detections_to_boxes)
         truth = _collect(bag, gt_t, lambda msg: {str(v.track_id): truth_row(v)
                                                  for v in msg.vehicles})
+        skipped = dict(bag.skipped)  # pass 2 may read these topics again (with_inputs)
         sink = None
         if video is not None:
             duration_s = bag.duration_ns / 1e9
@@ -228,7 +248,8 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
             if with_inputs:
                 for t in input_topics:
                     writer.add_topic(t, topics[t].msgtype)
-            for m in bag.messages(input_topics if with_inputs else [img_t]):
+            for m in bag.messages(input_topics if with_inputs else [img_t],
+                                  skip_undecodable=True):
                 if with_inputs:
                     writer.write(m.topic, m.log_time_ns, m.msg)
                 if m.topic != img_t:
@@ -240,14 +261,15 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
                     summary.images_without_detections += 1
                     boxes = []
                 try:
-                    image = msg_to_bgr(m.msg, img_t, stamp)
+                    image = msg_to_bgr(m.msg, img_t, stamp, max_pixels)
                 except ImageConversionError as exc:
                     LOG.warning("%s", exc)
                     summary.bad_images += 1
                     image = None
                 if image is None:
-                    results = _bad_image_results(m.msg, boxes, engine)
-                    frame = FrameResult(stamp, results, ["image could not be decoded"], 0.0, 0)
+                    frame = engine.unjudged_frame(stamp, boxes, int(getattr(m.msg, "width", 0)),
+                                                  int(getattr(m.msg, "height", 0)),
+                                                  "image could not be decoded")
                 else:
                     frame = engine.process(image, stamp, boxes)
                     summary.engine_s += frame.latency_s
@@ -274,6 +296,9 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
             bar.close()
         if sink is not None:
             summary.video = sink.close()
+        if bag.skipped.get(img_t):
+            skipped[img_t] = bag.skipped[img_t]
+        summary.skipped, summary.recovered = skipped, bag.recovered
     summary.detections_without_image = len(set(detections) - seen_stamps)
     summary.counters = engine.counters
     return summary

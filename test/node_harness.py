@@ -161,6 +161,18 @@ class DetectorProcess:
         return self.proc.returncode
 
 
+def run_until_exit(args: Sequence[str], env: Dict[str, str], tmp_path: Path,
+                   timeout_s: float = 60.0) -> Tuple[Optional[int], List[str]]:
+    """Start the detector with ``args``, poll until it exits (or time out) and return
+    its exit code and non-empty log lines."""
+    node = DetectorProcess(args, env, tmp_path / "detector.log")
+    deadline = time.monotonic() + timeout_s
+    while node.proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    code = node.stop()
+    return code, [line for line in node.text().splitlines() if line.strip()]
+
+
 @dataclass
 class LiveClient:
     """Publishes frames to the node and collects what it publishes.

@@ -4,13 +4,12 @@ Each test starts the real executable on a random ROS domain and talks to it over
 (reliable QoS, frame by frame, so a slow CI machine drops nothing): one output per input
 frame, stamped and ordered like the inputs, track IDs equal to the detections', only the
 codes 100/101/102; a frame without detections gives an empty array, an undecodable image
-is skipped and counted without killing the node, and a missing model stops it at start
-with one log line and a non-zero exit code.
+is published with its boxes unjudged and counted without killing the node, and a missing
+model stops it at start with one log line and a non-zero exit code.
 """
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +17,7 @@ import pytest
 import yaml
 
 from node_harness import (COMPRESSED_TYPE, DEBUG_TOPIC, RAW_TYPE, REPO, DetectorProcess,
-                          LiveClient, load_frames, model_args, scene_bag)
+                          LiveClient, load_frames, model_args, run_until_exit, scene_bag)
 from signal_light_node.node.params import NODE_NAME
 
 rclpy = pytest.importorskip("rclpy")
@@ -107,7 +106,8 @@ def _diag_values(client: LiveClient) -> dict:
 
 def _extra_frames(last_stamp_ns: int, frame_id: str, compressed: bool):
     """(bad image, its detections), (good image, empty detections) stamped after the bag."""
-    from signal_light_node.conversions import make_header, rclpy_make
+    from signal_light_node.boxes import TrackBox
+    from signal_light_node.conversions import boxes_to_detections, make_header, rclpy_make
     from signal_light_node.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
 
     bad_stamp, empty_stamp = last_stamp_ns + 100_000_000, last_stamp_ns + 200_000_000
@@ -123,8 +123,8 @@ def _extra_frames(last_stamp_ns: int, frame_id: str, compressed: bool):
         bad = rclpy_make(RAW_TYPE, header=make_header(bad_stamp, frame_id, rclpy_make), **fields)
         good = rclpy_make(RAW_TYPE, header=make_header(empty_stamp, frame_id, rclpy_make),
                           **bgr_to_image_fields(image))
-    box = rclpy_make("vision_msgs/msg/Detection2DArray",
-                     header=make_header(bad_stamp, frame_id, rclpy_make))
+    box = boxes_to_detections(make_header(bad_stamp, frame_id, rclpy_make),
+                              [TrackBox("bad", 10, 10, 60, 50)], rclpy_make)
     empty = rclpy_make("vision_msgs/msg/Detection2DArray",
                        header=make_header(empty_stamp, frame_id, rclpy_make))
     return (bad_stamp, bad, box), (empty_stamp, good, empty)
@@ -164,19 +164,21 @@ def _run_live(tmp_path: Path, env: dict, raw: bool, extra_args, expect_params=No
             client.det_pub.publish(empty)
             assert client.spin_until(lambda: empty_stamp in client.outputs, 20.0), node.text()
             assert list(client.outputs[empty_stamp][0].vehicles) == []
-            assert bad_stamp not in client.outputs
+            # An undecodable image is published like replay writes it: its boxes unjudged.
+            assert [v.track_id for v in client.outputs[bad_stamp][0].vehicles] == ["bad"]
+            assert client.outputs[bad_stamp][0].vehicles[0].view_probability == 0.0
             # The next diagnostics report counts the bad image; the node is still alive.
             assert client.spin_until(
                 lambda: client.diagnostics and _diag_values(client)["bad_images"] == "1", 10.0)
             values = _diag_values(client)
-            assert int(values["outputs"]) == warm + len(frames) + 1
+            assert int(values["outputs"]) == warm + len(frames) + 2
             assert int(values["images"]) == warm + len(frames) + 2
             assert float(values["latency_p95_ms"]) > 0
             assert values["model_path"].endswith(".pt")
             assert node.proc.poll() is None
         assert node.stop() == 0, node.text()
         assert "Traceback" not in node.text()
-        assert "skipping frame" in node.text()
+        assert "frame published unjudged" in node.text()
     finally:
         node.stop()
 
@@ -204,30 +206,19 @@ def test_raw_images_with_an_edited_params_file(tmp_path, rclpy_isolated_env):
               debug_image=True)
 
 
-def _run_until_exit(args, env, tmp_path, timeout_s: float = 60.0):
-    """Start the detector with ``args``, poll until it exits (or time out) and return
-    its exit code and non-empty log lines."""
-    node = DetectorProcess(args, env, tmp_path / "detector.log")
-    deadline = time.monotonic() + timeout_s
-    while node.proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)
-    code = node.stop()
-    return code, [line for line in node.text().splitlines() if line.strip()]
-
-
 @pytest.mark.parametrize("content", [None, b"not a torch checkpoint"],
                          ids=["missing", "incompatible"])
 def test_missing_or_bad_model_stops_with_one_clear_line(tmp_path, rclpy_isolated_env, content):
     missing = tmp_path / "no_such_model.pt"
     if content is not None:
         missing.write_bytes(content)
-    code, lines = _run_until_exit(["-p", f"model_path:={missing}"], rclpy_isolated_env(), tmp_path)
+    code, lines = run_until_exit(["-p", f"model_path:={missing}"], rclpy_isolated_env(), tmp_path)
     assert code != 0
     assert len(lines) == 1, lines
     assert "no_such_model.pt" in lines[0] and "FATAL" in lines[0]
 
 
 def test_bad_parameter_stops_with_one_clear_line(tmp_path, rclpy_isolated_env):
-    code, lines = _run_until_exit(["-p", "image_transport:=theora"], rclpy_isolated_env(), tmp_path)
+    code, lines = run_until_exit(["-p", "image_transport:=theora"], rclpy_isolated_env(), tmp_path)
     assert code != 0 and len(lines) == 1, lines
     assert "image_transport" in lines[0] and "raw, compressed" in lines[0]

@@ -66,7 +66,7 @@ def test_idle_and_dead_worker():
 
 
 def _values(**changes):
-    base = {"images": "10", "paired": "10", "outputs": "9", "bad_images": "1",
+    base = {"images": "10", "paired": "10", "outputs": "10", "bad_images": "1",
             "dropped_work_queue": "0", "processing_errors": "0", "work_queue_length": "0",
             "pending_images": "0", "pending_detections": "0"}
     base.update({k: str(v) for k, v in changes.items()})
@@ -76,7 +76,10 @@ def _values(**changes):
 def test_drained_only_when_everything_is_accounted_for():
     assert drained(_values(), expect_images=10)
     assert not drained(_values(), expect_images=11)          # not all images arrived yet
-    assert not drained(_values(outputs=8), expect_images=10)  # one frame still in the works
+    assert not drained(_values(outputs=9), expect_images=10)  # one frame still in the works
+    # Two images lost in the middleware (counted) are accounted for as well.
+    assert drained(_values(images=8, paired=8, outputs=8, dropped_image_middleware=2),
+                   expect_images=10)
     assert not drained(_values(work_queue_length=1), expect_images=10)
     assert not drained(_values(pending_detections=2), expect_images=10)
     assert not drained({"images": "10"}, expect_images=1)    # an older node without the keys

@@ -26,7 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _image_size(bag: bagio.BagReader, topic: str, msgtype: str) -> Optional[Dict[str, Any]]:
-    first = next(bag.messages([topic]), None)
+    first = next(bag.messages([topic], skip_undecodable=True), None)
     if first is None:
         return None
     msg = first.msg
@@ -42,7 +42,7 @@ def _image_size(bag: bagio.BagReader, topic: str, msgtype: str) -> Optional[Dict
 
 def _track_ids(bag: bagio.BagReader, topic: str, msgtype: str) -> Set[str]:
     ids: Set[str] = set()
-    for item in bag.messages([topic]):
+    for item in bag.messages([topic], skip_undecodable=True):
         if msgtype == DETECTIONS_TYPE:
             ids.update(str(d.id) for d in item.msg.detections)
         else:
@@ -79,6 +79,8 @@ def describe(path: str) -> Dict[str, Any]:
             "duration_s": bag.duration_ns / 1e9,
             "topics": topics,
             "track_ids": len(detection_ids),
+            "skipped": dict(bag.skipped),
+            "recovered": bag.recovered,
         }
 
 
@@ -104,6 +106,11 @@ def format_text(report: Dict[str, Any]) -> str:
         lines.append(f"  {t['topic']:<{width}}  {t['msgtype']:<{type_width}}  "
                      f"{t['count']:>7} msgs{extra}")
     lines.append(f"track IDs:  {report['track_ids']} distinct (over all Detection2DArray topics)")
+    if report.get("skipped"):
+        lines.append("skipped:    " + ", ".join(f"{n} undecodable on {topic}" for topic, n in
+                                                 sorted(report["skipped"].items())))
+    if report.get("recovered") is not None:
+        lines.append(f"recovered:  {report['recovered']} messages of a cut MCAP file")
     return "\n".join(lines)
 
 

@@ -96,13 +96,15 @@ def play_items(bag: BagReader, topics: Mapping[str, str],
                remaps: Optional[Mapping[str, str]] = None) -> Iterator[PlayItem]:
     """The messages of ``topics`` in log-time order, serialized, with offsets from the first.
 
+    A message that cannot be deserialized is skipped (warned, counted in ``bag.skipped``).
+
     Raises:
-        BagIOError: A message cannot be read or serialized.
+        BagIOError: The bag cannot be read or a message cannot be serialized.
     """
     store = typestore()
     remaps = remaps or {}
     first: Optional[int] = None
-    for m in bag.messages(topics=list(topics)):
+    for m in bag.messages(topics=list(topics), skip_undecodable=True):
         first = m.log_time_ns if first is None else first
         try:
             data = bytes(store.serialize_cdr(m.msg, m.msgtype))

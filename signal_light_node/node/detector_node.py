@@ -16,21 +16,25 @@ message layout beyond the topic types.
 from __future__ import annotations
 
 import logging
+import re
 import sys
 import time
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, List, Optional, Tuple
 
 import rclpy
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy_impl
 from rclpy.node import Node
 
 from signal_light_node.conversions import (detections_to_boxes, rclpy_make, stamp_to_ns,
                                            vehicle_light_array)
-from signal_light_node.errors import ConfigError, ImageConversionError, SignalLightError
+from signal_light_node.errors import (ConfigError, ImageConversionError, ImageTooLargeError,
+                                      SignalLightError)
+from signal_light_node.node.gaps import SequenceGaps
 from signal_light_node.node.pairing import StampPairer
-from signal_light_node.node.params import (NODE_NAME, DetectorParams, read_parameters,
-                                           updated)
+from signal_light_node.node.params import (NODE_NAME, DetectorParams, foreign_params_file,
+                                           params_file_paths, read_parameters, updated)
 from signal_light_node.node.ros_io import message_class, qos
 from signal_light_node.node.stats import ERROR, OK, WARN, LatencyWindow, Snapshot, health
 from signal_light_node.node.worker import DropOldestQueue, Worker
@@ -65,7 +69,9 @@ class SignalLightDetector(Node):
         self.engine: Any = None
         self.model_path = ""
         self._worker: Optional[Worker] = None
-        self._counts: Dict[str, int] = {"outputs": 0, "bad_images": 0, "debug_images": 0}
+        self._counts: Dict[str, int] = {"outputs": 0, "bad_images": 0, "oversized_images": 0,
+                                        "debug_images": 0}
+        self._gaps = {"image": SequenceGaps(), "detections": SequenceGaps()}
         self._latency = LatencyWindow()
         self._processing = LatencyWindow()
         self._engine_time = LatencyWindow()
@@ -92,7 +98,8 @@ class SignalLightDetector(Node):
         self.engine = engine_from_checkpoint(
             p.model_path or None, device=p.device, thresholds=p.thresholds,
             track_timeout_s=p.track_timeout_s, max_tracks=p.max_tracks, max_gap_s=p.max_gap_s,
-            crop_margin=p.crop_margin, intent_filter=p.intent_filter_config)
+            crop_margin=p.crop_margin, intent_filter=p.intent_filter_config,
+            max_boxes=p.max_boxes_per_frame)
 
         self._pairer = StampPairer(int(p.sync_slop_s * _NS), int(p.sync_timeout_s * _NS),
                                    p.image_queue_size, p.detection_queue_size)
@@ -133,36 +140,51 @@ class SignalLightDetector(Node):
             self._worker.stop(drain=False, timeout=5.0)
 
     # ---------------------------------------------------------------- callbacks
-    def _on_image(self, msg: Any) -> None:
+    # Both take the message info: its publication sequence numbers reveal what the
+    # middleware dropped (a full keep-last reader queue drops the oldest, silently).
+    def _on_image(self, msg: Any, info: Any) -> None:
+        self._gaps["image"].add(info.get("publication_sequence_number"))
         pair = self._pairer.add_image(stamp_to_ns(msg.header.stamp), msg, time.monotonic_ns())
         if pair is not None:
             self._queue.put(pair)
 
-    def _on_detections(self, msg: Any) -> None:
+    def _on_detections(self, msg: Any, info: Any) -> None:
+        self._gaps["detections"].add(info.get("publication_sequence_number"))
         pair = self._pairer.add_detections(stamp_to_ns(msg.header.stamp), msg,
                                            time.monotonic_ns())
         if pair is not None:
             self._queue.put(pair)
 
     # ------------------------------------------------------------------- worker
-    def _process(self, pair: Any) -> None:
+    def _run_engine(self, pair: Any, boxes: List[Any]) -> Tuple[Any, Any]:
+        """``(image or None, frame)``: an image that cannot be used gives every box unjudged."""
         try:
-            image = self._decode(pair.image, self._image_topic, pair.stamp_ns)
+            image = self._decode(pair.image, self._image_topic, pair.stamp_ns,
+                                 self.params.max_image_pixels)
         except ImageConversionError as exc:
-            self._counts["bad_images"] += 1
-            self.get_logger().warning(f"skipping frame: {exc}", throttle_duration_sec=5.0)
-            return
+            self._counts["oversized_images" if isinstance(exc, ImageTooLargeError)
+                         else "bad_images"] += 1
+            self.get_logger().warning(f"frame published unjudged: {exc}",
+                                      throttle_duration_sec=5.0)
+            msg = pair.image
+            return None, self.engine.unjudged_frame(
+                pair.stamp_ns, boxes, int(getattr(msg, "width", 0)),
+                int(getattr(msg, "height", 0)), str(exc))
+        return image, self.engine.process(image, pair.stamp_ns, boxes)
+
+    def _process(self, pair: Any) -> None:
         boxes = detections_to_boxes(pair.detections)
-        frame = self.engine.process(image, pair.stamp_ns, boxes)
+        image, frame = self._run_engine(pair, boxes)
         out = vehicle_light_array(pair.image.header, frame.results, rclpy_make)
-        if not rclpy.ok(context=self.context):
-            return  # shutting down: the publisher may already be gone
-        self._out.publish(out)
+        if not self._publish(self._out, out):
+            return
         done = time.monotonic_ns()
         self._counts["outputs"] += 1
         self._latency.add((done - pair.image_received_ns) / _NS)
         self._processing.add(
             (done - max(pair.image_received_ns, pair.detections_received_ns)) / _NS)
+        if image is None:
+            return  # no engine run, no debug image
         self._engine_time.add(frame.latency_s)
         if frame.warnings:
             self.get_logger().warning(f"stamp {pair.stamp_ns}: {'; '.join(frame.warnings)}",
@@ -179,8 +201,21 @@ class SignalLightDetector(Node):
                              caption=f"{pair.stamp_ns / 1e9:.3f}")
         msg = rclpy_make(IMAGE_TYPE, header=pair.image.header,
                          **bgr_to_image_fields(drawn))
-        self._debug.publish(msg)
-        self._counts["debug_images"] += 1
+        if self._publish(self._debug, msg):
+            self._counts["debug_images"] += 1
+
+    def _publish(self, publisher: Any, msg: Any) -> bool:
+        """Publish from the worker; False when the node is shutting down (then the context
+        can go away between any two calls, so a publish may fail)."""
+        if not rclpy.ok(context=self.context):
+            return False
+        try:
+            publisher.publish(msg)
+        except _rclpy_impl.RCLError:
+            if rclpy.ok(context=self.context):
+                raise
+            return False
+        return True
 
     # -------------------------------------------------------------- diagnostics
     def counters(self) -> Dict[str, int]:
@@ -188,6 +223,8 @@ class SignalLightDetector(Node):
         out = dict(self._pairer.counters)
         out.update(self._counts)
         out["dropped_work_queue"] = self._queue.dropped
+        for kind, gaps in self._gaps.items():
+            out[f"dropped_{kind}_middleware"] = gaps.lost
         out["processing_errors"] = self._worker.errors if self._worker else 0
         out["worker_alive"] = int(bool(self._worker and self._worker.alive))
         return out
@@ -204,6 +241,9 @@ class SignalLightDetector(Node):
             "unjudged_boxes": engine.get("unjudged", 0),
             "duplicate_track_ids": engine.get("duplicates", 0),
             "track_resets": engine.get("resets", 0),
+            "track_overflow": engine.get("overflow", 0),
+            "boxes_over_limit": engine.get("over_limit", 0),
+            "middleware_drops_counted": _yes_no(self._gaps["image"].supported),
             "work_queue_length": len(self._queue),
             "pending_images": self._pairer.pending[0],
             "pending_detections": self._pairer.pending[1],
@@ -239,24 +279,58 @@ class SignalLightDetector(Node):
             f"{c.name}={c.value}" for c in changes))
 
 
+def _yes_no(supported: Optional[bool]) -> str:
+    return {True: "yes", False: "no (the middleware gives no sequence numbers)"}.get(
+        supported, "not yet known")
+
+
 def _decoder(image_transport: str) -> Any:
     from signal_light_node.image_codec import compressed_msg_to_bgr, image_msg_to_bgr
 
     return compressed_msg_to_bgr if image_transport == "compressed" else image_msg_to_bgr
 
 
+def _init_ros(args: Optional[List[str]]) -> None:
+    """``rclpy.init`` with rcl's own error line silenced, so a bad argument is one line.
+
+    Raises:
+        ConfigError: The ROS arguments cannot be parsed (bad rule, missing params file...).
+    """
+    from rclpy.logging import LoggingSeverity, get_logger_level, set_logger_level
+
+    before = get_logger_level("rcl")
+    set_logger_level("rcl", LoggingSeverity.FATAL)
+    try:
+        rclpy.init(args=args)
+    except _rclpy_impl.RCLError as exc:
+        # rcl appends ", at <source file>:<line>" for every frame; the user needs none.
+        text = re.sub(r", at \S+:\d+", "", str(exc).splitlines()[0])
+        raise ConfigError(f"bad ROS arguments: {text}") from None
+    finally:
+        set_logger_level("rcl", before)
+
+
+def _warn_foreign_params_files(node: Node, args: Optional[List[str]]) -> None:
+    for path in params_file_paths(list(sys.argv if args is None else args)):
+        problem = foreign_params_file(path, node.get_fully_qualified_name())
+        if problem is not None:
+            node.get_logger().warning(problem)
+
+
 def main(args: Optional[List[str]] = None) -> int:
     """Run the node until Ctrl-C or a shutdown request; returns the exit code.
 
-    A configuration or model problem at start-up is reported in ONE log line and gives
-    exit code 1.
+    Any start-up problem (bad ROS arguments, parameters, model, device) is reported in
+    ONE log line and gives exit code 1; a params file without a section for this node
+    is warned about.
     """
     logging.basicConfig(level=logging.INFO, format="[%(levelname)s] [%(name)s]: %(message)s")
-    rclpy.init(args=args)
     node: Optional[SignalLightDetector] = None
     code = 0
     try:
+        _init_ros(args)
         node = SignalLightDetector()
+        _warn_foreign_params_files(node, args)
         node.setup()
         rclpy.spin(node)
     except SignalLightError as exc:

@@ -1,9 +1,9 @@
 """Wait until a running detector has finished every frame it was given.
 
 ``python -m signal_light_node.node.drain --expect-images N`` listens to ``/diagnostics``
-and returns 0 once the detector reports at least N images received, nothing waiting for a
-partner, an empty work queue and every pair accounted for (published, undecodable,
-dropped or failed); 1 on timeout. The demo uses it between "the bag has been played" and
+and returns 0 once the detector reports at least N images received or dropped by the
+middleware, nothing waiting for a partner, an empty work queue and every pair accounted
+for (published, undecodable ones included, dropped or failed); 1 on timeout. The demo uses it between "the bag has been played" and
 "stop everything", so no frame still in flight is lost.
 """
 
@@ -29,8 +29,10 @@ def drained(values: Mapping[str, str], expect_images: int) -> bool:
                                          "pending_detections")}
     except (KeyError, ValueError):
         return False
-    finished = n["outputs"] + n["bad_images"] + n["dropped_work_queue"] + n["processing_errors"]
-    return (n["images"] >= expect_images and n["pending_images"] == 0
+    # Undecodable images are published (their boxes unjudged): they are outputs too.
+    finished = n["outputs"] + n["dropped_work_queue"] + n["processing_errors"]
+    arrived = n["images"] + int(values.get("dropped_image_middleware", 0))
+    return (arrived >= expect_images and n["pending_images"] == 0
             and n["pending_detections"] == 0 and n["work_queue_length"] == 0
             and finished >= n["paired"])
 

@@ -11,10 +11,12 @@ lazily, so the rest is usable and testable without ROS.
 from __future__ import annotations
 
 import dataclasses
+import re
 from dataclasses import dataclass
-from typing import Any, Dict, Mapping, Optional, Tuple, Union
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
 from signal_light_node.errors import ConfigError
+from signal_light_node.image_codec import DEFAULT_MAX_IMAGE_PIXELS
 from signal_light_node.intent_filter import IntentFilterConfig
 from signal_light_node.labels import LIGHT_CODES
 
@@ -58,6 +60,8 @@ class DetectorParams:
         publish_debug_image: Publish the annotated frame on ``~/output/debug/image``.
         diagnostics_period_s: Period of the ``/diagnostics`` status.
         num_threads: torch intra-op threads; 0 keeps torch's default.
+        max_image_pixels: Larger images (width x height) are refused before decoding.
+        max_boxes_per_frame: Boxes judged per frame; later ones are reported unjudged.
     """
 
     model_path: str = ""
@@ -84,6 +88,8 @@ class DetectorParams:
     publish_debug_image: bool = False
     diagnostics_period_s: float = 1.0
     num_threads: int = 0
+    max_image_pixels: int = DEFAULT_MAX_IMAGE_PIXELS
+    max_boxes_per_frame: int = 128
 
     @property
     def thresholds(self) -> Dict[int, float]:
@@ -176,6 +182,12 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
     "diagnostics_period_s": ParamSpec("Period of the status published on /diagnostics.",
                                       low=0.1, high=60.0),
     "num_threads": ParamSpec("Torch intra-op threads; 0 keeps torch's default.", low=0, high=256),
+    "max_image_pixels": ParamSpec("Images of more pixels (width x height) are refused before "
+                                  "decoding (counted as oversized_images); their boxes are "
+                                  "published unjudged.", low=1, high=2**31 - 1),
+    "max_boxes_per_frame": ParamSpec("Boxes judged per frame; the ones after are published "
+                                     "unjudged (counted as boxes_over_limit).", low=1,
+                                     high=100000),
 }
 
 
@@ -324,3 +336,44 @@ def read_parameters(node: Any) -> DetectorParams:
         raise ConfigError(f"invalid parameters: unknown parameter(s) {', '.join(extra)} "
                           f"(known: {', '.join(PARAM_SPECS)})")
     return validate_params({name: node.get_parameter(name).value for name in PARAM_SPECS})
+
+
+def params_file_paths(args: Sequence[str]) -> List[str]:
+    """The files named by ``--params-file FILE`` in a command line, in order."""
+    return [args[i + 1] for i, arg in enumerate(args[:-1]) if arg == "--params-file"]
+
+
+def _node_pattern(key: str) -> "re.Pattern[str]":
+    """A params-file section name (``/**``, ``/ns/*``, ``name``) as a regex over node names."""
+    key = key if key.startswith("/") else "/" + key
+    parts = re.split(r"(/\*\*|\*)", key)
+    regex = "".join("(/[^/]+)*" if p == "/**" else "[^/]+" if p == "*" else re.escape(p)
+                    for p in parts)
+    return re.compile(regex + r"\Z")
+
+
+def foreign_params_file(path: str, node_name: str) -> Optional[str]:
+    """Why a params file gives this node nothing, or None when it has a section for it.
+
+    rcl silently ignores sections for other nodes; a file written for another node name
+    (or a renamed node) would leave every parameter at its default without a word.
+
+    Args:
+        path: The params file (read with PyYAML; rcl has already parsed it).
+        node_name: The node's fully qualified name, e.g. ``/signal_light_detector``.
+
+    Returns:
+        A one-line warning, or None.
+    """
+    import yaml
+
+    try:
+        with open(path, encoding="utf-8") as stream:
+            sections = yaml.safe_load(stream)
+    except (OSError, yaml.YAMLError) as exc:
+        return f"params file {path} cannot be read ({type(exc).__name__}); it was not checked"
+    names = [str(k) for k in sections] if isinstance(sections, dict) else []
+    if any(_node_pattern(name).match(node_name) for name in names):
+        return None
+    return (f"params file {path} has no section for node {node_name} (it has: "
+            f"{', '.join(names) or 'none'}); none of its values apply to this node")

@@ -19,11 +19,15 @@ import numpy as np
 #: ``diagnostic_msgs/DiagnosticStatus`` levels.
 OK, WARN, ERROR = 0, 1, 2
 
-#: Counters whose growth means frames were lost; each is reported and raises WARN.
+#: Counters whose growth means input was lost or could not be used; each is reported
+#: and raises WARN. Images and detection arrays published = received + ``*_middleware``;
+#: every image received ends as an output (bad and oversized ones published unjudged) or
+#: in one ``dropped_*`` counter (or still waiting).
 DROP_COUNTERS: Tuple[str, ...] = (
+    "dropped_image_middleware", "dropped_detections_middleware",
     "dropped_image_timeout", "dropped_detections_timeout", "dropped_image_overflow",
     "dropped_detections_overflow", "dropped_image_duplicate", "dropped_detections_duplicate",
-    "dropped_work_queue", "bad_images", "processing_errors",
+    "dropped_work_queue", "bad_images", "oversized_images", "processing_errors",
 )
 
 
@@ -119,7 +123,7 @@ def health(previous: Optional[Snapshot], current: Snapshot,
         return ERROR, "inference worker stopped; no output will be published", values
     if new_drops:
         what = ", ".join(f"{v} {k}" for k, v in sorted(new_drops.items()))
-        return WARN, f"lost input in the last {elapsed:.1f} s: {what}", values
+        return WARN, f"lost or unusable input in the last {elapsed:.1f} s: {what}", values
     if previous is not None and now.get("images", 0) == before.get("images", 0):
         return OK, "waiting for images", values
     return OK, "ok", values
