@@ -365,8 +365,14 @@ def test_committed_bag_structure_with_a_tiny_model(bag, tmp_path):
     assert n == summary.images
 
 
-@pytest.mark.skipif(not COMMITTED_BAGS, reason="no committed bags in bags/ yet")
-@pytest.mark.parametrize("bag", COMMITTED_BAGS, ids=lambda p: p.name)
+#: Bags scored against their ground truth with the bounds above. ``night_tail_lamps``
+#: holds no signal at all (a constant answer is perfect there); test_night_tail_lamps.py
+#: checks it.
+SCORED_BAGS = [p for p in COMMITTED_BAGS if p.name in ("day_street", "night_street")]
+
+
+@pytest.mark.skipif(not SCORED_BAGS, reason="no committed bags in bags/ yet")
+@pytest.mark.parametrize("bag", SCORED_BAGS, ids=lambda p: p.name)
 def test_committed_bag_agrees_with_ground_truth(bag, tmp_path):
     from signal_light_node.engine import engine_from_checkpoint
     from signal_light_node.model import DEFAULT_WEIGHTS
