@@ -9,7 +9,7 @@ mean is reported next to the load average.
 
 Usage::
 
-    python scripts/benchmark_model.py                      # default config, fresh weights
+    python scripts/benchmark_model.py                      # the shipped config, fresh weights
     python scripts/benchmark_model.py --weights signal_light_node/weights/default.pt
     python scripts/benchmark_model.py --set input_size=48 --set lstm_hidden=32,32
 """
@@ -32,6 +32,7 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 from signal_light_node.model import (
+    DEFAULT_WEIGHTS,
     ModelConfig,
     build_model,
     load_checkpoint,
@@ -107,7 +108,8 @@ def checkpoint_size(model: torch.nn.Module) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--weights", type=Path, help="checkpoint to time (default: fresh model "
-                        "of the default config; timing does not depend on the weights)")
+                        "of the shipped weights' config, or of ModelConfig() without them; "
+                        "timing does not depend on the weights)")
     parser.add_argument("--set", dest="overrides", action="append", type=parse_override,
                         default=[], metavar="KEY=VALUE", help="override a ModelConfig field")
     parser.add_argument("--tracks", type=int, nargs="+", default=[1, 8, 32, 64])
@@ -128,7 +130,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.overrides:
             parser.error("--set cannot be combined with --weights")
     else:
-        config = ModelConfig(**dict(args.overrides))
+        base = load_checkpoint(DEFAULT_WEIGHTS).config if DEFAULT_WEIGHTS.exists() \
+            else ModelConfig()
+        config = base.replace(**dict(args.overrides))
         torch.manual_seed(0)
         model = build_model(config)
     model.eval()
@@ -140,7 +144,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"config: input {config.input_size}x{config.input_size}, attention "
           f"{'on' if config.use_attention else 'off'} {config.attention_channels}, backbone "
           f"{config.backbone_channels}, ConvLSTM {config.lstm_hidden} at "
-          f"{config.feature_size}x{config.feature_size}, norm {config.norm}")
+          f"{config.feature_size}x{config.feature_size}, norm {config.norm}, temporal input "
+          f"{'on' if config.temporal_input else 'off'}")
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, load average "
           f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f} on {os.cpu_count()} CPUs")
     print(f"parameters: {params:,}  FLOPs per track-step: {flops / 1e6:.1f} M  "

@@ -186,6 +186,24 @@ def test_frozen_encoder_run_moves_only_the_recurrent_part_and_heads(tmp_path):
         assert unchanged == encoder or name.endswith("num_batches_tracked"), name
 
 
+def test_warm_start_into_temporal_input_with_camera_response(tmp_path):
+    """--init-from with --model temporal_input=true grows the first conv and trains on."""
+    ucm = tmp_path / "ucm"
+    make_ucm(ucm, CODES[:3], frames=8)
+    Trainer(tiny_options(tmp_path / "init", ucm, max_steps=1)).run()
+    run = Trainer(tiny_options(tmp_path / "run", ucm, max_steps=3, camera_response=True,
+                               init_from=tmp_path / "init" / "last.pt",
+                               model={"temporal_input": True}))
+    assert run.config.temporal_input and run.config.input_size == TINY["input_size"]
+    assert run.meta_from_init["init_model_changes"] == {"temporal_input": True}
+    first = run.model.backbone[0][0].weight
+    assert first.shape[1] == 9 and float(first[:, 3:].abs().max()) == 0.0  # zero-filled
+    run.run()
+    loaded = load_checkpoint(tmp_path / "run" / "last.pt")
+    assert loaded.config.temporal_input
+    assert float(loaded.model.backbone[0][0].weight[:, 3:].abs().max()) > 0.0  # learnt
+
+
 def test_resume_continues_from_saved_step(tmp_path):
     ucm = tmp_path / "ucm"
     make_ucm(ucm, CODES[:3], frames=8)

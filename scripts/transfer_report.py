@@ -1,0 +1,115 @@
+#!/usr/bin/env python3
+"""In-domain and transfer scores of one checkpoint, side by side.
+
+Runs ``signal-light evaluate`` on each data set and gathers the figures the model issue
+asks for into one table (Markdown and JSON):
+
+* ``own``: the training renderer's held-out test split (style families 0 and 1);
+* ``family``: the same renderer's held-out style family 2 (lamp colours and camera tone
+  curves never rendered for training);
+* ``independent``: the committed bags of the second, independent generator
+  (``signal_light_node.evalgen``: its own geometry, lamps and sensor model).
+
+Every set is scored after the warm-up, without a grace window, as the node publishes it
+(intent filter on unless ``--no-intent-filter``). Brake, left and right F1 are the F1 of
+the ON class; "switches" is predicted intent changes over the ground truth's.
+
+Usage::
+
+    python scripts/transfer_report.py --checkpoint signal_light_node/weights/default.pt \\
+        --data runs/v10 --out runs/v10/transfer
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence
+
+REPO = Path(__file__).resolve().parents[1]
+INDEPENDENT_BAGS = ("bags/independent_day", "bags/independent_night")
+COLUMNS = (("intent macro-F1", "intent_f1"), ("intent FP", "intent_fp"),
+           ("intent FN", "intent_fn"), ("brake acc.", "brake_acc"), ("brake F1", "brake_f1"),
+           ("brake recall", "brake_recall"), ("left F1", "left_f1"), ("right F1", "right_f1"),
+           ("intent switches / truth", "switches"))
+
+
+def _on_class(overall: Dict[str, Any], task: str, key: str) -> Optional[float]:
+    per_class = overall.get(task, {}).get("per_class", {})
+    values = per_class.get(key) or []
+    return values[1] if len(values) > 1 else None  # class 1 = ON
+
+
+def figures(metrics: Dict[str, Any]) -> Dict[str, Optional[float]]:
+    """The table's figures from an ``evaluate`` metrics.json."""
+    report = metrics["no_grace"]
+    summary, overall = report["summary"], report["overall"]
+    switches = metrics.get("switches", {}).get("intent", {})
+    return {"intent_f1": summary["intent_macro_f1"], "intent_fp": summary["intent_fp_rate"],
+            "intent_fn": summary["intent_fn_rate"], "brake_acc": summary["brake_accuracy"],
+            "brake_f1": _on_class(overall, "brake", "f1"),
+            "brake_recall": _on_class(overall, "brake", "recall"),
+            "left_f1": _on_class(overall, "left", "f1"),
+            "right_f1": _on_class(overall, "right", "f1"),
+            "switches": switches.get("ratio"),
+            "scored_frames": metrics.get("counts", {}).get("scored")}
+
+
+def evaluate(name: str, data: List[str], checkpoint: Path, out: Path,
+             extra: Sequence[str]) -> Dict[str, Optional[float]]:
+    """Run ``signal-light evaluate`` on one set (a split or bags) and read its figures."""
+    target = out / name
+    cmd = ["signal-light", "evaluate", "--checkpoint", str(checkpoint), "--out", str(target),
+           "--no-progress", *extra, *data]
+    print("$", " ".join(cmd), flush=True)
+    subprocess.run(cmd, check=True, cwd=REPO, stdout=subprocess.DEVNULL)
+    return figures(json.loads((target / "metrics.json").read_text()))
+
+
+def _cell(key: str, value: Optional[float]) -> str:
+    if value is None:
+        return "-"
+    return f"{value:.2f}x" if key == "switches" else f"{100 * value:.1f} %"
+
+
+def markdown(rows: Dict[str, Dict[str, Optional[float]]]) -> str:
+    """One row per data set."""
+    head = "| data | " + " | ".join(c for c, _ in COLUMNS) + " | scored frames |"
+    lines = [head, "|---|" + "---:|" * (len(COLUMNS) + 1)]
+    for name, f in rows.items():
+        cells = " | ".join(_cell(k, f.get(k)) for _, k in COLUMNS)
+        lines.append(f"| {name} | {cells} | {f.get('scored_frames') or '-'} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--checkpoint", type=Path, default=REPO / "signal_light_node/weights/default.pt")
+    p.add_argument("--data", type=Path, default=REPO / "runs/default",
+                   help="scripts/train_default.sh DATA directory (test_split, family_test_split)")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--no-intent-filter", action="store_true", help="score the raw model")
+    p.add_argument("--threads", default="2")
+    args = p.parse_args(argv)
+    extra = ["--threads", args.threads] + (["--no-intent-filter"] if args.no_intent_filter else [])
+    sets = {"own test split (families 0-1)": ["--split", str(args.data / "test_split")],
+            "held-out style family 2": ["--split", str(args.data / "family_test_split")],
+            "independent generator (2 bags)": ["--bags", *INDEPENDENT_BAGS]}
+    rows = {}
+    for i, (name, data) in enumerate(sets.items()):
+        rows[name] = evaluate(f"set{i}", data, args.checkpoint, args.out, extra)
+    args.out.mkdir(parents=True, exist_ok=True)
+    table = markdown(rows)
+    (args.out / "transfer.md").write_text(table)
+    (args.out / "transfer.json").write_text(json.dumps(
+        {"checkpoint": str(args.checkpoint), "intent_filter": not args.no_intent_filter,
+         "sets": rows}, indent=2) + "\n")
+    print(table)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
