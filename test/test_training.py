@@ -196,7 +196,7 @@ def test_warm_start_into_temporal_input_with_camera_response(tmp_path):
                                model={"temporal_input": True}))
     assert run.config.temporal_input and run.config.input_size == TINY["input_size"]
     assert run.meta_from_init["init_model_changes"] == {"temporal_input": True}
-    first = run.model.backbone[0][0].weight
+    first = run.model.backbone[0][0].weight.detach()
     assert first.shape[1] == 9 and float(first[:, 3:].abs().max()) == 0.0  # zero-filled
     run.run()
     loaded = load_checkpoint(tmp_path / "run" / "last.pt")
