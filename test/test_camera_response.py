@@ -34,3 +34,16 @@ def test_one_response_per_sequence_is_deterministic_from_the_rng():
     b = randomise_camera(crops, np.random.default_rng(5))
     assert np.array_equal(a, b)
     assert a.shape == crops.shape
+
+
+def test_shape_warp_is_one_warp_for_the_whole_sequence():
+    from signal_light_node.data.shape_warp import warp_sequence
+
+    frame = np.random.default_rng(3).integers(0, 255, (32, 32, 3), dtype=np.uint8)
+    crops = np.stack([frame, frame, frame])
+    out = warp_sequence(crops, np.random.default_rng(4))
+    assert out.shape == crops.shape and out.dtype == np.uint8
+    assert np.array_equal(out[0], out[2])  # the same warp on every frame
+    assert not np.array_equal(out[0], frame)  # and it moved something
+    none = warp_sequence(crops, np.random.default_rng(4), strength=0.0)
+    assert np.abs(none.astype(int) - crops.astype(int)).max() <= 1

@@ -101,6 +101,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--camera-response", action="store_true",
                    help="a random camera response per sequence (tone, saturation, clipping, "
                         "noise, blur, resolution, JPEG)")
+    g.add_argument("--shape-warp", action="store_true",
+                   help="a random perspective warp per sequence (vehicle shape and view)")
     g.add_argument("--no-balance", action="store_true",
                    help="replay synthetic sequences in natural shares, not stratified")
     g.add_argument("--balance-drop", type=float, default=0.0,
@@ -173,7 +175,7 @@ def options_from_args(args: argparse.Namespace) -> "Any":
         frame_targets=args.frame_targets,
         synthetic_fraction=args.synthetic_fraction,
         mirror_prob=0.0 if args.no_mirror else 0.5, jitter=not args.no_jitter,
-        camera_response=args.camera_response,
+        camera_response=args.camera_response, shape_warp=args.shape_warp,
         model=_key_values(args.model, "--model"), stream=_key_values(args.stream, "--stream"),
         progress=not args.no_progress)
 

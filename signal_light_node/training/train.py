@@ -79,6 +79,7 @@ from signal_light_node.model import (
 from signal_light_node.model.interface import State, state_batch_size
 from signal_light_node.model.warm_start import warm_start
 from signal_light_node.data.camera_response import randomise_camera
+from signal_light_node.data.shape_warp import warp_sequence
 from signal_light_node.training.sampling import (
     STRATA,
     ClassFrequency,
@@ -180,6 +181,7 @@ class TrainOptions:
         jitter: Colour/brightness jitter per sequence.
         camera_response: A random camera response per sequence (tone curve, saturation,
             clipping, noise, blur, resolution, JPEG; ``data.camera_response``).
+        shape_warp: A random perspective warp per sequence (``data.shape_warp``).
         reuse: Average number of times a rendered synthetic sequence is served
             (:class:`ReplayStream`; rendering costs more than a training step).
         replay_capacity: Rendered sequences kept for reuse, per data worker.
@@ -232,6 +234,7 @@ class TrainOptions:
     mirror_prob: float = 0.5
     jitter: bool = True
     camera_response: bool = False
+    shape_warp: bool = False
     reuse: float = 2.0
     replay_capacity: int = 1500
     model: Dict[str, Any] = field(default_factory=dict)
@@ -371,16 +374,22 @@ def _worker_init(worker_id: int) -> None:
 class _Augment:
     """Mirroring and colour jitter of a sequence item, the stream's own functions."""
 
-    def __init__(self, mirror_prob: float, jitter: bool, camera: bool = False) -> None:
+    def __init__(self, mirror_prob: float, jitter: bool, camera: bool = False,
+                 warp: bool = False) -> None:
         self.mirror_prob = mirror_prob
         self.jitter = jitter
         self.camera = camera
+        self.warp = warp
 
     def __call__(self, item: Dict[str, Any], rng: np.random.Generator) -> Dict[str, Any]:
         if self.mirror_prob > 0 and rng.random() < self.mirror_prob:
             item = mirror_sequence(item)
         if self.jitter:
             crops = jitter_colours(item["crops"], rng)
+            crops[~item["mask"]] = 0
+            item = dict(item, crops=crops)
+        if self.warp:
+            crops = warp_sequence(item["crops"], rng)
             crops[~item["mask"]] = 0
             item = dict(item, crops=crops)
         if self.camera:
@@ -823,7 +832,7 @@ class Trainer:
         opts = self.opts
         parts, probs = [], []
         frac = self._synthetic_fraction()
-        augment = _Augment(opts.mirror_prob, opts.jitter, opts.camera_response)
+        augment = _Augment(opts.mirror_prob, opts.jitter, opts.camera_response, opts.shape_warp)
         if opts.mode != "windows":
             # In-process: lanes must stay in the order of the state the trainer keeps,
             # and the tracks are already in memory (nothing to render).
