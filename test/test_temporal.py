@@ -111,3 +111,15 @@ def test_warm_start_refuses_what_does_not_fit():
         warm_start(b, a.state_dict())
     with pytest.raises(CheckpointError, match="no tensor"):
         warm_start(b, {"unrelated": torch.zeros(1)})
+
+
+def test_freeze_norms_keeps_batch_norm_statistics_while_weights_train():
+    model = build_model(ModelConfig(input_size=32, backbone_channels=(8, 8, 8), lstm_hidden=(8, 8)))
+    model.freeze_norms()
+    model.train()
+    norms = [m for m in model.modules() if isinstance(m, torch.nn.BatchNorm2d)]
+    before = [m.running_mean.clone() for m in norms]
+    logits, _ = model.forward_sequence(torch.rand(2, 3, 3, 32, 32) * 3.0)
+    logits["intent"].sum().backward()
+    assert all(torch.equal(a, m.running_mean) for a, m in zip(before, norms))
+    assert model.backbone[0][0].weight.grad is not None  # the weights still learn

@@ -162,6 +162,7 @@ class LightStateNet(nn.Module):
         self.heads = nn.ModuleDict({t: nn.Linear(config.fc_hidden, config.num_classes[t])
                                     for t in TASKS})
         self._encoder_frozen = False
+        self._norms_frozen = False
         self._init_weights()
         self.to(memory_format=MEMORY_FORMAT)
 
@@ -246,12 +247,26 @@ class LightStateNet(nn.Module):
         self._encoder_frozen = True
         self.train(self.training)
 
+    def freeze_norms(self) -> None:
+        """Keep every normalisation layer's running statistics as they are.
+
+        Fine-tuning on augmented data would otherwise move the batch-norm statistics
+        towards the augmented distribution, which the node never sees; the weights still
+        learn.
+        """
+        self._norms_frozen = True
+        self.train(self.training)
+
     def train(self, mode: bool = True) -> "LightStateNet":
-        """``nn.Module.train``, except that a frozen encoder stays in eval mode."""
+        """``nn.Module.train``, except that a frozen encoder or frozen norms stay in eval mode."""
         super().train(mode)
         if self._encoder_frozen:
             for module in self._encoder_modules():
                 module.eval()
+        if self._norms_frozen:
+            for module in self.modules():
+                if isinstance(module, nn.modules.batchnorm._BatchNorm):
+                    module.eval()
         return self
 
     # ------------------------------------------------------------------ recurrent part

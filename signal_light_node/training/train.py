@@ -161,6 +161,8 @@ class TrainOptions:
         init_from: Checkpoint whose weights (and model config) start the run, or None.
         freeze_encoder: Train only the ConvLSTM and the heads; the attention and the
             backbone keep their (``init_from``) weights (``LightStateNet.freeze_encoder``).
+        freeze_norms: Keep the batch-norm statistics of the init weights
+            (``LightStateNet.freeze_norms``); the weights still train.
         bags: Labelled bags to train on.
         ucm: UC Merced rear-signal dataset roots to train on.
         pools: Materialised synthetic splits (``data.split``) to train on, as tracks.
@@ -225,6 +227,7 @@ class TrainOptions:
     resume: Optional[Path] = None
     init_from: Optional[Path] = None
     freeze_encoder: bool = False
+    freeze_norms: bool = False
     bags: List[Path] = field(default_factory=list)
     ucm: List[Path] = field(default_factory=list)
     pools: List[Path] = field(default_factory=list)
@@ -775,6 +778,11 @@ class Trainer:
                 raise ConfigError(f"--freeze-encoder: architecture {self.config.arch!r} has no "
                                   "encoder to freeze")
             model.freeze_encoder()
+        if opts.freeze_norms:
+            if not hasattr(model, "freeze_norms"):
+                raise ConfigError(f"--freeze-norms: architecture {self.config.arch!r} cannot "
+                                  "freeze its norms")
+            model.freeze_norms()
         self.model = model.to(self.device).train()
         self.precision = resolve_precision(opts.precision, self.device)
         logger.info("training precision: %s", self.precision)
