@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
-# Ablations of the research (attention vs none; multi-task vs intent-only loss):
+# Ablations of the research on the base recipe (attention vs none; multi-task vs intent-only):
 #
 #   scripts/ablations.sh
 #
-# Trains three variants with the shipped recipe (scripts/train_default.sh) on the same
+# Trains three variants with the shipped recipe (scripts/train_base.sh) on the same
 # pool, validation and test splits, with the same seed and the same number of steps
 # (shorter than the shipped run), evaluates each with `signal-light evaluate` on the same
 # test split, and writes the comparison to docs/results/ablations.md (and .json).
@@ -44,7 +44,7 @@ mkdir -p "$OUT"
 # Render the shared splits once, before the variants start reading them.
 if [[ ! -f "$DATA/test_split/manifest.json" ]]; then
   echo "== rendering the shared splits in $DATA"
-  DATA_ONLY=1 bash scripts/train_default.sh
+  DATA_ONLY=1 bash scripts/train_base.sh
 fi
 
 start=$(date +%s)
@@ -52,7 +52,7 @@ pids=()
 for name in "${VARIANTS[@]}"; do
   echo "== $name: ${ARGS[$name]:-(shipped settings)} -> $OUT/$name (log $OUT/$name.log)"
   RUN="$OUT/$name" WEIGHTS="$OUT/$name/model.pt" TRAIN_ARGS="${ARGS[$name]}" \
-    bash scripts/train_default.sh > "$OUT/$name.log" 2>&1 &
+    bash scripts/train_base.sh > "$OUT/$name.log" 2>&1 &
   pids+=($!)
 done
 failed=0
