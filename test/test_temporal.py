@@ -123,3 +123,15 @@ def test_freeze_norms_keeps_batch_norm_statistics_while_weights_train():
     logits["intent"].sum().backward()
     assert all(torch.equal(a, m.running_mean) for a, m in zip(before, norms))
     assert model.backbone[0][0].weight.grad is not None  # the weights still learn
+
+
+def test_warm_start_can_give_new_channels_small_random_weights():
+    small = dict(input_size=32, backbone_channels=(8, 8, 8), lstm_hidden=(8, 8))
+    old = build_model(ModelConfig(**small))
+    new = build_model(ModelConfig(temporal_input=True, **small))
+    warm_start(new, old.state_dict(), grown_scale=0.25)
+    weight = new.backbone[0][0].weight.detach()
+    trained = old.backbone[0][0].weight.detach()
+    assert torch.equal(weight[:, :3], trained)
+    ratio = float(weight[:, 3:].std() / trained.std())
+    assert 0.15 < ratio < 0.35, ratio

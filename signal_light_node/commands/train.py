@@ -103,6 +103,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "noise, blur, resolution, JPEG)")
     g.add_argument("--freeze-norms", action="store_true",
                    help="keep the init weights' batch-norm statistics (fine-tuning on augmented data)")
+    g.add_argument("--grown-init-scale", type=float, default=0.0, metavar="S",
+                   help="with --init-from and --model adding input channels: their initial "
+                        "weights' spread relative to the trained ones (0: zeros)")
     g.add_argument("--shape-warp", action="store_true",
                    help="a random perspective warp per sequence (vehicle shape and view)")
     g.add_argument("--no-balance", action="store_true",
@@ -172,7 +175,8 @@ def options_from_args(args: argparse.Namespace) -> "Any":
         precision=args.precision,
         seed=args.seed, threads=args.threads, workers=args.workers, resume=resume,
         init_from=Path(args.init_from) if args.init_from else None,
-        freeze_encoder=args.freeze_encoder, freeze_norms=args.freeze_norms, bags=list(args.bags),
+        freeze_encoder=args.freeze_encoder, freeze_norms=args.freeze_norms,
+        grown_init_scale=args.grown_init_scale, bags=list(args.bags),
         ucm=list(args.ucm), pools=list(args.pools), mode=args.mode,
         frame_targets=args.frame_targets,
         synthetic_fraction=args.synthetic_fraction,

@@ -163,6 +163,8 @@ class TrainOptions:
             backbone keep their (``init_from``) weights (``LightStateNet.freeze_encoder``).
         freeze_norms: Keep the batch-norm statistics of the init weights
             (``LightStateNet.freeze_norms``); the weights still train.
+        grown_init_scale: With ``init_from`` and ``model`` changes that add input
+            channels: their initial weights' spread relative to the trained ones (0: zeros).
         bags: Labelled bags to train on.
         ucm: UC Merced rear-signal dataset roots to train on.
         pools: Materialised synthetic splits (``data.split``) to train on, as tracks.
@@ -228,6 +230,7 @@ class TrainOptions:
     init_from: Optional[Path] = None
     freeze_encoder: bool = False
     freeze_norms: bool = False
+    grown_init_scale: float = 0.0
     bags: List[Path] = field(default_factory=list)
     ucm: List[Path] = field(default_factory=list)
     pools: List[Path] = field(default_factory=list)
@@ -766,7 +769,7 @@ class Trainer:
                 # A grown architecture (e.g. temporal_input) starts from the old weights.
                 self.config = loaded.config.replace(**opts.model)
                 model = build_model(self.config)
-                grown = warm_start(model, loaded.model.state_dict())
+                grown = warm_start(model, loaded.model.state_dict(), opts.grown_init_scale)
                 self.meta_from_init["init_model_changes"] = dict(opts.model)
                 logger.info("warm start from %s with %s; new input channels in %s",
                             init, dict(opts.model), grown)
