@@ -201,7 +201,7 @@ def test_warm_start_into_temporal_input_with_camera_response(tmp_path):
     run.run()
     loaded = load_checkpoint(tmp_path / "run" / "last.pt")
     assert loaded.config.temporal_input
-    assert float(loaded.model.backbone[0][0].weight[:, 3:].abs().max()) > 0.0  # learnt
+    assert float(loaded.model.backbone[0][0].weight.detach()[:, 3:].abs().max()) > 0.0  # learnt
 
 
 def test_resume_continues_from_saved_step(tmp_path):
