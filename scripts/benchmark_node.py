@@ -152,6 +152,24 @@ def main(argv: List[str]) -> int:
     return 0
 
 
+def subscribe_outputs(node, on_output, diagnostics: Dict[str, str]) -> None:
+    """Subscribe ``node`` to the detector's output (``on_output``) and to ``/diagnostics``.
+
+    ``diagnostics`` is replaced in place by the key-value pairs of the detector's latest
+    status (the soak reads its counters there too).
+    """
+    def on_diag(msg) -> None:
+        for status in msg.status:
+            if status.name.startswith("signal_light_detector"):
+                diagnostics.clear()
+                diagnostics.update({kv.key: kv.value for kv in status.values})
+
+    node.create_subscription(message_class(VEHICLE_LIGHTS_TYPE), OUTPUT_TOPIC, on_output,
+                             qos("reliable", 100))
+    node.create_subscription(message_class(DIAGNOSTICS_TYPE), DIAGNOSTICS_TOPIC, on_diag,
+                             qos("reliable", 10))
+
+
 def run_client(args: argparse.Namespace, payloads: List[dict], layout: List[dict],
                image_type: str) -> Dict[str, object]:
     """Publish the frames at the rate and time each output; returns the figures."""
@@ -172,16 +190,7 @@ def run_client(args: argparse.Namespace, payloads: List[dict], layout: List[dict
         def on_output(msg) -> None:
             received.setdefault(stamp_to_ns(msg.header.stamp), time.monotonic())
 
-        def on_diag(msg) -> None:
-            for status in msg.status:
-                if status.name.startswith("signal_light_detector"):
-                    diagnostics.clear()
-                    diagnostics.update({kv.key: kv.value for kv in status.values})
-
-        node.create_subscription(message_class(VEHICLE_LIGHTS_TYPE), OUTPUT_TOPIC, on_output,
-                                 qos("reliable", 100))
-        node.create_subscription(message_class(DIAGNOSTICS_TYPE), DIAGNOSTICS_TOPIC, on_diag,
-                                 qos("reliable", 10))
+        subscribe_outputs(node, on_output, diagnostics)
         deadline = time.monotonic() + 60
         while not (image_pub.get_subscription_count() and det_pub.get_subscription_count()
                    and node.count_publishers(OUTPUT_TOPIC)):

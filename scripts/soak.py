@@ -33,15 +33,14 @@ import numpy as np
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 
-from benchmark_node import model_path
+from benchmark_node import model_path, subscribe_outputs
 from signal_light_node.boxes import TrackBox
 from signal_light_node.conversions import boxes_to_detections, make_header, rclpy_make
 from signal_light_node.node.ros_io import message_class, qos, ros_context
 from signal_light_node.node.stats import DROP_COUNTERS
-from signal_light_node.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, DIAGNOSTICS_TOPIC,
-                                      DIAGNOSTICS_TYPE, IMAGE_TYPE, INPUT_COMPRESSED_TOPIC,
-                                      INPUT_DETECTIONS_TOPIC, INPUT_IMAGE_TOPIC, OUTPUT_TOPIC,
-                                      VEHICLE_LIGHTS_TYPE)
+from signal_light_node.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, IMAGE_TYPE,
+                                      INPUT_COMPRESSED_TOPIC, INPUT_DETECTIONS_TOPIC,
+                                      INPUT_IMAGE_TOPIC, OUTPUT_TOPIC)
 
 REPO = Path(__file__).resolve().parents[1]
 #: Counters of unusable images that still produce an output (published unjudged).
@@ -185,16 +184,7 @@ def run_client(args: argparse.Namespace, pid: int) -> Dict[str, object]:
         def on_output(msg) -> None:
             outputs[0] += 1
 
-        def on_diag(msg) -> None:
-            for status in msg.status:
-                if status.name.startswith("signal_light_detector"):
-                    diagnostics.clear()
-                    diagnostics.update({kv.key: kv.value for kv in status.values})
-
-        node.create_subscription(message_class(VEHICLE_LIGHTS_TYPE), OUTPUT_TOPIC, on_output,
-                                 qos("reliable", 100))
-        node.create_subscription(message_class(DIAGNOSTICS_TYPE), DIAGNOSTICS_TOPIC, on_diag,
-                                 qos("reliable", 10))
+        subscribe_outputs(node, on_output, diagnostics)
         spin_until(executor, lambda: image_pub.get_subscription_count() > 0
                    and det_pub.get_subscription_count() > 0
                    and node.count_publishers(OUTPUT_TOPIC) > 0, 60.0)
