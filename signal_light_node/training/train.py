@@ -378,28 +378,20 @@ def _worker_init(worker_id: int) -> None:
 
 
 class _Augment:
-    """Mirroring and colour jitter of a sequence item, the stream's own functions."""
+    """Mirroring, then the enabled per-sequence crop transforms: colour jitter (the stream's
+    own), perspective warp (``data.shape_warp``), camera response (``data.camera_response``)."""
 
     def __init__(self, mirror_prob: float, jitter: bool, camera: bool = False,
                  warp: bool = False) -> None:
         self.mirror_prob = mirror_prob
-        self.jitter = jitter
-        self.camera = camera
-        self.warp = warp
+        self.transforms = [f for f, on in ((jitter_colours, jitter), (warp_sequence, warp),
+                                           (randomise_camera, camera)) if on]
 
     def __call__(self, item: Dict[str, Any], rng: np.random.Generator) -> Dict[str, Any]:
         if self.mirror_prob > 0 and rng.random() < self.mirror_prob:
             item = mirror_sequence(item)
-        if self.jitter:
-            crops = jitter_colours(item["crops"], rng)
-            crops[~item["mask"]] = 0
-            item = dict(item, crops=crops)
-        if self.warp:
-            crops = warp_sequence(item["crops"], rng)
-            crops[~item["mask"]] = 0
-            item = dict(item, crops=crops)
-        if self.camera:
-            crops = randomise_camera(item["crops"], rng)
+        for transform in self.transforms:
+            crops = transform(item["crops"], rng)
             crops[~item["mask"]] = 0
             item = dict(item, crops=crops)
         return item
