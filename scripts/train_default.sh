@@ -24,7 +24,8 @@
 #      track (--camera-response) and a cosine learning-rate decay over the last ANNEAL
 #      share of MINUTES; resumable (an interrupted run continues from last.pt);
 #   4. copies the best checkpoint (validation score with the state carried) to WEIGHTS;
-#   5. evaluates it on both test splits (RUN/test_eval, RUN/family_eval).
+#   5. scores it on the own and held-out family test splits and the independent
+#      generator's bags with scripts/transfer_report.py (RUN/transfer).
 #
 # Every setting can be overridden from the environment; a 3-minute smoke run:
 #   RUN=runs/smoke POOL_SEEDS=31 POOL_TRACKS=24 VAL_SEQUENCES=16 TEST_TRACKS=12 \
@@ -144,10 +145,8 @@ if [[ "$EVAL" != 1 ]]; then
   echo "== EVAL=0: not evaluated"
   exit 0
 fi
-echo "== 5/5 evaluation: own test split and held-out style family"
-signal-light evaluate --checkpoint "$WEIGHTS" --split "$DATA/test_split" \
-  --out "$RUN/test_eval" --threads "$THREADS"
-signal-light evaluate --checkpoint "$WEIGHTS" --split "$DATA/family_test_split" \
-  --out "$RUN/family_eval" --threads "$THREADS"
-echo "== done in $(( ($(date +%s) - start) / 60 )) minutes; reports: $RUN/test_eval/metrics.md," \
-  "$RUN/family_eval/metrics.md"
+echo "== 5/5 evaluation: own test split, held-out style family, independent generator"
+python scripts/transfer_report.py --checkpoint "$WEIGHTS" --data "$DATA" --out "$RUN/transfer" \
+  --threads "$THREADS"
+echo "== done in $(( ($(date +%s) - start) / 60 )) minutes; reports: $RUN/transfer/transfer.md" \
+  "and $RUN/transfer/{own,family,independent}/metrics.md"

@@ -14,7 +14,8 @@ Every set is scored after the warm-up, without a grace window, as the node publi
 (intent filter on unless ``--no-intent-filter``). Brake, left and right F1 are the F1 of
 the ON class; "switches" is predicted intent changes over the ground truth's.
 
-Usage::
+Each set's full ``signal-light evaluate`` report lands in ``OUT/own``, ``OUT/family`` and
+``OUT/independent``. Usage::
 
     python scripts/transfer_report.py --checkpoint signal_light_node/weights/default.pt \\
         --data runs/v10 --out runs/v10/transfer
@@ -95,12 +96,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--threads", default="2")
     args = p.parse_args(argv)
     extra = ["--threads", args.threads] + (["--no-intent-filter"] if args.no_intent_filter else [])
-    sets = {"own test split (families 0-1)": ["--split", str(args.data / "test_split")],
-            "held-out style family 2": ["--split", str(args.data / "family_test_split")],
-            "independent generator (2 bags)": ["--bags", *INDEPENDENT_BAGS]}
-    rows = {}
-    for i, (name, data) in enumerate(sets.items()):
-        rows[name] = evaluate(f"set{i}", data, args.checkpoint, args.out, extra)
+    # (report directory, row name, data)
+    sets = (("own", "own test split (families 0-1)", ["--split", str(args.data / "test_split")]),
+            ("family", "held-out style family 2",
+             ["--split", str(args.data / "family_test_split")]),
+            ("independent", "independent generator (2 bags)", ["--bags", *INDEPENDENT_BAGS]))
+    rows = {name: evaluate(folder, data, args.checkpoint, args.out, extra)
+            for folder, name, data in sets}
     args.out.mkdir(parents=True, exist_ok=True)
     table = markdown(rows)
     (args.out / "transfer.md").write_text(table)
