@@ -18,7 +18,7 @@ from collections import Counter
 from typing import Dict, List
 
 from signal_light_node.labels import Intent, LightStatus, View
-from signal_light_node.synth_bag import REQUIRED_CLASSES, coverage_gaps, ground_truth_coverage
+from signal_light_node.synth.bag import REQUIRED_CLASSES, coverage_gaps, ground_truth_coverage
 
 
 def check(paths: List[str], min_tracks: int, min_s: float, max_s: float) -> int:

@@ -34,10 +34,10 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 
 from signal_light_node.boxes import TrackBox
-from signal_light_node.conversions import (boxes_to_detections, make_header, rclpy_make,
+from signal_light_node.io.conversions import (boxes_to_detections, make_header, rclpy_make,
                                            stamp_to_ns)
 from signal_light_node.node.ros_io import message_class, qos, ros_context
-from signal_light_node.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, DIAGNOSTICS_TOPIC,
+from signal_light_node.io.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, DIAGNOSTICS_TOPIC,
                                       DIAGNOSTICS_TYPE, IMAGE_TYPE, INPUT_COMPRESSED_TOPIC,
                                       INPUT_DETECTIONS_TOPIC, INPUT_IMAGE_TOPIC, OUTPUT_TOPIC,
                                       VEHICLE_LIGHTS_TYPE)
@@ -80,7 +80,7 @@ def model_path(args: argparse.Namespace, tmp: Path) -> str:
 
 def make_frames(args: argparse.Namespace, n_distinct: int = 12) -> Tuple[List[dict], List[dict]]:
     """Pre-built image payloads (encoded once) and per-frame box layouts of ``--tracks`` boxes."""
-    from signal_light_node.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
+    from signal_light_node.io.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
     from signal_light_node.synth import SceneRenderer
 
     renderer = SceneRenderer(7, width=args.width, height=args.height, fps=args.rate,

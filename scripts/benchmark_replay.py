@@ -42,15 +42,15 @@ from typing import Any, Dict, List, Sequence  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from signal_light_node import bagio  # noqa: E402
+from signal_light_node.io import bagio  # noqa: E402
 from signal_light_node.boxes import TrackBox  # noqa: E402
-from signal_light_node.conversions import boxes_to_detections, make_header  # noqa: E402
-from signal_light_node.engine import EngineConfig, LightStateEngine  # noqa: E402
-from signal_light_node.image_codec import bgr_to_compressed_fields  # noqa: E402
+from signal_light_node.io.conversions import boxes_to_detections, make_header  # noqa: E402
+from signal_light_node.runtime.engine import EngineConfig, LightStateEngine  # noqa: E402
+from signal_light_node.io.image_codec import bgr_to_compressed_fields  # noqa: E402
 from signal_light_node.model import (DEFAULT_WEIGHTS, ModelConfig, build_model,  # noqa: E402
                                      load_checkpoint)
 from signal_light_node.replay import replay_bag  # noqa: E402
-from signal_light_node.topics import (CAMERA_COMPRESSED_TOPIC, COMPRESSED_TYPE,  # noqa: E402
+from signal_light_node.io.topics import (CAMERA_COMPRESSED_TOPIC, COMPRESSED_TYPE,  # noqa: E402
                                       DETECTIONS_TYPE, TRACKED_OBJECTS_TOPIC)
 
 T0 = 1_700_000_000 * 1_000_000_000

@@ -35,10 +35,10 @@ from rclpy.executors import SingleThreadedExecutor
 
 from benchmark_node import model_path, subscribe_outputs
 from signal_light_node.boxes import TrackBox
-from signal_light_node.conversions import boxes_to_detections, make_header, rclpy_make
+from signal_light_node.io.conversions import boxes_to_detections, make_header, rclpy_make
 from signal_light_node.node.ros_io import message_class, qos, ros_context
-from signal_light_node.node.stats import DROP_COUNTERS
-from signal_light_node.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, IMAGE_TYPE,
+from signal_light_node.runtime.stats import DROP_COUNTERS
+from signal_light_node.io.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, IMAGE_TYPE,
                                       INPUT_COMPRESSED_TOPIC, INPUT_DETECTIONS_TOPIC,
                                       INPUT_IMAGE_TOPIC, OUTPUT_TOPIC)
 
@@ -105,7 +105,7 @@ def rss_mb(pid: int) -> float:
 
 def images(args: argparse.Namespace, n: int = 8) -> List[object]:
     """``n`` distinct camera messages, encoded once (the header is set per frame)."""
-    from signal_light_node.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
+    from signal_light_node.io.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
 
     rng = np.random.default_rng(1)
     out = []

@@ -20,13 +20,13 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import cv2
 import numpy as np
 
-from signal_light_node.bagio import find_topic, open_bag
-from signal_light_node.conversions import (detections_to_boxes, result_row, stamp_to_ns,
+from signal_light_node.io.bagio import find_topic, open_bag
+from signal_light_node.io.conversions import (detections_to_boxes, result_row, stamp_to_ns,
                                            truth_row, vehicle_light_array_to_results)
 from signal_light_node.errors import BagIOError, SignalLightError
 from signal_light_node.labels import Intent, LightStatus
-from signal_light_node.results import VehicleResult
-from signal_light_node.topics import (DETECTIONS_TYPE, DIAGNOSTICS_TOPIC, GROUND_TRUTH_TOPIC,
+from signal_light_node.runtime.results import VehicleResult
+from signal_light_node.io.topics import (DETECTIONS_TYPE, DIAGNOSTICS_TOPIC, GROUND_TRUTH_TOPIC,
                                       IMAGE_TYPES, OUTPUT_TOPIC)
 
 LOG = logging.getLogger(__name__)
@@ -340,7 +340,7 @@ def render_video(input_bag: "str | Path", inputs: BagInputs,
     Returns:
         The paths written (None where nothing could be drawn).
     """
-    from signal_light_node.image_codec import msg_to_bgr
+    from signal_light_node.io.image_codec import msg_to_bgr
     from signal_light_node.visualize import VideoSink, draw_results
 
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -1,6 +1,6 @@
 """Run the engine over a recorded bag without ROS and write its output to an MCAP bag.
 
-This is ``signal-light replay``: the same :class:`~signal_light_node.engine.LightStateEngine`
+This is ``signal-light replay``: the same :class:`~signal_light_node.runtime.engine.LightStateEngine`
 as the live node, fed from a bag as fast as the CPU allows. Images and detections are
 paired by exact header stamp. Every image gets one ``VehicleLightStateArray`` on
 :data:`OUTPUT_TOPIC` (header = the image's header, logged at the image's log time), with
@@ -22,15 +22,15 @@ from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
-from signal_light_node.bagio import BagWriter, find_topic, make, open_bag
+from signal_light_node.io.bagio import BagWriter, find_topic, make, open_bag
 from signal_light_node.boxes import TrackBox
-from signal_light_node.conversions import (detections_to_boxes, result_row, stamp_to_ns,
+from signal_light_node.io.conversions import (detections_to_boxes, result_row, stamp_to_ns,
                                            truth_row, vehicle_light_array)
-from signal_light_node.engine import FrameResult, LightStateEngine
+from signal_light_node.runtime.engine import FrameResult, LightStateEngine
 from signal_light_node.errors import ImageConversionError
-from signal_light_node.image_codec import DEFAULT_MAX_IMAGE_PIXELS, msg_to_bgr
-from signal_light_node.results import VehicleResult
-from signal_light_node.topics import (DETECTIONS_TYPE, GROUND_TRUTH_TOPIC, IMAGE_TYPES,
+from signal_light_node.io.image_codec import DEFAULT_MAX_IMAGE_PIXELS, msg_to_bgr
+from signal_light_node.runtime.results import VehicleResult
+from signal_light_node.io.topics import (DETECTIONS_TYPE, GROUND_TRUTH_TOPIC, IMAGE_TYPES,
                                       OUTPUT_TOPIC, VEHICLE_LIGHTS_TYPE)
 
 LOG = logging.getLogger(__name__)

@@ -22,7 +22,7 @@ import numpy as np
 
 from signal_light_node.errors import ConfigError
 from signal_light_node.labels import Intent, LightStatus, View
-from signal_light_node.results import VehicleResult
+from signal_light_node.runtime.results import VehicleResult
 
 LOG = logging.getLogger(__name__)
 

@@ -45,7 +45,7 @@ def model_args(tmp_path: Path) -> Tuple[List[str], bool]:
 
 def committed_bag(image_type: str) -> Optional[Path]:
     """A committed bag under ``bags/`` with an image topic of ``image_type``, if any."""
-    from signal_light_node.bagio import open_bag
+    from signal_light_node.io.bagio import open_bag
 
     for path in sorted((REPO / "bags").iterdir()) if (REPO / "bags").is_dir() else []:
         if not (path.is_dir() and (path / "metadata.yaml").exists()) and path.suffix != ".mcap":
@@ -62,7 +62,7 @@ def scene_bag(tmp_path: Path, raw: bool, n_frames: int = 20) -> Path:
     found = committed_bag(RAW_TYPE if raw else COMPRESSED_TYPE)
     if found is not None:
         return found
-    from signal_light_node.synth_bag import write_scene_bag
+    from signal_light_node.synth.bag import write_scene_bag
 
     path = tmp_path / ("scene_raw" if raw else "scene")
     write_scene_bag(path, seed=11, n_frames=n_frames, width=480, height=270, fps=10.0, raw=raw,
@@ -85,9 +85,9 @@ class Frame:
 
 def load_frames(bag_path: Path, max_frames: int) -> Tuple[str, List[Frame]]:
     """``(image type, frames)``: the first ``max_frames`` frames with image and detections."""
-    from signal_light_node.bagio import open_bag, typestore
-    from signal_light_node.conversions import detections_to_boxes, stamp_to_ns
-    from signal_light_node.image_codec import msg_to_bgr
+    from signal_light_node.io.bagio import open_bag, typestore
+    from signal_light_node.io.conversions import detections_to_boxes, stamp_to_ns
+    from signal_light_node.io.image_codec import msg_to_bgr
     from signal_light_node.node.bag_player import choose_topics
 
     store = typestore()
@@ -190,7 +190,7 @@ class LiveClient:
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
 
-        from signal_light_node.conversions import stamp_to_ns
+        from signal_light_node.io.conversions import stamp_to_ns
         from signal_light_node.node.ros_io import message_class, qos
 
         self._rclpy = rclpy
@@ -252,8 +252,8 @@ class LiveClient:
         """
         import numpy as np
 
-        from signal_light_node.conversions import make_header, rclpy_make
-        from signal_light_node.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
+        from signal_light_node.io.conversions import make_header, rclpy_make
+        from signal_light_node.io.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
 
         image = np.full((48, 64, 3), 60, np.uint8)
         fields = (bgr_to_compressed_fields(image) if self.image_type == COMPRESSED_TYPE

@@ -107,7 +107,7 @@ def test_params_file_sections_matching_this_node_are_not_warned(tmp_path):
 def test_engine_from_checkpoint_without_cuda_names_cuda(tmp_path):
     import torch
 
-    from signal_light_node.engine import engine_from_checkpoint
+    from signal_light_node.runtime.engine import engine_from_checkpoint
     from signal_light_node.errors import ConfigError
 
     if torch.cuda.is_available():
@@ -142,9 +142,9 @@ def _boxes(i: int) -> list:
 
 def _frame(i: int, raw: bool = False, size=(160, 96)) -> list:
     """``[(topic, type, log time, message)]`` of frame ``i``: an image and its detections."""
-    from signal_light_node.bagio import make
-    from signal_light_node.conversions import boxes_to_detections, make_header
-    from signal_light_node.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
+    from signal_light_node.io.bagio import make
+    from signal_light_node.io.conversions import boxes_to_detections, make_header
+    from signal_light_node.io.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
 
     stamp = T0 + i * 100 * MS
     header = make_header(stamp, "cam", make)
@@ -165,7 +165,7 @@ def write_bag(path: Path, messages: list, store=None, zstd: bool = False) -> Pat
     """An MCAP rosbag2 directory; a message given as bytes is written as is (damaged CDR)."""
     from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 
-    from signal_light_node.bagio import typestore
+    from signal_light_node.io.bagio import typestore
 
     store = store or typestore()
     writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
@@ -183,22 +183,22 @@ def write_bag(path: Path, messages: list, store=None, zstd: bool = False) -> Pat
 
 
 def _serialized(message: tuple) -> bytes:
-    from signal_light_node.bagio import typestore
+    from signal_light_node.io.bagio import typestore
 
     return bytes(typestore().serialize_cdr(message[3], message[1]))
 
 
 def _fake_engine(**kwargs):
     from fake_light_model import FakeLightModel
-    from signal_light_node.engine import EngineConfig, LightStateEngine
+    from signal_light_node.runtime.engine import EngineConfig, LightStateEngine
 
     return LightStateEngine(FakeLightModel(), EngineConfig(**kwargs))
 
 
 def replay(bag: Path, tmp_path: Path, **kwargs):
     """``(summary, {stamp: output message})`` of a replay with the fake model."""
-    from signal_light_node.bagio import open_bag
-    from signal_light_node.conversions import stamp_to_ns
+    from signal_light_node.io.bagio import open_bag
+    from signal_light_node.io.conversions import stamp_to_ns
     from signal_light_node.replay import OUTPUT_TOPIC, replay_bag
 
     out = tmp_path / "out"
@@ -241,8 +241,8 @@ def test_bag_old_vision_msgs_pose2d_centre_is_read(tmp_path):
 def test_bag_invalid_utf8_track_id_skips_that_message(tmp_path):
     """Defect 3: one detection array with an ID that is not UTF-8 ended the replay (exit 2)."""
     from signal_light_node.boxes import TrackBox
-    from signal_light_node.bagio import make
-    from signal_light_node.conversions import boxes_to_detections
+    from signal_light_node.io.bagio import make
+    from signal_light_node.io.conversions import boxes_to_detections
 
     messages = []
     for i in range(5):
@@ -303,7 +303,7 @@ def test_bag_cut_mcap_inside_a_bag_directory_is_recovered(tmp_path):
 @pytest.mark.parametrize("zstd", [False, True], ids=["plain", "zstd"])
 def test_bag_cut_inside_its_only_chunk_is_recovered(tmp_path, zstd):
     """Defect 8: a bag whose single chunk is cut was not recovered at all."""
-    from signal_light_node.bagio import open_bag
+    from signal_light_node.io.bagio import open_bag
 
     # 40 frames of about 20 kB stay in one 1 MB chunk: with zstd, several 128 kB blocks,
     # the complete ones of which can be decompressed.
@@ -319,7 +319,7 @@ def test_bag_cut_inside_its_only_chunk_is_recovered(tmp_path, zstd):
 
 def test_bag_unconvertible_detections_are_skipped_and_counted(tmp_path):
     """A detection array whose box size is not a number is skipped, not fatal."""
-    from signal_light_node.bagio import BagReader
+    from signal_light_node.io.bagio import BagReader
 
     messages = [m for i in range(3) for m in _frame(i)]
     bag = write_bag(tmp_path / "bag", messages)
@@ -425,7 +425,7 @@ def _png_bomb(width: int, height: int) -> bytes:
 def test_limits_huge_png_is_refused_before_decoding():
     """Defect 5: a 420 kB PNG of 12000 x 12000 took the node to 1.12 GB, 2 s a frame."""
     from signal_light_node.errors import ImageTooLargeError
-    from signal_light_node.image_codec import DEFAULT_MAX_IMAGE_PIXELS, compressed_msg_to_bgr
+    from signal_light_node.io.image_codec import DEFAULT_MAX_IMAGE_PIXELS, compressed_msg_to_bgr
 
     class Msg:
         format = "png"
@@ -442,7 +442,7 @@ def test_limits_huge_png_is_refused_before_decoding():
 def test_limits_header_sizes_are_read_without_decoding(kind):
     import cv2
 
-    from signal_light_node.image_codec import compressed_dimensions
+    from signal_light_node.io.image_codec import compressed_dimensions
 
     image = np.zeros((37, 53, 3), np.uint8)
     params = [cv2.IMWRITE_JPEG_PROGRESSIVE, 1] if kind == "progressive_jpeg" else []
@@ -468,12 +468,12 @@ class Live:
         return self.stamp
 
     def image(self, stamp: int, fields: dict):
-        from signal_light_node.conversions import make_header, rclpy_make
+        from signal_light_node.io.conversions import make_header, rclpy_make
 
         return rclpy_make(RAW_TYPE, header=make_header(stamp, "cam", rclpy_make), **fields)
 
     def detections(self, stamp: int, boxes: list):
-        from signal_light_node.conversions import boxes_to_detections, make_header, rclpy_make
+        from signal_light_node.io.conversions import boxes_to_detections, make_header, rclpy_make
 
         return boxes_to_detections(make_header(stamp, "cam", rclpy_make), boxes, rclpy_make)
 
@@ -532,7 +532,7 @@ def live(tmp_path_factory):
 
 def _raw(enc: str = "bgr8", size=(160, 96), **changes) -> dict:
     """Image fields of a noise image encoded as ``enc``, with ``changes`` (bad fields) applied."""
-    from signal_light_node.image_codec import bgr_to_image_fields
+    from signal_light_node.io.image_codec import bgr_to_image_fields
 
     image = np.random.default_rng(7).integers(0, 255, (size[1], size[0], 3), dtype=np.uint8)
     fields = bgr_to_image_fields(image, enc)
@@ -602,7 +602,7 @@ BOX_CASES = {
 
 @pytest.mark.parametrize("name", list(BOX_CASES))
 def test_live_boxes_and_ids(live, name):
-    from signal_light_node.conversions import stamp_to_ns
+    from signal_light_node.io.conversions import stamp_to_ns
 
     boxes, judged = BOX_CASES[name]
     if judged is None:  # a single box given flat
@@ -670,7 +670,7 @@ DETECTION_DROPS = ("dropped_detections_timeout", "dropped_detections_overflow",
 
 def _counters(report) -> Dict[str, int]:
     """The frame counters of one /diagnostics report."""
-    from signal_light_node.node.stats import DROP_COUNTERS
+    from signal_light_node.runtime.stats import DROP_COUNTERS
 
     keys = ("images", "detections", "paired", "outputs", "pending_images",
             "pending_detections", "work_queue_length") + DROP_COUNTERS
@@ -798,7 +798,7 @@ PAYLOAD_CASES = {
 @pytest.mark.parametrize("name", list(PAYLOAD_CASES))
 def test_payload_compressed_images_in_replay(tmp_path, name):
     """Each damaged payload costs its frame only: written unjudged, counted as bad."""
-    from signal_light_node.bagio import make
+    from signal_light_node.io.bagio import make
 
     fmt, payload, decoded = PAYLOAD_CASES[name]
     messages = []
@@ -820,7 +820,7 @@ def test_payload_compressed_images_in_replay(tmp_path, name):
 
 def test_bag_info_and_play_skip_what_cannot_be_read(tmp_path, capsys):
     """``info`` and ``play`` read the damaged bag of defect 3 too, skipping one message."""
-    from signal_light_node.bagio import open_bag
+    from signal_light_node.io.bagio import open_bag
     from signal_light_node.cli import main
     from signal_light_node.node.bag_player import play_items
 

@@ -10,15 +10,15 @@ from typing import Any, Dict, List, Tuple
 import numpy as np
 import pytest
 
-from signal_light_node import bagio
+from signal_light_node.io import bagio
 from signal_light_node.boxes import TrackBox
-from signal_light_node.conversions import (boxes_to_detections, detections_to_boxes,
+from signal_light_node.io.conversions import (boxes_to_detections, detections_to_boxes,
                                            make_header, vehicle_light_array,
                                            vehicle_light_array_to_results)
 from signal_light_node.errors import BagIOError
-from signal_light_node.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
+from signal_light_node.io.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
 from signal_light_node.labels import Intent, LightStatus, View
-from signal_light_node.results import LightEstimate, VehicleResult
+from signal_light_node.runtime.results import LightEstimate, VehicleResult
 
 make = bagio.make
 T0 = 1_700_000_000_123_456_789

@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from signal_light_node import bagio
-from signal_light_node.image_codec import msg_to_bgr
-from signal_light_node.synth_bag import (COMPRESSED_TOPIC, DETECTIONS_TOPIC, GROUND_TRUTH_TOPIC,
+from signal_light_node.io import bagio
+from signal_light_node.io.image_codec import msg_to_bgr
+from signal_light_node.synth.bag import (COMPRESSED_TOPIC, DETECTIONS_TOPIC, GROUND_TRUTH_TOPIC,
                                          coverage_gaps, ground_truth_coverage)
 
 REPO = Path(__file__).resolve().parents[1]

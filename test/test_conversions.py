@@ -8,14 +8,14 @@ import math
 import numpy as np
 import pytest
 
-from signal_light_node import bagio
+from signal_light_node.io import bagio
 from signal_light_node.boxes import TrackBox
-from signal_light_node.conversions import (boxes_to_detections, detections_to_boxes,
+from signal_light_node.io.conversions import (boxes_to_detections, detections_to_boxes,
                                            make_header, ns_to_stamp_fields, rclpy_make,
                                            stamp_to_ns, vehicle_light_array,
                                            vehicle_light_array_to_results)
 from signal_light_node.labels import Intent, LightStatus, View
-from signal_light_node.results import LightEstimate, VehicleResult
+from signal_light_node.runtime.results import LightEstimate, VehicleResult
 
 
 FACTORIES = [pytest.param(bagio.make, id="rosbags"), pytest.param(rclpy_make, id="rclpy")]

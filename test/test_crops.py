@@ -1,4 +1,4 @@
-"""Tests of the shared crop code (signal_light_node.crops)."""
+"""Tests of the shared crop code (signal_light_node.runtime.crops)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from signal_light_node.boxes import TrackBox
-from signal_light_node.crops import CropConfig, clip_roi, crop_region, crop_vehicle, crop_vehicles
+from signal_light_node.runtime.crops import CropConfig, clip_roi, crop_region, crop_vehicle, crop_vehicles
 from signal_light_node.errors import ConfigError, CropError
 
 

@@ -10,13 +10,13 @@ import torch
 
 from fake_light_model import FakeLightModel
 from signal_light_node.boxes import TrackBox
-from signal_light_node.crops import CropConfig, clip_roi
-from signal_light_node.engine import (EngineConfig, LightStateEngine, engine_from_checkpoint,
+from signal_light_node.runtime.crops import CropConfig, clip_roi
+from signal_light_node.runtime.engine import (EngineConfig, LightStateEngine, engine_from_checkpoint,
                                       normalize_thresholds)
 from signal_light_node.errors import CheckpointError, ConfigError, CropError
-from signal_light_node.intent_filter import IntentFilter, IntentFilterConfig
+from signal_light_node.runtime.intent_filter import IntentFilter, IntentFilterConfig
 from signal_light_node.labels import Intent, LightStatus
-from signal_light_node.results import LightEstimate
+from signal_light_node.runtime.results import LightEstimate
 
 MS = 1_000_000
 W, H = 320, 180

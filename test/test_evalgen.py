@@ -13,13 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from signal_light_node import bagio
+from signal_light_node.io import bagio
 from signal_light_node.errors import ConfigError
 from signal_light_node.evalgen.bag import write_eval_bag
 from signal_light_node.evalgen.models import Signals
 from signal_light_node.evalgen.scene import EvalScene, SceneConfig
 from signal_light_node.labels import Intent, LightStatus, View, intent_from_lights
-from signal_light_node.topics import (CAMERA_COMPRESSED_TOPIC, COMPRESSED_TYPE, DETECTIONS_TYPE,
+from signal_light_node.io.topics import (CAMERA_COMPRESSED_TOPIC, COMPRESSED_TYPE, DETECTIONS_TYPE,
                                       GROUND_TRUTH_TOPIC, TRACKED_OBJECTS_TOPIC,
                                       VEHICLE_LIGHTS_TYPE)
 

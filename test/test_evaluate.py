@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from signal_light_node.cli import main
-from signal_light_node.crops import CropConfig
-from signal_light_node.intent_filter import IntentFilter, IntentFilterConfig
+from signal_light_node.runtime.crops import CropConfig
+from signal_light_node.runtime.intent_filter import IntentFilter, IntentFilterConfig
 from signal_light_node.labels import TASKS, Intent
 from signal_light_node.model import ModelConfig, build_model, save_checkpoint
 from signal_light_node.training.evaluation import (
@@ -220,8 +220,8 @@ def test_evaluate_command_needs_one_data_source(tmp_path, capsys):
 
 
 def test_bag_tracks_and_evaluate_on_bags(tmp_path, capsys):
-    from signal_light_node.bagio import open_bag
-    from signal_light_node.synth_bag import write_scene_bag
+    from signal_light_node.io.bagio import open_bag
+    from signal_light_node.synth.bag import write_scene_bag
     from signal_light_node.training.sources import load_bag_tracks
 
     bag = tmp_path / "scene"

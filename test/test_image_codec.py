@@ -10,10 +10,10 @@ import cv2
 import numpy as np
 import pytest
 
-from signal_light_node import bagio
-from signal_light_node.conversions import make_header
+from signal_light_node.io import bagio
+from signal_light_node.io.conversions import make_header
 from signal_light_node.errors import BagIOError, ImageConversionError
-from signal_light_node.image_codec import (SUPPORTED_ENCODINGS, bgr_to_compressed_fields,
+from signal_light_node.io.image_codec import (SUPPORTED_ENCODINGS, bgr_to_compressed_fields,
                                            bgr_to_image_fields, compressed_msg_to_bgr,
                                            image_msg_to_bgr, msg_to_bgr)
 

@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from signal_light_node import bagio
+from signal_light_node.io import bagio
 from signal_light_node.boxes import TrackBox
 from signal_light_node.cli import main
-from signal_light_node.conversions import boxes_to_detections, make_header
-from signal_light_node.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
+from signal_light_node.io.conversions import boxes_to_detections, make_header
+from signal_light_node.io.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
 
 T0 = 1_000_000_000_000
 PERIOD = 100_000_000  # 10 Hz

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.intent_filter import (INTENT_OF, ROW_WIDTH, IntentFilter,
+from signal_light_node.runtime.intent_filter import (INTENT_OF, ROW_WIDTH, IntentFilter,
                                              IntentFilterConfig)
 from signal_light_node.labels import LIGHT_TASKS, TASKS, Intent, LightStatus, intent_from_lights
 

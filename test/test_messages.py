@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from signal_light_node import bagio
+from signal_light_node.io import bagio
 from signal_light_node.labels import LIGHT_CODES, Intent, LightStatus, View
 
 CONSTANTS = {

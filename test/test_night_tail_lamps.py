@@ -27,7 +27,7 @@ REGRESSION_BOUND = 0.25
 
 
 def _blinker_on_share(tmp_path) -> float:
-    from signal_light_node.engine import engine_from_checkpoint
+    from signal_light_node.runtime.engine import engine_from_checkpoint
 
     judged = blinker_on = 0
 

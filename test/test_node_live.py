@@ -68,7 +68,7 @@ def _check_dynamic_parameters(client: LiveClient) -> None:
 
 
 def _check_debug_images(client: LiveClient, frames) -> None:
-    from signal_light_node.conversions import stamp_to_ns
+    from signal_light_node.io.conversions import stamp_to_ns
 
     sizes = {f.stamp_ns: f.size for f in frames}
 
@@ -107,8 +107,8 @@ def _diag_values(client: LiveClient) -> dict:
 def _extra_frames(last_stamp_ns: int, frame_id: str, compressed: bool):
     """(bad image, its detections), (good image, empty detections) stamped after the bag."""
     from signal_light_node.boxes import TrackBox
-    from signal_light_node.conversions import boxes_to_detections, make_header, rclpy_make
-    from signal_light_node.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
+    from signal_light_node.io.conversions import boxes_to_detections, make_header, rclpy_make
+    from signal_light_node.io.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
 
     bad_stamp, empty_stamp = last_stamp_ns + 100_000_000, last_stamp_ns + 200_000_000
     image = np.full((120, 160, 3), 90, np.uint8)

@@ -7,7 +7,7 @@ import math
 import pytest
 
 from signal_light_node.node.drain import drained
-from signal_light_node.node.stats import (DROP_COUNTERS, ERROR, OK, WARN, LatencyWindow,
+from signal_light_node.runtime.stats import (DROP_COUNTERS, ERROR, OK, WARN, LatencyWindow,
                                           Snapshot, health)
 
 NAN4 = (0, math.nan, math.nan, math.nan)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.node.pairing import COUNTERS, StampPairer
+from signal_light_node.runtime.pairing import COUNTERS, StampPairer
 
 MS = 1_000_000
 

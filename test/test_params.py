@@ -149,8 +149,8 @@ def test_bad_values_on_a_real_node_become_config_errors(args, words):
 
 def test_node_defaults_equal_the_engine_and_crop_defaults():
     # The live node and `signal-light replay` must behave alike out of the box.
-    from signal_light_node.crops import CropConfig
-    from signal_light_node.engine import EngineConfig
+    from signal_light_node.runtime.crops import CropConfig
+    from signal_light_node.runtime.engine import EngineConfig
 
     engine, params = EngineConfig(), DetectorParams()
     assert params.thresholds == dict(engine.thresholds)

@@ -13,11 +13,11 @@ from pathlib import Path
 
 import pytest
 
-from signal_light_node.bagio import open_bag
+from signal_light_node.io.bagio import open_bag
 from signal_light_node.errors import BagIOError, ConfigError
 from signal_light_node.node.bag_player import (Pacer, choose_topics, loop_gap_ns, parse_remaps,
                                                play_items)
-from signal_light_node.synth_bag import write_scene_bag
+from signal_light_node.synth.bag import write_scene_bag
 
 N_FRAMES = 12
 IMAGE = "/camera/image_raw/compressed"
@@ -52,7 +52,7 @@ def test_remaps_are_parsed_and_checked():
 
 
 def test_play_items_are_cdr_in_order_with_offsets(bag):
-    from signal_light_node.bagio import typestore
+    from signal_light_node.io.bagio import typestore
 
     with open_bag(bag) as reader:
         items = list(play_items(reader, choose_topics(reader.topics()),

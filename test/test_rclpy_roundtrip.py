@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from signal_light_node.labels import Intent, LightStatus, View
-from signal_light_node.results import LightEstimate, VehicleResult
+from signal_light_node.runtime.results import LightEstimate, VehicleResult
 
 TOPIC = "/signal_light_test/vehicle_lights"
 STAMP_NS = 1_700_000_123_456_789_012
@@ -46,7 +46,7 @@ import sys, time
 sys.path.insert(0, {str(Path(__file__).parent)!r})
 import rclpy
 from test_rclpy_roundtrip import EXPECTED, FRAME_ID, STAMP_NS, TOPIC
-from signal_light_node.conversions import make_header, rclpy_make, vehicle_light_array
+from signal_light_node.io.conversions import make_header, rclpy_make, vehicle_light_array
 
 rclpy.init()
 node = rclpy.create_node("roundtrip_publisher")
@@ -64,7 +64,7 @@ import json, sys, time
 from dataclasses import asdict
 import rclpy
 from signal_light_msgs.msg import VehicleLightStateArray
-from signal_light_node.conversions import vehicle_light_array_to_results
+from signal_light_node.io.conversions import vehicle_light_array_to_results
 
 received = []
 rclpy.init()

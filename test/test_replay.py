@@ -17,20 +17,20 @@ import pytest
 import torch
 
 from fake_light_model import FakeLightModel
-from signal_light_node import bagio
+from signal_light_node.io import bagio
 from signal_light_node.boxes import TrackBox
 from signal_light_node.cli import main
-from signal_light_node.conversions import (boxes_to_detections, make_header,
+from signal_light_node.io.conversions import (boxes_to_detections, make_header,
                                            stamp_to_ns, vehicle_light_array,
                                            vehicle_light_array_to_results)
-from signal_light_node.engine import EngineConfig, LightStateEngine
+from signal_light_node.runtime.engine import EngineConfig, LightStateEngine
 from signal_light_node.errors import BagIOError
-from signal_light_node.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
+from signal_light_node.io.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
 from signal_light_node.labels import LIGHT_CODES, Intent, LightStatus, View
 from signal_light_node.metrics import macro_f1
 from signal_light_node.replay import (GROUND_TRUTH_TOPIC, OUTPUT_TOPIC, replay_bag,
                                       score_summary)
-from signal_light_node.results import LightEstimate, VehicleResult
+from signal_light_node.runtime.results import LightEstimate, VehicleResult
 
 REPO = Path(__file__).resolve().parents[1]
 COMMITTED_BAGS = sorted(p for p in (REPO / "bags").glob("*")
@@ -339,7 +339,7 @@ def test_cli_replay_prints_summary_and_metrics(small_bag, tmp_path, capsys):
 
 
 def test_rendered_scene_bag_end_to_end(tmp_path):
-    from signal_light_node.synth_bag import DETECTIONS_TOPIC, write_scene_bag
+    from signal_light_node.synth.bag import DETECTIONS_TOPIC, write_scene_bag
 
     bag = tmp_path / "scene"
     write_scene_bag(bag, seed=11, n_frames=12, fps=10.0, width=480, height=270, n_vehicles=3)
@@ -374,7 +374,7 @@ SCORED_BAGS = [p for p in COMMITTED_BAGS if p.name in ("day_street", "night_stre
 @pytest.mark.skipif(not SCORED_BAGS, reason="no committed bags in bags/ yet")
 @pytest.mark.parametrize("bag", SCORED_BAGS, ids=lambda p: p.name)
 def test_committed_bag_agrees_with_ground_truth(bag, tmp_path):
-    from signal_light_node.engine import engine_from_checkpoint
+    from signal_light_node.runtime.engine import engine_from_checkpoint
     from signal_light_node.model import DEFAULT_WEIGHTS
 
     if not DEFAULT_WEIGHTS.exists():

@@ -8,7 +8,7 @@ import torch
 
 from fake_light_model import FakeLightModel
 from signal_light_node.errors import ConfigError
-from signal_light_node.state_bank import RESET_BACKWARDS, RESET_GAP, StateBank
+from signal_light_node.runtime.state_bank import RESET_BACKWARDS, RESET_GAP, StateBank
 
 MS = 1_000_000
 

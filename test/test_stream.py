@@ -11,7 +11,7 @@ import pytest
 import torch
 from torch.utils.data import DataLoader
 
-from signal_light_node.crops import CropConfig
+from signal_light_node.runtime.crops import CropConfig
 from signal_light_node.data import SyntheticSequenceStream, collate_sequences
 from signal_light_node.data.split import SequenceSplit, write_split
 from signal_light_node.data.stream import PAD_LABEL, Item, jitter_colours, mirror_sequence

@@ -9,14 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from signal_light_node import bagio
+from signal_light_node.io import bagio
 from signal_light_node.cli import main
-from signal_light_node.conversions import detections_to_boxes, stamp_to_ns
-from signal_light_node.crops import clip_roi
-from signal_light_node.image_codec import msg_to_bgr
+from signal_light_node.io.conversions import detections_to_boxes, stamp_to_ns
+from signal_light_node.runtime.crops import clip_roi
+from signal_light_node.io.image_codec import msg_to_bgr
 from signal_light_node.labels import LIGHT_CODES, LightStatus, intent_from_lights
 from signal_light_node.synth import SceneRenderer
-from signal_light_node.synth_bag import (COMPRESSED_TOPIC, DETECTIONS_TOPIC, GROUND_TRUTH_TOPIC,
+from signal_light_node.synth.bag import (COMPRESSED_TOPIC, DETECTIONS_TOPIC, GROUND_TRUTH_TOPIC,
                                          IMAGE_TOPIC, ground_truth_coverage, write_scene_bag)
 
 SCENE = dict(seed=5, n_frames=15, fps=10.0, width=640, height=360, n_vehicles=4)

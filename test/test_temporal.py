@@ -9,7 +9,7 @@ from signal_light_node.model import ModelConfig, build_model
 from signal_light_node.model.temporal import (EVIDENCE_CHANNELS, best_shifts, evidence_step,
                                               shift_images)
 from signal_light_node.model.warm_start import warm_start
-from signal_light_node.state_bank import StateBank
+from signal_light_node.runtime.state_bank import StateBank
 
 
 def _textured(n: int = 2, size: int = 32, seed: int = 0) -> torch.Tensor:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from signal_light_node.crops import CropConfig
+from signal_light_node.runtime.crops import CropConfig
 from signal_light_node.data.split import SequenceSplit, write_split
 from signal_light_node.data.stream import PAD_LABEL
 from signal_light_node.errors import ConfigError

@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from signal_light_node.crops import CropConfig
+from signal_light_node.runtime.crops import CropConfig
 from signal_light_node.errors import ConfigError
 from signal_light_node.labels import TASKS, Intent, LightStatus, View
 from signal_light_node.training.sources import WindowDataset, load_ucm_tracks, ucm_labels

@@ -8,7 +8,7 @@ import time
 import pytest
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.node.worker import DropOldestQueue, QueueClosed, Worker
+from signal_light_node.runtime.worker import DropOldestQueue, QueueClosed, Worker
 
 
 def _wait_for(cond, timeout=5.0):

@@ -10,10 +10,10 @@ import argparse
 import json
 from typing import Any, Dict, Optional, Set
 
-from signal_light_node import bagio
+from signal_light_node.io import bagio
 from signal_light_node.errors import ImageConversionError
-from signal_light_node.image_codec import compressed_msg_to_bgr
-from signal_light_node.topics import (DETECTIONS_TYPE, IMAGE_TYPE, IMAGE_TYPES,
+from signal_light_node.io.image_codec import compressed_msg_to_bgr
+from signal_light_node.io.topics import (DETECTIONS_TYPE, IMAGE_TYPE, IMAGE_TYPES,
                                       VEHICLE_LIGHTS_TYPE)
 
 

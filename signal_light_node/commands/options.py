@@ -35,7 +35,7 @@ def add_intent_filter_options(group: ArgumentContainer) -> None:
 
     Defaults come from ``intent_filter.IntentFilterConfig`` (as the node's parameters do).
     """
-    from signal_light_node.intent_filter import IntentFilterConfig
+    from signal_light_node.runtime.intent_filter import IntentFilterConfig
 
     d = IntentFilterConfig()
     group.add_argument("--intent-filter", action=argparse.BooleanOptionalAction,
@@ -60,7 +60,7 @@ def intent_filter_from_args(args: argparse.Namespace) -> Any:
     Raises:
         ConfigError: A value is out of range.
     """
-    from signal_light_node.intent_filter import IntentFilterConfig
+    from signal_light_node.runtime.intent_filter import IntentFilterConfig
 
     return IntentFilterConfig(enabled=args.intent_filter, on_threshold=args.filter_on_threshold,
                               hold_s=args.filter_hold, confirm_s=args.filter_confirm,

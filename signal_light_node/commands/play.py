@@ -41,7 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Play the bag; returns the exit code (0 also when stopped by SIGINT/SIGTERM)."""
-    from signal_light_node.bagio import open_bag
+    from signal_light_node.io.bagio import open_bag
     from signal_light_node.node.bag_player import (Pacer, choose_topics, loop_gap_ns,
                                                    parse_remaps, play_items)
     from signal_light_node.node.ros_io import (message_class, qos, ros_context,

@@ -54,7 +54,7 @@ def _flush(executor: object, counts: Counter, quiet_s: float = 0.3) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Record until a stop condition; returns the exit code."""
-    from signal_light_node.bagio import BagWriter, normalize_msgtype, typestore
+    from signal_light_node.io.bagio import BagWriter, normalize_msgtype, typestore
     from signal_light_node.node.ros_io import message_class, qos, ros_context, stop_on_signals
 
     for name in ("duration", "idle_timeout"):

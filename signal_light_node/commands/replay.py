@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     """Replay the bag, print the summary and, with ground truth, the metrics."""
     import torch  # OMP_WAIT_POLICY is already set by importing signal_light_node
 
-    from signal_light_node.engine import engine_from_checkpoint
+    from signal_light_node.runtime.engine import engine_from_checkpoint
     from signal_light_node.replay import replay_bag, score_summary
 
     if args.video is not None and args.video.suffix.lower() not in (".mp4", ".gif"):

@@ -2,7 +2,7 @@
 
 Writes a rosbag2 MCAP directory with JPEG (or, with ``--raw``, bgr8) camera frames, the
 simulated tracker's ``Detection2DArray`` and the ground-truth ``VehicleLightStateArray``
-(see ``signal_light_node.synth_bag``). The same options always give the same bag.
+(see ``signal_light_node.synth.bag``). The same options always give the same bag.
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Write the bag and print a one-line summary."""
-    from signal_light_node.synth_bag import write_scene_bag
+    from signal_light_node.synth.bag import write_scene_bag
 
     if args.frames is not None and args.frames < 1:
         raise ConfigError(f"--frames must be at least 1, got {args.frames}")

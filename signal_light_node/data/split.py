@@ -30,7 +30,7 @@ from torch.utils.data import Dataset
 from tqdm import tqdm
 
 from signal_light_node import __version__
-from signal_light_node.crops import CropConfig
+from signal_light_node.runtime.crops import CropConfig
 from signal_light_node.data.stream import PAD_LABEL, Item, SyntheticSequenceStream
 from signal_light_node.errors import ConfigError, SignalLightError
 from signal_light_node.labels import CLASS_NAMES, TASKS

@@ -2,7 +2,7 @@
 
 Each scene is rendered once for a few more frames than one sequence needs; every
 vehicle the simulated tracker reports is cropped from its *tracker* box with the
-node's crop code (``signal_light_node.crops``), and each track's observations are cut
+node's crop code (``signal_light_node.runtime.crops``), and each track's observations are cut
 into windows of ``seq_len`` consecutive observations. A frame in which the tracker
 misses a vehicle, or its box cannot be cropped, is left out of that track's sequence,
 exactly as the node never sees it. One render thus serves several sequences.
@@ -37,7 +37,7 @@ import numpy as np
 import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
-from signal_light_node.crops import CropConfig, crop_vehicles
+from signal_light_node.runtime.crops import CropConfig, crop_vehicles
 from signal_light_node.errors import ConfigError
 from signal_light_node.labels import TASKS, intent_from_lights, mirror_labels
 

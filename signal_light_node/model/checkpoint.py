@@ -28,7 +28,7 @@ import torch
 from torch import nn
 
 from signal_light_node import __version__
-from signal_light_node.crops import CropConfig
+from signal_light_node.runtime.crops import CropConfig
 from signal_light_node.errors import CheckpointError, ConfigError
 from signal_light_node.labels import CLASS_NAMES, LIGHT_CODES, TASKS
 

@@ -13,9 +13,9 @@ import time
 from dataclasses import dataclass
 from typing import Callable, Dict, Iterator, Mapping, Optional, Sequence
 
-from signal_light_node.bagio import BagReader, normalize_msgtype, typestore
+from signal_light_node.io.bagio import BagReader, normalize_msgtype, typestore
 from signal_light_node.errors import BagIOError, ConfigError
-from signal_light_node.topics import DETECTIONS_TYPE, IMAGE_TYPES
+from signal_light_node.io.topics import DETECTIONS_TYPE, IMAGE_TYPES
 
 #: Types that ``play`` publishes when no topics are named: the detector's inputs.
 INPUT_TYPES = IMAGE_TYPES + (DETECTIONS_TYPE,)

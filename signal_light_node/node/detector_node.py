@@ -1,9 +1,9 @@
 """The ``signal_light_detector`` rclpy node (executable ``detector``).
 
-A thin adapter over :class:`~signal_light_node.engine.LightStateEngine`:
+A thin adapter over :class:`~signal_light_node.runtime.engine.LightStateEngine`:
 
 * the subscription callbacks only read the header stamp and hand the message to a
-  :class:`~signal_light_node.node.pairing.StampPairer`;
+  :class:`~signal_light_node.runtime.pairing.StampPairer`;
 * a complete (image, detections) pair goes into a bounded drop-oldest queue;
 * one worker thread decodes the image, runs the engine and publishes
   ``~/output/vehicle_lights`` (and, when enabled and watched, ``~/output/debug/image``);
@@ -27,18 +27,18 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy_impl
 from rclpy.node import Node
 
-from signal_light_node.conversions import (detections_to_boxes, rclpy_make, stamp_to_ns,
+from signal_light_node.io.conversions import (detections_to_boxes, rclpy_make, stamp_to_ns,
                                            vehicle_light_array)
 from signal_light_node.errors import (ConfigError, ImageConversionError, ImageTooLargeError,
                                       SignalLightError)
 from signal_light_node.node.gaps import SequenceGaps
-from signal_light_node.node.pairing import StampPairer
+from signal_light_node.runtime.pairing import StampPairer
 from signal_light_node.node.params import (NODE_NAME, DetectorParams, foreign_params_file,
                                            params_file_paths, read_parameters, updated)
 from signal_light_node.node.ros_io import message_class, qos
-from signal_light_node.node.stats import ERROR, OK, WARN, LatencyWindow, Snapshot, health
-from signal_light_node.node.worker import DropOldestQueue, Worker
-from signal_light_node.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, DIAGNOSTICS_TOPIC,
+from signal_light_node.runtime.stats import ERROR, OK, WARN, LatencyWindow, Snapshot, health
+from signal_light_node.runtime.worker import DropOldestQueue, Worker
+from signal_light_node.io.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, DIAGNOSTICS_TOPIC,
                                       DIAGNOSTICS_TYPE, IMAGE_TYPE, VEHICLE_LIGHTS_TYPE)
 
 _NS = 1_000_000_000
@@ -86,7 +86,7 @@ class SignalLightDetector(Node):
             CheckpointError: The model file is missing or incompatible.
             ConfigError: The model does not fit the parameters (device, crop size).
         """
-        from signal_light_node.engine import engine_from_checkpoint
+        from signal_light_node.runtime.engine import engine_from_checkpoint
         from signal_light_node.model.checkpoint import DEFAULT_WEIGHTS
 
         p = self.params
@@ -193,7 +193,7 @@ class SignalLightDetector(Node):
             self._publish_debug(image, pair, boxes, frame.results)
 
     def _publish_debug(self, image: Any, pair: Any, boxes: List[Any], results: List[Any]) -> None:
-        from signal_light_node.image_codec import bgr_to_image_fields
+        from signal_light_node.io.image_codec import bgr_to_image_fields
         from signal_light_node.visualize import draw_results
 
         attention = self.engine.attention_masks(image, boxes)
@@ -285,7 +285,7 @@ def _yes_no(supported: Optional[bool]) -> str:
 
 
 def _decoder(image_transport: str) -> Any:
-    from signal_light_node.image_codec import compressed_msg_to_bgr, image_msg_to_bgr
+    from signal_light_node.io.image_codec import compressed_msg_to_bgr, image_msg_to_bgr
 
     return compressed_msg_to_bgr if image_transport == "compressed" else image_msg_to_bgr
 

@@ -14,8 +14,8 @@ import sys
 import time
 from typing import List, Mapping, Optional
 
-from signal_light_node.node.stats import DROP_COUNTERS
-from signal_light_node.topics import DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE
+from signal_light_node.runtime.stats import DROP_COUNTERS
+from signal_light_node.io.topics import DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE
 
 _STATUS_PREFIX = "signal_light_detector"
 

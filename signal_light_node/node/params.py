@@ -16,8 +16,8 @@ from dataclasses import dataclass
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.image_codec import DEFAULT_MAX_IMAGE_PIXELS
-from signal_light_node.intent_filter import IntentFilterConfig
+from signal_light_node.io.image_codec import DEFAULT_MAX_IMAGE_PIXELS
+from signal_light_node.runtime.intent_filter import IntentFilterConfig
 from signal_light_node.labels import LIGHT_CODES
 
 #: The node's name; also the top-level key of ``config/detector.yaml``.

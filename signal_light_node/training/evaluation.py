@@ -5,7 +5,7 @@ observed frame (frames with ``mask`` False, e.g. a box that could not be cropped
 neither stepped nor scored, as the engine never judges them). Tracks are batched only
 for speed: at frame index ``t`` every track of the batch that has a frame ``t`` is
 stepped together, which gives the same outputs as stepping each track alone. The
-model's outputs go through the same :class:`~signal_light_node.intent_filter.IntentFilter`
+model's outputs go through the same :class:`~signal_light_node.runtime.intent_filter.IntentFilter`
 as in the engine, driven by each track's own stamps, so what is scored is what the node
 publishes; with the filter disabled, the predicted class of a head is the argmax of its
 probabilities (the raw model).
@@ -40,7 +40,7 @@ import torch
 from tqdm import tqdm
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.intent_filter import IntentFilter, IntentFilterConfig
+from signal_light_node.runtime.intent_filter import IntentFilter, IntentFilterConfig
 from signal_light_node.labels import CLASS_NAMES, TASKS
 from signal_light_node.metrics import (MetricAccumulator, SwitchCounter, box_size_band,
                                        occlusion_band)

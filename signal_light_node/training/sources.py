@@ -1,7 +1,7 @@
 """Data sources other than the live synthetic stream, as per-track sequences.
 
 Every source is turned into :class:`TrackSequence` objects: one vehicle track, its crops
-(cut with :func:`signal_light_node.crops.crop_vehicle`, the one crop code), one label
+(cut with :func:`signal_light_node.runtime.crops.crop_vehicle`, the one crop code), one label
 row per frame in ``labels.TASKS`` order, and what the evaluation groups by (lighting,
 box size, occlusion). Training draws windows from them with :class:`WindowDataset`;
 evaluation streams them frame by frame.
@@ -36,11 +36,11 @@ import numpy as np
 import torch
 
 from signal_light_node.boxes import TrackBox
-from signal_light_node.crops import CropConfig, crop_vehicle
+from signal_light_node.runtime.crops import CropConfig, crop_vehicle
 from signal_light_node.data.stream import PAD_LABEL
 from signal_light_node.errors import BagIOError, ConfigError, CropError
 from signal_light_node.labels import TASKS, LightStatus, View, intent_from_lights
-from signal_light_node.topics import (DETECTIONS_TYPE, GROUND_TRUTH_TOPIC, IMAGE_TYPES,
+from signal_light_node.io.topics import (DETECTIONS_TYPE, GROUND_TRUTH_TOPIC, IMAGE_TYPES,
                                       VEHICLE_LIGHTS_TYPE)
 
 logger = logging.getLogger(__name__)
@@ -244,9 +244,9 @@ def load_bag_tracks(path: Path, crop_config: CropConfig = CropConfig(),
         BagIOError: The bag cannot be read, lacks one of the three topics, or a named
             topic has another type.
     """
-    from signal_light_node.bagio import find_topic, open_bag
-    from signal_light_node.conversions import detections_to_boxes, stamp_to_ns, truth_row
-    from signal_light_node.image_codec import msg_to_bgr
+    from signal_light_node.io.bagio import find_topic, open_bag
+    from signal_light_node.io.conversions import detections_to_boxes, stamp_to_ns, truth_row
+    from signal_light_node.io.image_codec import msg_to_bgr
 
     path = Path(path)
     per_track: Dict[str, Dict[str, list]] = {}

@@ -58,7 +58,7 @@ import torch.nn.functional as F
 from torch import nn
 from tqdm import tqdm
 
-from signal_light_node.crops import CropConfig
+from signal_light_node.runtime.crops import CropConfig
 from signal_light_node.data.stream import (
     SyntheticSequenceStream,
     collate_sequences,

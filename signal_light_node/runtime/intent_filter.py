@@ -30,7 +30,7 @@ stamps (scenes run at 10-30 fps, so frame counts mean nothing):
 Everything is vectorised over the tracks of a frame. The per-track state is a fixed
 row of :data:`ROW_WIDTH` floats (per light: stamp of the last strong frame, stamp of
 the episode's first strong frame, last strong P(ON)), owned by the caller: the
-:class:`~signal_light_node.state_bank.StateBank` in the engine, the evaluation's own
+:class:`~signal_light_node.runtime.state_bank.StateBank` in the engine, the evaluation's own
 array per batch of tracks. The filter itself keeps no per-track state.
 """
 

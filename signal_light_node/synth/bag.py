@@ -24,19 +24,19 @@ from typing import Any, Dict, List, Optional, Set
 
 from tqdm import tqdm
 
-from signal_light_node import bagio
+from signal_light_node.io import bagio
 from signal_light_node.boxes import TrackBox
-from signal_light_node.conversions import boxes_to_detections, make_header, vehicle_light_array
-from signal_light_node.crops import clip_roi
+from signal_light_node.io.conversions import boxes_to_detections, make_header, vehicle_light_array
+from signal_light_node.runtime.crops import clip_roi
 from signal_light_node.errors import ConfigError
-from signal_light_node.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
+from signal_light_node.io.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
 from signal_light_node.labels import LIGHT_CODES, Intent, LightStatus, View
-from signal_light_node.results import LightEstimate, VehicleResult
+from signal_light_node.runtime.results import LightEstimate, VehicleResult
 # The topics under the names the tests and tools import them by from here.
-from signal_light_node.topics import CAMERA_COMPRESSED_TOPIC as COMPRESSED_TOPIC
-from signal_light_node.topics import CAMERA_IMAGE_TOPIC as IMAGE_TOPIC
-from signal_light_node.topics import TRACKED_OBJECTS_TOPIC as DETECTIONS_TOPIC
-from signal_light_node.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, GROUND_TRUTH_TOPIC,
+from signal_light_node.io.topics import CAMERA_COMPRESSED_TOPIC as COMPRESSED_TOPIC
+from signal_light_node.io.topics import CAMERA_IMAGE_TOPIC as IMAGE_TOPIC
+from signal_light_node.io.topics import TRACKED_OBJECTS_TOPIC as DETECTIONS_TOPIC
+from signal_light_node.io.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, GROUND_TRUTH_TOPIC,
                                       IMAGE_TYPE, VEHICLE_LIGHTS_TYPE)
 
 LOG = logging.getLogger(__name__)

@@ -2,7 +2,7 @@
 
 Everything here is duck-typed: it reads messages through attribute access only, so
 ``rosbags`` objects (bag I/O) and rclpy objects (the live node) work alike. Messages are
-built through a factory ``make(msgtype, **fields)``: :func:`signal_light_node.bagio.make`
+built through a factory ``make(msgtype, **fields)``: :func:`signal_light_node.io.bagio.make`
 for bags, :func:`rclpy_make` for rclpy. This module never imports rclpy.
 """
 
@@ -17,7 +17,7 @@ import numpy as np
 
 from signal_light_node.boxes import TrackBox
 from signal_light_node.labels import TASKS, Intent, LightStatus, View
-from signal_light_node.results import LightEstimate, VehicleResult
+from signal_light_node.runtime.results import LightEstimate, VehicleResult
 
 #: ``make(msgtype, **fields) -> message``
 MessageFactory = Callable[..., Any]

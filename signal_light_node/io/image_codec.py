@@ -13,7 +13,7 @@ from typing import Any, Dict, Optional, Tuple
 import cv2
 import numpy as np
 
-from signal_light_node.conversions import stamp_to_ns
+from signal_light_node.io.conversions import stamp_to_ns
 from signal_light_node.errors import ImageConversionError, ImageTooLargeError
 
 #: Default largest image (width x height) decoded: 4096 x 4096. Larger ones are refused

@@ -7,7 +7,7 @@ so gathering or storing a whole frame costs one ``index_select`` / ``index_copy_
 however many layers and tracks there are.
 
 Beside the model state, each track may own a fixed-size float64 row of the output
-filter (:mod:`signal_light_node.intent_filter`): created with the track, gathered and
+filter (:mod:`signal_light_node.runtime.intent_filter`): created with the track, gathered and
 stored with it, and gone when the track is.
 
 Tracks unseen for longer than a timeout are dropped, the number of tracks is capped

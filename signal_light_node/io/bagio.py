@@ -33,7 +33,7 @@ SCHEMA_PACKAGES: Tuple[str, ...] = ("signal_light_msgs", "vision_msgs")
 #: rosbag2 metadata version written (9 = Jazzy's).
 ROSBAG2_VERSION = 9
 
-_REPO_SCHEMAS = Path(__file__).resolve().parent.parent / "msg_schemas"
+_REPO_SCHEMAS = Path(__file__).resolve().parents[2] / "msg_schemas"
 # Files that may make up a bag directory; ``overwrite=True`` refuses to delete anything else.
 _BAG_FILE_SUFFIXES = (".mcap", ".db3", ".yaml", ".zstd", ".db3-shm", ".db3-wal")
 

@@ -2,11 +2,11 @@
 
 The engine is what the ROS node and ``signal-light replay`` share. Per frame it crops
 every box with the shared crop code, gathers the tracks' recurrent states from the
-:class:`~signal_light_node.state_bank.StateBank`, runs ONE batched model step for all
+:class:`~signal_light_node.runtime.state_bank.StateBank`, runs ONE batched model step for all
 boxes that could be cropped, holds the outputs through blinks with the
-:class:`~signal_light_node.intent_filter.IntentFilter` (its per-track rows live in the
+:class:`~signal_light_node.runtime.intent_filter.IntentFilter` (its per-track rows live in the
 state bank too), stores the new states and turns the probabilities into
-:class:`~signal_light_node.results.VehicleResult`\\ s. It never imports rclpy.
+:class:`~signal_light_node.runtime.results.VehicleResult`\\ s. It never imports rclpy.
 """
 
 from __future__ import annotations
@@ -22,13 +22,13 @@ import numpy as np
 import torch
 
 from signal_light_node.boxes import TrackBox
-from signal_light_node.crops import CropConfig, clip_roi, crop_region, crop_vehicles
+from signal_light_node.runtime.crops import CropConfig, clip_roi, crop_region, crop_vehicles
 from signal_light_node.errors import ConfigError
-from signal_light_node.intent_filter import IntentFilter, IntentFilterConfig
+from signal_light_node.runtime.intent_filter import IntentFilter, IntentFilterConfig
 from signal_light_node.labels import LIGHT_CODES, LIGHT_TASKS, TASKS, Intent, LightStatus, View
 from signal_light_node.model.interface import to_input
-from signal_light_node.results import LightEstimate, VehicleResult
-from signal_light_node.state_bank import StateBank, check_limits
+from signal_light_node.runtime.results import LightEstimate, VehicleResult
+from signal_light_node.runtime.state_bank import StateBank, check_limits
 
 LOG = logging.getLogger(__name__)
 
