@@ -22,7 +22,7 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "detector = signal_light_node.node.detector_node:main",
+            "detector = signal_light_node.ros.detector_node:main",
             "signal-light = signal_light_node.cli:main",
         ],
     },

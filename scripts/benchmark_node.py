@@ -34,9 +34,9 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 
 from signal_light_node.boxes import TrackBox
-from signal_light_node.io.conversions import (boxes_to_detections, make_header, rclpy_make,
-                                           stamp_to_ns)
-from signal_light_node.node.ros_io import message_class, qos, ros_context
+from signal_light_node.io.conversions import boxes_to_detections, make_header, stamp_to_ns
+from signal_light_node.ros.messages import rclpy_make
+from signal_light_node.ros.ros_io import message_class, qos, ros_context
 from signal_light_node.io.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, DIAGNOSTICS_TOPIC,
                                       DIAGNOSTICS_TYPE, IMAGE_TYPE, INPUT_COMPRESSED_TOPIC,
                                       INPUT_DETECTIONS_TOPIC, INPUT_IMAGE_TOPIC, OUTPUT_TOPIC,

@@ -49,7 +49,7 @@ from signal_light_node.runtime.engine import EngineConfig, LightStateEngine  # n
 from signal_light_node.io.image_codec import bgr_to_compressed_fields  # noqa: E402
 from signal_light_node.model import (DEFAULT_WEIGHTS, ModelConfig, build_model,  # noqa: E402
                                      load_checkpoint)
-from signal_light_node.replay import replay_bag  # noqa: E402
+from signal_light_node.tools.replay import replay_bag  # noqa: E402
 from signal_light_node.io.topics import (CAMERA_COMPRESSED_TOPIC, COMPRESSED_TYPE,  # noqa: E402
                                       DETECTIONS_TYPE, TRACKED_OBJECTS_TOPIC)
 

@@ -43,7 +43,7 @@ else
   [ -f "$WEIGHTS" ] || die "the shipped weights $WEIGHTS do not exist yet; train them (see README, 'signal-light train') or run with DEMO_MODEL=/path/to/checkpoint.pt"
 fi
 
-read -r TRANSPORT IMAGE_TOPIC DET_TOPIC FRAMES < <(python -m signal_light_node.demo_report inspect "$BAG") \
+read -r TRANSPORT IMAGE_TOPIC DET_TOPIC FRAMES < <(python -m signal_light_node.tools.demo_report inspect "$BAG") \
   || die "cannot read the input topics of $BAG"
 IMAGE_INPUT="~/input/image"
 [ "$TRANSPORT" = compressed ] && IMAGE_INPUT="~/input/image/compressed"
@@ -105,12 +105,12 @@ signal-light play "$BAG" --topics "$IMAGE_TOPIC" "$DET_TOPIC" --rate "$RATE" \
 tail -n 1 "$OUT/play.log" | sed 's/^INFO signal_light_node.play: /[demo] /'
 
 say "waiting for the detector to finish the last frames"
-python -m signal_light_node.node.drain --expect-images "$FRAMES" --timeout 60 \
+python -m signal_light_node.ros.drain --expect-images "$FRAMES" --timeout 60 \
   || say "warning: the detector did not report all frames done; the report shows what is missing"
 
 cleanup
 trap - EXIT
 
 say "writing the annotated video and the report"
-python -m signal_light_node.demo_report report --input "$BAG" --output "$REC" --out-dir "$OUT" \
+python -m signal_light_node.tools.demo_report report --input "$BAG" --output "$REC" --out-dir "$OUT" \
   | tee "$OUT/report.txt"

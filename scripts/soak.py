@@ -35,8 +35,9 @@ from rclpy.executors import SingleThreadedExecutor
 
 from benchmark_node import model_path, subscribe_outputs
 from signal_light_node.boxes import TrackBox
-from signal_light_node.io.conversions import boxes_to_detections, make_header, rclpy_make
-from signal_light_node.node.ros_io import message_class, qos, ros_context
+from signal_light_node.io.conversions import boxes_to_detections, make_header
+from signal_light_node.ros.messages import rclpy_make
+from signal_light_node.ros.ros_io import message_class, qos, ros_context
 from signal_light_node.runtime.stats import DROP_COUNTERS
 from signal_light_node.io.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, IMAGE_TYPE,
                                       INPUT_COMPRESSED_TOPIC, INPUT_DETECTIONS_TOPIC,

@@ -1,7 +1,10 @@
 """signal_light_node: online vehicle light-state perception for ROS 2 Jazzy.
 
-The package is split into a core that never imports rclpy (labels, crops, bag I/O,
-synthetic data, model, engine, metrics) and a thin ROS adapter in ``node/``.
+Folders follow a frame: ``io/`` (bags, images, messages) -> ``runtime/`` (pairing, crops,
+state bank, engine, intent filter) -> ``model/`` (config, network, checkpoints). Around
+them: ``synth/`` and ``evalgen/`` (scene generators), ``data/`` and ``training/``,
+``tools/`` (replay, metrics, demo report, overlays), ``commands/`` (the ``signal-light``
+CLI) and ``ros/``, the ROS 2 adapter and the only package that imports rclpy.
 """
 
 import os

@@ -88,7 +88,7 @@ def load_frames(bag_path: Path, max_frames: int) -> Tuple[str, List[Frame]]:
     from signal_light_node.io.bagio import open_bag, typestore
     from signal_light_node.io.conversions import detections_to_boxes, stamp_to_ns
     from signal_light_node.io.image_codec import msg_to_bgr
-    from signal_light_node.node.bag_player import choose_topics
+    from signal_light_node.ros.bag_player import choose_topics
 
     store = typestore()
     by_stamp: Dict[int, Dict[str, object]] = defaultdict(dict)
@@ -191,7 +191,7 @@ class LiveClient:
         from rclpy.executors import SingleThreadedExecutor
 
         from signal_light_node.io.conversions import stamp_to_ns
-        from signal_light_node.node.ros_io import message_class, qos
+        from signal_light_node.ros.ros_io import message_class, qos
 
         self._rclpy = rclpy
         self.context = rclpy.Context()
@@ -252,7 +252,8 @@ class LiveClient:
         """
         import numpy as np
 
-        from signal_light_node.io.conversions import make_header, rclpy_make
+        from signal_light_node.io.conversions import make_header
+        from signal_light_node.ros.messages import rclpy_make
         from signal_light_node.io.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
 
         image = np.full((48, 64, 3), 60, np.uint8)

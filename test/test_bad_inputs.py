@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from node_harness import DetectorProcess, run_until_exit, tiny_checkpoint
-from signal_light_node.node.params import NODE_NAME
+from signal_light_node.ros.params import NODE_NAME
 
 MS = 1_000_000
 S = 1_000_000_000
@@ -90,7 +90,7 @@ def test_startup_params_file_for_another_node_is_warned(tmp_path, rclpy_isolated
 
 
 def test_params_file_sections_matching_this_node_are_not_warned(tmp_path):
-    from signal_light_node.node.params import foreign_params_file, params_file_paths
+    from signal_light_node.ros.params import foreign_params_file, params_file_paths
 
     fqn = f"/{NODE_NAME}"
     for key in (NODE_NAME, fqn, "/**", "/*", "/**/" + NODE_NAME):
@@ -199,7 +199,7 @@ def replay(bag: Path, tmp_path: Path, **kwargs):
     """``(summary, {stamp: output message})`` of a replay with the fake model."""
     from signal_light_node.io.bagio import open_bag
     from signal_light_node.io.conversions import stamp_to_ns
-    from signal_light_node.replay import OUTPUT_TOPIC, replay_bag
+    from signal_light_node.tools.replay import OUTPUT_TOPIC, replay_bag
 
     out = tmp_path / "out"
     summary = replay_bag(bag, out, _fake_engine(**kwargs), progress=False)
@@ -373,7 +373,7 @@ def _peak_mb(fn) -> float:
 def test_limits_attention_overlay_memory_is_bounded_by_the_image(side, size):
     """Defect 4: the overlay took (1.3 x box side)^2 floats per box (965 MB, 1.76 GB)."""
     from signal_light_node.boxes import TrackBox
-    from signal_light_node.visualize import draw_results
+    from signal_light_node.tools.visualize import draw_results
 
     engine = _fake_engine()
     image = np.full((size[1], size[0], 3), 120, np.uint8)
@@ -468,12 +468,14 @@ class Live:
         return self.stamp
 
     def image(self, stamp: int, fields: dict):
-        from signal_light_node.io.conversions import make_header, rclpy_make
+        from signal_light_node.io.conversions import make_header
+        from signal_light_node.ros.messages import rclpy_make
 
         return rclpy_make(RAW_TYPE, header=make_header(stamp, "cam", rclpy_make), **fields)
 
     def detections(self, stamp: int, boxes: list):
-        from signal_light_node.io.conversions import boxes_to_detections, make_header, rclpy_make
+        from signal_light_node.io.conversions import boxes_to_detections, make_header
+        from signal_light_node.ros.messages import rclpy_make
 
         return boxes_to_detections(make_header(stamp, "cam", rclpy_make), boxes, rclpy_make)
 
@@ -822,7 +824,7 @@ def test_bag_info_and_play_skip_what_cannot_be_read(tmp_path, capsys):
     """``info`` and ``play`` read the damaged bag of defect 3 too, skipping one message."""
     from signal_light_node.io.bagio import open_bag
     from signal_light_node.cli import main
-    from signal_light_node.node.bag_player import play_items
+    from signal_light_node.ros.bag_player import play_items
 
     messages = []
     for i in range(3):

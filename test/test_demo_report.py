@@ -11,10 +11,10 @@ from pathlib import Path
 import pytest
 
 from signal_light_node.io.bagio import BagWriter, open_bag
-from signal_light_node.demo_report import (OUTPUT_TOPIC, build_report, inspect_inputs,
+from signal_light_node.tools.demo_report import (OUTPUT_TOPIC, build_report, inspect_inputs,
                                            run_lengths)
 from signal_light_node.runtime.engine import engine_from_checkpoint
-from signal_light_node.replay import replay_bag
+from signal_light_node.tools.replay import replay_bag
 from signal_light_node.synth.bag import write_scene_bag
 
 from node_harness import tiny_checkpoint

@@ -1,6 +1,6 @@
 """SequenceGaps: lost messages from publication sequence numbers."""
 
-from signal_light_node.node.gaps import SequenceGaps
+from signal_light_node.ros.gaps import SequenceGaps
 
 
 def test_gaps_of_one_publisher_are_counted():

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from signal_light_node.labels import LightStatus
-from signal_light_node.replay import replay_bag
+from signal_light_node.tools.replay import replay_bag
 
 BAG = Path(__file__).resolve().parents[1] / "bags" / "night_tail_lamps"
 #: The target.

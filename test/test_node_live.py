@@ -18,7 +18,7 @@ import yaml
 
 from node_harness import (COMPRESSED_TYPE, DEBUG_TOPIC, RAW_TYPE, REPO, DetectorProcess,
                           LiveClient, load_frames, model_args, run_until_exit, scene_bag)
-from signal_light_node.node.params import NODE_NAME
+from signal_light_node.ros.params import NODE_NAME
 
 rclpy = pytest.importorskip("rclpy")
 
@@ -107,7 +107,8 @@ def _diag_values(client: LiveClient) -> dict:
 def _extra_frames(last_stamp_ns: int, frame_id: str, compressed: bool):
     """(bad image, its detections), (good image, empty detections) stamped after the bag."""
     from signal_light_node.boxes import TrackBox
-    from signal_light_node.io.conversions import boxes_to_detections, make_header, rclpy_make
+    from signal_light_node.io.conversions import boxes_to_detections, make_header
+    from signal_light_node.ros.messages import rclpy_make
     from signal_light_node.io.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
 
     bad_stamp, empty_stamp = last_stamp_ns + 100_000_000, last_stamp_ns + 200_000_000

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from signal_light_node.node.drain import drained
+from signal_light_node.ros.drain import drained
 from signal_light_node.runtime.stats import (DROP_COUNTERS, ERROR, OK, WARN, LatencyWindow,
                                           Snapshot, health)
 

@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.node.params import (NODE_NAME, PARAM_SPECS, DetectorParams, updated,
+from signal_light_node.ros.params import (NODE_NAME, PARAM_SPECS, DetectorParams, updated,
                                            validate_params)
 
 YAML = Path(__file__).resolve().parent.parent / "config" / "detector.yaml"
@@ -94,7 +94,7 @@ def test_descriptors_on_a_real_node():
     from rcl_interfaces.msg import ParameterType
     from rclpy.parameter import Parameter
 
-    from signal_light_node.node.params import read_parameters
+    from signal_light_node.ros.params import read_parameters
 
     context = rclpy.Context()
     rclpy.init(context=context, args=["--ros-args", "-p", "threshold_brake:=0.25"])
@@ -130,7 +130,7 @@ def test_descriptors_on_a_real_node():
 ])
 def test_bad_values_on_a_real_node_become_config_errors(args, words):
     rclpy = pytest.importorskip("rclpy")
-    from signal_light_node.node.params import read_parameters
+    from signal_light_node.ros.params import read_parameters
 
     context = rclpy.Context()
     rclpy.init(context=context, args=["--ros-args", *args])

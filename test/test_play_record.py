@@ -15,7 +15,7 @@ import pytest
 
 from signal_light_node.io.bagio import open_bag
 from signal_light_node.errors import BagIOError, ConfigError
-from signal_light_node.node.bag_player import (Pacer, choose_topics, loop_gap_ns, parse_remaps,
+from signal_light_node.ros.bag_player import (Pacer, choose_topics, loop_gap_ns, parse_remaps,
                                                play_items)
 from signal_light_node.synth.bag import write_scene_bag
 

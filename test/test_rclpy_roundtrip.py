@@ -46,7 +46,8 @@ import sys, time
 sys.path.insert(0, {str(Path(__file__).parent)!r})
 import rclpy
 from test_rclpy_roundtrip import EXPECTED, FRAME_ID, STAMP_NS, TOPIC
-from signal_light_node.io.conversions import make_header, rclpy_make, vehicle_light_array
+from signal_light_node.io.conversions import make_header, vehicle_light_array
+from signal_light_node.ros.messages import rclpy_make
 
 rclpy.init()
 node = rclpy.create_node("roundtrip_publisher")

@@ -27,8 +27,8 @@ from signal_light_node.runtime.engine import EngineConfig, LightStateEngine
 from signal_light_node.errors import BagIOError
 from signal_light_node.io.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
 from signal_light_node.labels import LIGHT_CODES, Intent, LightStatus, View
-from signal_light_node.metrics import macro_f1
-from signal_light_node.replay import (GROUND_TRUTH_TOPIC, OUTPUT_TOPIC, replay_bag,
+from signal_light_node.tools.metrics import macro_f1
+from signal_light_node.tools.replay import (GROUND_TRUTH_TOPIC, OUTPUT_TOPIC, replay_bag,
                                       score_summary)
 from signal_light_node.runtime.results import LightEstimate, VehicleResult
 

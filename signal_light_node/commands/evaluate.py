@@ -147,7 +147,7 @@ def _headline(result: Dict[str, Any]) -> str:
 
 def render_markdown(result: Dict[str, Any]) -> str:
     """The whole evaluation as Markdown (headline, then both full reports)."""
-    from signal_light_node.metrics import markdown_report, switches_markdown
+    from signal_light_node.tools.metrics import markdown_report, switches_markdown
 
     st, counts = result["settings"], result["counts"]
     intent = result["switches"]["intent"]
@@ -180,7 +180,7 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from signal_light_node.labels import CLASS_NAMES
-    from signal_light_node.metrics import render_confusion_png
+    from signal_light_node.tools.metrics import render_confusion_png
     from signal_light_node.model import DEFAULT_WEIGHTS, load_checkpoint
     from signal_light_node.training.evaluation import EvalSettings, evaluate_tracks
     from signal_light_node.training.ideal_observer import score_ideal_observer

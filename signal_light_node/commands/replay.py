@@ -59,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
     import torch  # OMP_WAIT_POLICY is already set by importing signal_light_node
 
     from signal_light_node.runtime.engine import engine_from_checkpoint
-    from signal_light_node.replay import replay_bag, score_summary
+    from signal_light_node.tools.replay import replay_bag, score_summary
 
     if args.video is not None and args.video.suffix.lower() not in (".mp4", ".gif"):
         raise ConfigError(f"--video must end in .mp4 or .gif, got {args.video.name!r}")
@@ -93,7 +93,7 @@ def render_scores(result: dict, bag: Path, intent_filter: str = "") -> str:
         bag: The bag replayed.
         intent_filter: ``IntentFilterConfig.describe()`` of the engine, if known.
     """
-    from signal_light_node.metrics import markdown_report, switches_markdown
+    from signal_light_node.tools.metrics import markdown_report, switches_markdown
 
     st, c = result["settings"], result["counts"]
     head = (f"Agreement with the ground truth of {bag}: {c['frames']} judged frames with ground "

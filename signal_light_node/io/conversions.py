@@ -3,13 +3,12 @@
 Everything here is duck-typed: it reads messages through attribute access only, so
 ``rosbags`` objects (bag I/O) and rclpy objects (the live node) work alike. Messages are
 built through a factory ``make(msgtype, **fields)``: :func:`signal_light_node.io.bagio.make`
-for bags, :func:`rclpy_make` for rclpy. This module never imports rclpy.
+for bags, :func:`signal_light_node.ros.messages.rclpy_make` for rclpy. This module
+never imports rclpy.
 """
 
 from __future__ import annotations
 
-import functools
-import importlib
 import math
 from typing import Any, Callable, List, Sequence, Tuple
 
@@ -47,36 +46,6 @@ def make_header(stamp_ns: int, frame_id: str, make: MessageFactory) -> Any:
 def _copy_header(header: Any, make: MessageFactory) -> Any:
     # Rebuilt rather than reused so that a rosbags header can go into an rclpy message.
     return make_header(stamp_to_ns(header.stamp), header.frame_id, make)
-
-
-@functools.lru_cache(maxsize=None)
-def rclpy_class(msgtype: str) -> type:
-    """The generated rclpy message class of a type, its ``<pkg>.msg`` module imported lazily.
-
-    Cached: the node builds several messages per vehicle and frame with :func:`rclpy_make`.
-
-    Args:
-        msgtype: ``pkg/msg/Name`` or ``pkg/Name``.
-
-    Returns:
-        The message class.
-    """
-    parts = msgtype.split("/")
-    package, name = parts[0], parts[-1]
-    return getattr(importlib.import_module(f"{package}.msg"), name)
-
-
-def rclpy_make(msgtype: str, **fields: Any) -> Any:
-    """Message factory for rclpy (see :func:`rclpy_class`).
-
-    Args:
-        msgtype: ``pkg/msg/Name`` or ``pkg/Name``.
-        **fields: Field values; omitted fields keep the message defaults.
-
-    Returns:
-        An instance of the generated rclpy message class.
-    """
-    return rclpy_class(msgtype)(**fields)
 
 
 def _center_xy(center: Any) -> Tuple[float, float]:

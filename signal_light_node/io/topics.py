@@ -7,12 +7,12 @@ rclpy.
 Three kinds of names:
 
 * message type names, in the full ``pkg/msg/Name`` form that bags and
-  :func:`signal_light_node.node.ros_io.message_class` use;
+  :func:`signal_light_node.ros.ros_io.message_class` use;
 * the topics of the synthetic bags (:mod:`signal_light_node.synth.bag`): a camera with
   a tracker, plus the ground truth;
 * the node's topics as seen from outside under its default name
   ``signal_light_detector``. Inside the node they are private (``~/input/image`` ...,
-  see :mod:`signal_light_node.node.detector_node`) and usually remapped.
+  see :mod:`signal_light_node.ros.detector_node`) and usually remapped.
 """
 
 from __future__ import annotations

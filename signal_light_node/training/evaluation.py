@@ -22,7 +22,7 @@ Scoring rules (documented in the report's ``settings``):
   a blinker was switched on or off.
 
 Breakdowns: lighting (the track's), view (the ground-truth view of the frame), box-size
-band and occlusion band (:mod:`signal_light_node.metrics`).
+band and occlusion band (:mod:`signal_light_node.tools.metrics`).
 
 Switches (flicker): per head and track, how often the predicted and the true class
 change from one scored frame to the next (after the warm-up, no grace window);
@@ -42,7 +42,7 @@ from tqdm import tqdm
 from signal_light_node.errors import ConfigError
 from signal_light_node.runtime.intent_filter import IntentFilter, IntentFilterConfig
 from signal_light_node.labels import CLASS_NAMES, TASKS
-from signal_light_node.metrics import (MetricAccumulator, SwitchCounter, box_size_band,
+from signal_light_node.tools.metrics import (MetricAccumulator, SwitchCounter, box_size_band,
                                        occlusion_band)
 from signal_light_node.model import select_state, to_input
 from signal_light_node.training.sources import TrackSequence

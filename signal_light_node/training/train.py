@@ -24,9 +24,9 @@ Recipe (after the research the model follows, scaled to a CPU):
   (:class:`ReplayStream`), each time augmented anew: on a 2-core CPU rendering is
   slower than training, so this doubles the steps per minute.
 * **Validation** every ``val_every`` steps on a fixed split: loss and the metrics of
-  :mod:`signal_light_node.metrics` on frames after ``val_warmup`` frames of each
+  :mod:`signal_light_node.tools.metrics` on frames after ``val_warmup`` frames of each
   sequence (``--mode frames``: every frame alone from a zero state, as it trains); the
-  best checkpoint by :func:`signal_light_node.metrics.selection_score` (mean of intent
+  best checkpoint by :func:`signal_light_node.tools.metrics.selection_score` (mean of intent
   macro-F1 and brake accuracy) is kept as ``best.pt``.
 * **Files** in ``out``: ``last.pt`` / ``best.pt`` (model checkpoints), ``last.state.pt``
   (optimizer, scheduler, step, counters, RNG: what ``--resume`` needs), ``log.jsonl``
@@ -67,7 +67,7 @@ from signal_light_node.data.stream import (
 )
 from signal_light_node.errors import CheckpointError, ConfigError
 from signal_light_node.labels import TASKS
-from signal_light_node.metrics import MetricAccumulator, selection_score
+from signal_light_node.tools.metrics import MetricAccumulator, selection_score
 from signal_light_node.model import (
     DEFAULT_WEIGHTS,
     ModelConfig,

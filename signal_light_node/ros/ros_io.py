@@ -11,7 +11,7 @@ from typing import Any, Callable, Iterator, List, Optional
 import rclpy
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from signal_light_node.io.conversions import rclpy_class
+from signal_light_node.ros.messages import rclpy_class
 
 RELIABILITIES = ("reliable", "best_effort")
 

@@ -4,8 +4,8 @@ what came out, how each track's lights evolved, how fast it was, and an annotate
 Reads the played input bag and the bag ``signal-light record`` wrote from the node's
 output and ``/diagnostics``; never imports rclpy. Command line::
 
-    python -m signal_light_node.demo_report inspect BAG
-    python -m signal_light_node.demo_report report --input BAG --output REC --out-dir DIR
+    python -m signal_light_node.tools.demo_report inspect BAG
+    python -m signal_light_node.tools.demo_report report --input BAG --output REC --out-dir DIR
 """
 
 from __future__ import annotations
@@ -288,7 +288,7 @@ def build_report(input_bag: "str | Path", output_bag: "str | Path",
         stamps = [stamp_to_ns(m.msg.header.stamp) for m in bag.messages([inputs.image_topic])]
     report.frames_in = len(stamps)
 
-    from signal_light_node.metrics import MetricAccumulator
+    from signal_light_node.tools.metrics import MetricAccumulator
 
     accumulator = MetricAccumulator() if truth else None
     for index, stamp in enumerate(stamps):
@@ -341,7 +341,7 @@ def render_video(input_bag: "str | Path", inputs: BagInputs,
         The paths written (None where nothing could be drawn).
     """
     from signal_light_node.io.image_codec import msg_to_bgr
-    from signal_light_node.visualize import VideoSink, draw_results
+    from signal_light_node.tools.visualize import VideoSink, draw_results
 
     out_dir.mkdir(parents=True, exist_ok=True)
     with open_bag(input_bag) as bag:
@@ -392,7 +392,7 @@ def _contact_sheet(tiles: List[np.ndarray], path: Path, columns: int = 4,
 
 def main(argv: Optional[List[str]] = None) -> int:
     """Command line of the demo's python steps; returns the exit code."""
-    parser = argparse.ArgumentParser(prog="python -m signal_light_node.demo_report",
+    parser = argparse.ArgumentParser(prog="python -m signal_light_node.tools.demo_report",
                                      description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("inspect", help="print: transport image_topic detections_topic frames")

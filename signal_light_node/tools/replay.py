@@ -208,7 +208,7 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
         BagIOError: The bag cannot be read, lacks the topics, or the output cannot be written.
         ConfigError: The video path has an unsupported suffix.
     """
-    from signal_light_node.visualize import VideoSink, draw_results
+    from signal_light_node.tools.visualize import VideoSink, draw_results
 
     bag_path, output = Path(bag_path), Path(output)
     summary = ReplaySummary(output=output)

@@ -1,6 +1,6 @@
 """Wait until a running detector has finished every frame it was given.
 
-``python -m signal_light_node.node.drain --expect-images N`` listens to ``/diagnostics``
+``python -m signal_light_node.ros.drain --expect-images N`` listens to ``/diagnostics``
 and returns 0 once the detector reports at least N images received or dropped by the
 middleware, nothing waiting for a partner, an empty work queue and every pair accounted
 for (published, undecodable ones included, dropped or failed); 1 on timeout. The demo uses it between "the bag has been played" and
@@ -45,7 +45,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--timeout", type=float, default=60.0, help="seconds to wait at most")
     args = parser.parse_args(argv)
 
-    from signal_light_node.node.ros_io import message_class, qos, ros_context, stop_on_signals
+    from signal_light_node.ros.ros_io import message_class, qos, ros_context, stop_on_signals
 
     last: dict = {}
     with stop_on_signals() as stop, ros_context() as context:

@@ -27,15 +27,15 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy_impl
 from rclpy.node import Node
 
-from signal_light_node.io.conversions import (detections_to_boxes, rclpy_make, stamp_to_ns,
-                                           vehicle_light_array)
+from signal_light_node.io.conversions import detections_to_boxes, stamp_to_ns, vehicle_light_array
+from signal_light_node.ros.messages import rclpy_make
 from signal_light_node.errors import (ConfigError, ImageConversionError, ImageTooLargeError,
                                       SignalLightError)
-from signal_light_node.node.gaps import SequenceGaps
+from signal_light_node.ros.gaps import SequenceGaps
 from signal_light_node.runtime.pairing import StampPairer
-from signal_light_node.node.params import (NODE_NAME, DetectorParams, foreign_params_file,
+from signal_light_node.ros.params import (NODE_NAME, DetectorParams, foreign_params_file,
                                            params_file_paths, read_parameters, updated)
-from signal_light_node.node.ros_io import message_class, qos
+from signal_light_node.ros.ros_io import message_class, qos
 from signal_light_node.runtime.stats import ERROR, OK, WARN, LatencyWindow, Snapshot, health
 from signal_light_node.runtime.worker import DropOldestQueue, Worker
 from signal_light_node.io.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, DIAGNOSTICS_TOPIC,
@@ -194,7 +194,7 @@ class SignalLightDetector(Node):
 
     def _publish_debug(self, image: Any, pair: Any, boxes: List[Any], results: List[Any]) -> None:
         from signal_light_node.io.image_codec import bgr_to_image_fields
-        from signal_light_node.visualize import draw_results
+        from signal_light_node.tools.visualize import draw_results
 
         attention = self.engine.attention_masks(image, boxes)
         drawn = draw_results(image, results, attention=attention,
