@@ -64,8 +64,9 @@ def parse_args(argv: List[str]) -> argparse.Namespace:
 
 
 def model_path(args: argparse.Namespace, tmp: Path) -> str:
-    from signal_light_node.model.checkpoint import (DEFAULT_WEIGHTS, ModelConfig, build_model,
-                                                    save_checkpoint)
+    from signal_light_node.model.checkpoint import DEFAULT_WEIGHTS, save_checkpoint
+    from signal_light_node.model.config import ModelConfig
+    from signal_light_node.model.registry import build_model
 
     if args.model:
         return str(Path(args.model).resolve())

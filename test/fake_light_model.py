@@ -17,7 +17,7 @@ from typing import Dict, List, Tuple
 
 import torch
 
-from signal_light_node.model.checkpoint import ModelConfig
+from signal_light_node.model.config import ModelConfig
 
 State = Tuple[Tuple[torch.Tensor, torch.Tensor], ...]
 

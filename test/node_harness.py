@@ -26,7 +26,9 @@ DEBUG_TOPIC = "/signal_light_detector/output/debug/image"
 
 def tiny_checkpoint(path: Path) -> Path:
     """A small, untrained checkpoint written with the model factory (loads in well under 1 s)."""
-    from signal_light_node.model.checkpoint import ModelConfig, build_model, save_checkpoint
+    from signal_light_node.model.checkpoint import save_checkpoint
+    from signal_light_node.model.config import ModelConfig
+    from signal_light_node.model.registry import build_model
 
     config = ModelConfig(input_size=32, attention_channels=(4, 4, 4), backbone_channels=(8, 8),
                          lstm_hidden=(8, 8), head_channels=4, fc_hidden=16)

@@ -1,16 +1,15 @@
-"""The light-state model: streaming interface, network, config, factory and checkpoints."""
+"""The light-state model: config (`config`), factory (`registry`), network, streaming
+interface and checkpoint file I/O (`checkpoint`)."""
 
 from signal_light_node.model.checkpoint import (
     DEFAULT_WEIGHTS,
     FORMAT_VERSION,
     LoadedModel,
-    ModelConfig,
-    build_model,
-    known_archs,
     load_checkpoint,
-    register_arch,
     save_checkpoint,
 )
+from signal_light_node.model.config import ModelConfig
+from signal_light_node.model.registry import build_model, known_archs, register_arch
 from signal_light_node.model.interface import (
     LightStateModel,
     State,

@@ -18,7 +18,7 @@ from torch import Tensor
 from signal_light_node.errors import ConfigError, CropError
 
 if TYPE_CHECKING:  # pragma: no cover - typing only
-    from signal_light_node.model.checkpoint import ModelConfig
+    from signal_light_node.model.config import ModelConfig
 
 #: ``(h, c)`` per ConvLSTM layer, each ``[N, C, H, W]`` with the track in dimension 0.
 State = Tuple[Tuple[Tensor, Tensor], ...]

@@ -40,7 +40,7 @@ from signal_light_node.model.temporal import EVIDENCE_CHANNELS, evidence_step
 MEMORY_FORMAT = torch.channels_last
 
 if TYPE_CHECKING:  # pragma: no cover - typing only
-    from signal_light_node.model.checkpoint import ModelConfig
+    from signal_light_node.model.config import ModelConfig
 
 #: Dilations of the attention FCN's four 3x3 layers (as in the research design).
 ATTENTION_DILATIONS: Tuple[int, ...] = (1, 2, 2, 1)

@@ -1,0 +1,196 @@
+"""The model's configuration: everything needed to rebuild a network, stored in its checkpoint."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any, Dict, Mapping, Tuple
+
+from signal_light_node.errors import ConfigError
+from signal_light_node.labels import CLASS_NAMES, LIGHT_CODES, TASKS
+from signal_light_node.runtime.crops import CropConfig
+
+
+def _int_tuple(value: Any, name: str) -> Tuple[int, ...]:
+    try:
+        out = tuple(int(v) for v in value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"model config {name} must be a list of integers, got {value!r}") from None
+    if not out or any(v <= 0 for v in out):
+        raise ConfigError(f"model config {name} must be non-empty positive integers, got {value!r}")
+    return out
+
+
+def _float3(value: Any, name: str) -> Tuple[float, float, float]:
+    try:
+        out = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"model config {name} must be 3 numbers, got {value!r}") from None
+    if len(out) != 3 or not all(math.isfinite(v) for v in out):
+        raise ConfigError(f"model config {name} must be 3 finite numbers (B, G, R), got {value!r}")
+    return out  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Everything needed to build a model and feed it exactly as in training.
+
+    Attributes:
+        arch: Architecture name, a key of the factory registry.
+        input_size: Side S of the square input crop in pixels.
+        attention_channels: Widths of the hidden layers of the attention FCN (its last
+            layer always has one channel); dilations are ``ATTENTION_DILATIONS``.
+        use_attention: False skips the attention mask (ablation).
+        backbone_channels: Width of each backbone stage; each stage halves the
+            resolution, so the ConvLSTM map is S / 2**len(backbone_channels).
+        lstm_hidden: Hidden channels of each stacked ConvLSTM layer.
+        lstm_kernel: Kernel size of the ConvLSTM gate convolutions.
+        head_channels: Channels of the 1x1 conv that reduces the last hidden state
+            before it is pooled to a ``head_grid`` x ``head_grid`` map.
+        head_grid: Side of the pooled map fed to the dense layer (keeps left/right
+            position, which a global pool would lose).
+        fc_hidden: Width of the shared dense layer before the task heads.
+        dropout: Dropout probability of the dense layer.
+        lstm_dropout: Dropout probability on each ConvLSTM layer's output in training.
+        norm: Normalisation of the backbone convs, "batch" or "group".
+        mean: Per-channel mean subtracted from the [0, 1] input, in ``channel_order``.
+        std: Per-channel standard deviation dividing the input, in ``channel_order``.
+        channel_order: Channel order of the input crops, always "bgr".
+        crop_margin: Margin of the crops the model was trained on (``crops.CropConfig``).
+        class_names: Class names per task, index i = class value i.
+        light_codes: ``LightClassification`` code of each light head.
+        temporal_input: Feed the backbone the crop's change against the track's
+            previous crop and running mean as well (``model.temporal``); the state then
+            carries that history.
+        align_radius: Largest shift in pixels tried when re-aligning the history.
+        mean_rate: Weight of each new crop in the running mean.
+    """
+
+    arch: str = "convlstm_attention"
+    input_size: int = 64
+    attention_channels: Tuple[int, ...] = (8, 8, 8)
+    use_attention: bool = True
+    backbone_channels: Tuple[int, ...] = (24, 48, 64)
+    lstm_hidden: Tuple[int, ...] = (48, 48)
+    lstm_kernel: int = 3
+    head_channels: int = 16
+    head_grid: int = 4
+    fc_hidden: int = 128
+    dropout: float = 0.5
+    lstm_dropout: float = 0.1
+    norm: str = "batch"
+    mean: Tuple[float, float, float] = (0.4, 0.4, 0.4)
+    std: Tuple[float, float, float] = (0.25, 0.25, 0.25)
+    channel_order: str = "bgr"
+    crop_margin: float = CropConfig.margin
+    # hash=False: dicts are unhashable, the other fields identify a config well enough.
+    class_names: Mapping[str, Tuple[str, ...]] = field(
+        default_factory=lambda: {t: tuple(CLASS_NAMES[t]) for t in TASKS}, hash=False)
+    light_codes: Mapping[str, int] = field(default_factory=lambda: dict(LIGHT_CODES), hash=False)
+    temporal_input: bool = False
+    align_radius: int = 2
+    mean_rate: float = 0.15
+
+    def __post_init__(self) -> None:
+        set_ = lambda name, value: object.__setattr__(self, name, value)  # noqa: E731
+        if not isinstance(self.arch, str) or not self.arch:
+            raise ConfigError(f"model config arch must be a non-empty string, got {self.arch!r}")
+        try:
+            set_("input_size", int(self.input_size))
+            set_("lstm_kernel", int(self.lstm_kernel))
+            set_("head_channels", int(self.head_channels))
+            set_("head_grid", int(self.head_grid))
+            set_("fc_hidden", int(self.fc_hidden))
+            set_("dropout", float(self.dropout))
+            set_("lstm_dropout", float(self.lstm_dropout))
+            set_("crop_margin", float(self.crop_margin))
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"model config has a value of the wrong type: {exc}") from None
+        # bool("false") is True: refuse anything but a real boolean (CLI values are JSON).
+        for name in ("use_attention", "temporal_input"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"model config {name} must be true or false, got "
+                                  f"{getattr(self, name)!r}")
+        set_("mean_rate", float(self.mean_rate))
+        if not 0.0 < self.mean_rate <= 1.0:
+            raise ConfigError(f"model config mean_rate must be in (0, 1], got {self.mean_rate}")
+        if isinstance(self.align_radius, bool) or not isinstance(self.align_radius, int) \
+                or not 0 <= self.align_radius <= self.input_size // 4:
+            raise ConfigError(f"model config align_radius must be an integer in 0..input_size/4, "
+                              f"got {self.align_radius!r}")
+        set_("attention_channels", _int_tuple(self.attention_channels, "attention_channels"))
+        set_("backbone_channels", _int_tuple(self.backbone_channels, "backbone_channels"))
+        set_("lstm_hidden", _int_tuple(self.lstm_hidden, "lstm_hidden"))
+        set_("mean", _float3(self.mean, "mean"))
+        set_("std", _float3(self.std, "std"))
+        if not 8 <= self.input_size <= 512:
+            raise ConfigError(f"model config input_size must be in 8..512, got {self.input_size}")
+        if self.lstm_kernel < 1 or self.lstm_kernel % 2 == 0:
+            raise ConfigError(f"model config lstm_kernel must be odd and >= 1, got {self.lstm_kernel}")
+        for name in ("head_channels", "head_grid", "fc_hidden"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"model config {name} must be >= 1, got {getattr(self, name)}")
+        for name in ("dropout", "lstm_dropout"):
+            if not 0.0 <= getattr(self, name) < 1.0:
+                raise ConfigError(f"model config {name} must be in [0, 1), got {getattr(self, name)}")
+        if any(s <= 0 for s in self.std):
+            raise ConfigError(f"model config std must be positive, got {self.std}")
+        if self.norm not in ("batch", "group"):
+            raise ConfigError(f"model config norm must be 'batch' or 'group', got {self.norm!r}")
+        if self.channel_order != "bgr":
+            raise ConfigError(f"model config channel_order must be 'bgr', got {self.channel_order!r}")
+        CropConfig(size=self.input_size, margin=self.crop_margin)  # validates the margin
+        try:
+            set_("class_names", {str(t): tuple(str(n) for n in names)
+                                 for t, names in dict(self.class_names).items()})
+            set_("light_codes", {str(k): int(v) for k, v in dict(self.light_codes).items()})
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"model config class_names / light_codes are malformed: {exc}") from None
+
+    @property
+    def num_classes(self) -> Dict[str, int]:
+        """Number of classes per task, in ``TASKS`` order."""
+        return {t: len(self.class_names[t]) for t in TASKS}
+
+    @property
+    def feature_size(self) -> int:
+        """Side of the backbone's output map (the ConvLSTM state) for ``input_size``."""
+        side = self.input_size
+        for _ in self.backbone_channels:
+            side = (side + 1) // 2  # a 3x3 stride-2 conv with padding 1
+        return side
+
+    def crop_config(self) -> CropConfig:
+        """The crop settings that reproduce the training crops."""
+        return CropConfig(size=self.input_size, margin=self.crop_margin)
+
+    def to_dict(self) -> Dict[str, Any]:
+        """Plain dict (lists, not tuples) for the checkpoint and for JSON."""
+        out = asdict(self)
+        for key, value in out.items():
+            if isinstance(value, tuple):
+                out[key] = list(value)
+        out["class_names"] = {t: list(n) for t, n in self.class_names.items()}
+        out["light_codes"] = dict(self.light_codes)
+        return out
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "ModelConfig":
+        """Inverse of :meth:`to_dict`.
+
+        Raises:
+            ConfigError: ``data`` has unknown keys or bad values.
+        """
+        if not isinstance(data, Mapping):
+            raise ConfigError(f"model config must be a dict, got {type(data).__name__}")
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ConfigError(f"model config has unknown keys {unknown}")
+        return cls(**dict(data))
+
+    def replace(self, **changes: Any) -> "ModelConfig":
+        """A copy with some fields changed (validated again)."""
+        data = asdict(self)
+        data.update(changes)
+        return ModelConfig(**data)

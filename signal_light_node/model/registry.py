@@ -1,0 +1,44 @@
+"""The model factory: architecture names -> builders (``config.arch`` picks one)."""
+
+from __future__ import annotations
+
+from typing import Callable, Dict, Tuple
+
+from torch import nn
+
+from signal_light_node.errors import ConfigError
+from signal_light_node.model.config import ModelConfig
+
+Builder = Callable[[ModelConfig], nn.Module]
+_REGISTRY: Dict[str, Builder] = {}
+
+
+def register_arch(name: str, builder: Builder) -> None:
+    """Make ``build_model`` build ``builder(config)`` for ``config.arch == name``."""
+    _REGISTRY[name] = builder
+
+
+def known_archs() -> Tuple[str, ...]:
+    """Architecture names the factory can build."""
+    return tuple(sorted(_REGISTRY))
+
+
+def _build_convlstm_attention(config: ModelConfig) -> nn.Module:
+    from signal_light_node.model.network import LightStateNet
+
+    return LightStateNet(config)
+
+
+register_arch("convlstm_attention", _build_convlstm_attention)
+
+
+def build_model(config: ModelConfig) -> nn.Module:
+    """Build a freshly initialised model for ``config``.
+
+    Raises:
+        ConfigError: ``config.arch`` is not a registered architecture.
+    """
+    builder = _REGISTRY.get(config.arch)
+    if builder is None:
+        raise ConfigError(f"unknown model architecture {config.arch!r}; known: {list(known_archs())}")
+    return builder(config)
