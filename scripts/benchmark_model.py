@@ -31,6 +31,7 @@ import numpy as np
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
+from signal_light_node.runtime.engine import require_device
 from signal_light_node.model import (
     DEFAULT_WEIGHTS,
     ModelConfig,
@@ -61,11 +62,16 @@ def parse_override(text: str) -> tuple:
 
 
 def time_steps(model: torch.nn.Module, n: int, reps: int, warmup: int, rounds: int,
-               seed: int = 0) -> Dict[str, Any]:
-    """Time ``model.step`` on ``n`` tracks; returns the best round's statistics in ms."""
+               seed: int = 0, device: str = "cpu") -> Dict[str, Any]:
+    """Time ``model.step`` on ``n`` tracks; returns the best round's statistics in ms.
+
+    On CUDA each step is followed by a synchronisation, as the engine's copy of the
+    probabilities to the host would force.
+    """
     size = model.config.input_size
     rng = np.random.default_rng(seed)
-    crops = to_input(rng.integers(0, 256, (n, size, size, 3), dtype=np.uint8))
+    crops = to_input(rng.integers(0, 256, (n, size, size, 3), dtype=np.uint8)).to(device)
+    sync = torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
     results: List[Dict[str, float]] = []
     with torch.inference_mode():
         state = model.initial_state(n)
@@ -76,6 +82,7 @@ def time_steps(model: torch.nn.Module, n: int, reps: int, warmup: int, rounds: i
             for _ in range(reps):
                 start = time.perf_counter()
                 _, state = model.step(crops, state)  # carry the state as the engine does
+                sync()
                 times.append((time.perf_counter() - start) * 1e3)
             times.sort()
             results.append({"mean_ms": statistics.fmean(times),
@@ -119,11 +126,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--warmup", type=int, default=5)
     parser.add_argument("--budget-ms", type=float, default=50.0,
                         help="time budget of a 32-track step (exit 1 if exceeded)")
+    parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda, cuda:1)")
     parser.add_argument("--json", type=Path, help="also write the results here")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(message)s")
 
     torch.set_num_threads(args.threads)
+    device = str(require_device(args.device))
     if args.weights is not None:
         loaded = load_checkpoint(args.weights)
         model, config = loaded.model, loaded.config
@@ -136,6 +145,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         torch.manual_seed(0)
         model = build_model(config)
     model.eval()
+    gpu = f", GPU {torch.cuda.get_device_name(device)}" if device.startswith("cuda") else ""
 
     params = sum(p.numel() for p in model.parameters())
     flops = count_flops(model)
@@ -146,14 +156,15 @@ def main(argv: Sequence[str] | None = None) -> int:
           f"{config.backbone_channels}, ConvLSTM {config.lstm_hidden} at "
           f"{config.feature_size}x{config.feature_size}, norm {config.norm}, temporal input "
           f"{'on' if config.temporal_input else 'off'}")
-    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, load average "
-          f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f} on {os.cpu_count()} CPUs")
+    print(f"torch {torch.__version__}, device {device}{gpu}, threads {torch.get_num_threads()}, "
+          f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} on {os.cpu_count()} CPUs")
     print(f"parameters: {params:,}  FLOPs per track-step: {flops / 1e6:.1f} M  "
           f"checkpoint: {size_bytes / 1e6:.2f} MB")
     print(f"{'tracks':>6} {'mean ms':>9} {'p95 ms':>9} {'min ms':>9} {'ms/track':>9}  round means")
     rows = []
     for n in args.tracks:
-        row = time_steps(model, n, max(args.reps, 1), args.warmup, max(args.rounds, 1))
+        row = time_steps(model.to(device), n, max(args.reps, 1), args.warmup,
+                         max(args.rounds, 1), device=device)
         rows.append(row)
         rounds = " ".join(f"{m:.1f}" for m in row["round_means_ms"])
         print(f"{n:>6} {row['mean_ms']:>9.2f} {row['p95_ms']:>9.2f} {row['min_ms']:>9.2f} "
@@ -170,7 +181,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             verdict = 0 if ok else 1
     if args.json:
         args.json.write_text(json.dumps({
-            "config": config.to_dict(), "threads": args.threads, "parameters": params,
+            "config": config.to_dict(), "threads": args.threads, "device": device + gpu,
+            "parameters": params,
             "flops_per_track_step": flops, "checkpoint_bytes": size_bytes,
             "load_average": list(load), "steps": rows}, indent=2))
     return verdict

@@ -119,6 +119,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--width", type=int, default=1280)
     parser.add_argument("--height", type=int, default=720)
+    parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda, cuda:1)")
     parser.add_argument("--json", type=Path, help="also write the results here")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(message)s")
@@ -128,7 +129,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     model, source = load_model(args.weights)
     config = model.config
-    print(f"model: {source}; input {config.input_size}px, ConvLSTM {config.lstm_hidden}")
+    gpu = f" ({torch.cuda.get_device_name(args.device)})" if args.device.startswith("cuda") \
+        and torch.cuda.is_available() else ""
+    print(f"model: {source}; input {config.input_size}px, ConvLSTM {config.lstm_hidden}; "
+          f"device {args.device}{gpu}")
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, OMP_WAIT_POLICY "
           f"{os.environ.get('OMP_WAIT_POLICY')}, "
           f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}; frames "
@@ -140,7 +144,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for n in args.tracks:
             bag = write_bench_bag(Path(tmp) / f"bench{n}", frames, n, args.width, args.height)
-            engine = LightStateEngine(model, EngineConfig())
+            engine = LightStateEngine(model, EngineConfig(device=args.device))
             start = time.perf_counter()
             summary = replay_bag(bag, Path(tmp) / f"out{n}", engine, progress=False)
             wall = time.perf_counter() - start
@@ -164,6 +168,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                   f"100 ms target (engine only; end-to-end node latency is measured separately)")
     if args.json:
         args.json.write_text(json.dumps({"model": source, "threads": args.threads,
+                                         "device": args.device + gpu,
                                          "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
                                          "width": args.width, "height": args.height,
                                          "runs": rows}, indent=2))
