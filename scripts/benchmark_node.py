@@ -13,11 +13,13 @@ Usage::
     python scripts/benchmark_node.py                          # shipped weights, 32 tracks, 10 Hz
     python scripts/benchmark_node.py --untrained              # same network, random weights
     python scripts/benchmark_node.py --transport raw --tracks 64 --seconds 30
+    python scripts/benchmark_node.py --busy-cores 1           # idle, then one core kept busy
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import random
@@ -27,7 +29,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Dict, List, Tuple
+from typing import Dict, Iterator, List, Optional, Tuple
 
 import numpy as np
 import rclpy
@@ -59,6 +61,9 @@ def parse_args(argv: List[str]) -> argparse.Namespace:
                    help="use the default network with random weights (same cost as trained)")
     p.add_argument("--num-threads", type=int, default=0, help="the node's num_threads")
     p.add_argument("--work-queue", type=int, default=2, help="the node's work_queue_size")
+    p.add_argument("--busy-cores", type=int, default=0, metavar="N",
+                   help="run a second time with N other processes keeping one core busy each, "
+                        "and print idle and shared figures side by side")
     p.add_argument("--json", help="also write the figures to this JSON file")
     return p.parse_args(argv)
 
@@ -118,39 +123,79 @@ def main(argv: List[str]) -> int:
         model = model_path(args, Path(tmp))
         print(f"rendering {args.width}x{args.height} frames ({args.transport}) ...", flush=True)
         payloads, layout = make_frames(args)
-        image_type = COMPRESSED_TYPE if args.transport == "compressed" else IMAGE_TYPE
-        node_args = ["detector", "--ros-args", "-p", f"image_transport:={args.transport}",
-                     "-p", "reliability:=reliable", "-p", f"num_threads:={args.num_threads}",
-                     "-p", f"work_queue_size:={args.work_queue}"]
-        if model:
-            node_args += ["-p", f"model_path:={model}"]
-        log = Path(tmp) / "detector.log"
-        proc = subprocess.Popen(node_args, cwd=REPO, stdout=open(log, "w"),
-                                stderr=subprocess.STDOUT)
-        try:
-            deadline = time.monotonic() + 120
-            while "ready:" not in log.read_text():
-                if proc.poll() is not None or time.monotonic() > deadline:
-                    print(log.read_text(), file=sys.stderr)
-                    return 1
-                time.sleep(0.1)
-            figures = run_client(args, payloads, layout, image_type)
-        finally:
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-                try:
-                    proc.wait(20)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-    figures.update(transport=args.transport, width=args.width, height=args.height,
-                   tracks=args.tracks, rate_hz=args.rate,
-                   model=("untrained default network" if args.untrained and not args.model
-                          else model or "shipped weights"),
-                   cpus=os.cpu_count(), load_avg_1m=os.getloadavg()[0])
+        figures = run_node(args, model, payloads, layout, Path(tmp) / "idle.log")
+        if figures is None:
+            return 1
+        shared = None
+        if args.busy_cores > 0:
+            with busy_cores(args.busy_cores):
+                shared = run_node(args, model, payloads, layout, Path(tmp) / "shared.log")
+            if shared is None:
+                return 1
+    for f in (figures, shared):
+        if f is not None:
+            f.update(transport=args.transport, width=args.width, height=args.height,
+                     tracks=args.tracks, rate_hz=args.rate,
+                     model=("untrained default network" if args.untrained and not args.model
+                            else model or "shipped weights"),
+                     cpus=os.cpu_count())
     print_figures(figures)
+    if shared is not None:
+        print(f"with {args.busy_cores} core(s) kept busy by another process:")
+        print_figures(shared)
+        print_comparison(figures, shared)
     if args.json:
-        Path(args.json).write_text(json.dumps(figures, indent=2))
+        out = figures if shared is None else {"idle": figures, "shared": shared,
+                                              "busy_cores": args.busy_cores}
+        Path(args.json).write_text(json.dumps(out, indent=2))
     return 0
+
+
+def run_node(args: argparse.Namespace, model: str, payloads: List[dict], layout: List[dict],
+             log: Path) -> Optional[Dict[str, object]]:
+    """Start ``detector``, play the frames at it, stop it; the figures, or None if it failed."""
+    image_type = COMPRESSED_TYPE if args.transport == "compressed" else IMAGE_TYPE
+    node_args = ["detector", "--ros-args", "-p", f"image_transport:={args.transport}",
+                 "-p", "reliability:=reliable", "-p", f"num_threads:={args.num_threads}",
+                 "-p", f"work_queue_size:={args.work_queue}"]
+    if model:
+        node_args += ["-p", f"model_path:={model}"]
+    proc = subprocess.Popen(node_args, cwd=REPO, stdout=open(log, "w"), stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 120
+        while "ready:" not in log.read_text():
+            if proc.poll() is not None or time.monotonic() > deadline:
+                print(log.read_text(), file=sys.stderr)
+                return None
+            time.sleep(0.1)
+        figures = run_client(args, payloads, layout, image_type)
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+    figures["load_avg_1m"] = os.getloadavg()[0]
+    return figures
+
+
+@contextlib.contextmanager
+def busy_cores(n: int) -> Iterator[None]:
+    """``n`` processes that each keep one core busy while the block runs.
+
+    Each burner runs in its own session, as another program on the car computer would
+    (Linux's autogroup scheduler shares the CPU between sessions, not threads).
+    """
+    burners = [subprocess.Popen([sys.executable, "-c", "while True: pass"],
+                                start_new_session=True) for _ in range(n)]
+    time.sleep(1.0)  # let the scheduler see them
+    try:
+        yield
+    finally:
+        for proc in burners:
+            proc.kill()
+            proc.wait()
 
 
 def subscribe_outputs(node, on_output, diagnostics: Dict[str, str]) -> None:
@@ -253,6 +298,19 @@ def run_client(args: argparse.Namespace, payloads: List[dict], layout: List[dict
             "dropped_work_queue", "dropped_image_timeout", "dropped_detections_timeout",
             "active_tracks")},
     }
+
+
+def print_comparison(idle: Dict[str, object], shared: Dict[str, object]) -> None:
+    """Idle against shared: the share of frames answered and the p95 ratio, with the targets."""
+    answered = [f["outputs"] / max(f["frames"], 1) for f in (idle, shared)]
+    ratio = shared["latency_p95_ms"] / idle["latency_p95_ms"]
+    print(f"{'':>22} {'idle':>9} {'shared':>9}")
+    print(f"{'answered':>22} {answered[0]:>9.1%} {answered[1]:>9.1%}")
+    for key in ("latency_mean_ms", "latency_p50_ms", "latency_p95_ms", "output_rate_hz"):
+        print(f"{key:>22} {idle[key]:>9.1f} {shared[key]:>9.1f}")
+    ok = answered[1] >= 0.9 and ratio <= 2.0
+    print(f"shared: {answered[1]:.1%} answered, p95 {ratio:.2f}x idle -> "
+          f"{'meets' if ok else 'MISSES'} the >= 90 % answered / <= 2x p95 target")
 
 
 def print_figures(f: Dict[str, object]) -> None:
