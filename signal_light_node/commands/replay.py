@@ -5,11 +5,12 @@ from __future__ import annotations
 import argparse
 import logging
 from pathlib import Path
-from typing import Any, Dict
+from typing import Dict
 
 from signal_light_node.commands.options import (add_intent_filter_options, add_torch_options,
                                                 intent_filter_from_args)
 from signal_light_node.errors import ConfigError
+from signal_light_node.runtime.pairing import PairingConfig
 
 LOG = logging.getLogger(__name__)
 
@@ -56,8 +57,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _add_output_and_pairing_options(parser: argparse.ArgumentParser) -> None:
-    from signal_light_node.runtime.pairing import PairingConfig
-
     default = PairingConfig()
     parser.add_argument("--markers", action="store_true",
                         help="also write the results drawn for RViz (visualization_msgs/"
@@ -70,9 +69,12 @@ def _add_output_and_pairing_options(parser: argparse.ArgumentParser) -> None:
                              f"sync_timeout_s (default {default.timeout_s:g})")
 
 
-def _pairing(args: argparse.Namespace) -> "Any":
-    from signal_light_node.runtime.pairing import PairingConfig
+def _pairing(args: argparse.Namespace) -> PairingConfig:
+    """The pairing of ``--sync-slop`` / ``--sync-timeout``.
 
+    Raises:
+        ConfigError: A negative slop, a non-positive timeout or a timeout within the slop.
+    """
     return PairingConfig(slop_s=args.sync_slop, timeout_s=args.sync_timeout)
 
 
