@@ -22,6 +22,7 @@ RAW_TYPE = "sensor_msgs/msg/Image"
 DETECTIONS_TYPE = "vision_msgs/msg/Detection2DArray"
 OUTPUT_TOPIC = "/signal_light_detector/output/vehicle_lights"
 DEBUG_TOPIC = "/signal_light_detector/output/debug/image"
+MARKERS_TOPIC = "/signal_light_detector/output/markers"
 
 
 def tiny_checkpoint(path: Path) -> Path:
@@ -187,6 +188,7 @@ class LiveClient:
     outputs: Dict[int, List[object]] = field(default_factory=lambda: defaultdict(list))
     diagnostics: List[object] = field(default_factory=list)
     debug_images: List[object] = field(default_factory=list)
+    markers: Dict[int, List[object]] = field(default_factory=lambda: defaultdict(list))
 
     def __enter__(self) -> "LiveClient":
         import rclpy
@@ -219,6 +221,12 @@ class LiveClient:
             on_output, qos("reliable", 100))
         self.node.create_subscription(message_class(RAW_TYPE), DEBUG_TOPIC,
                                       self.debug_images.append, qos("reliable", 100))
+
+        def on_markers(msg: object) -> None:  # every array begins with a DELETEALL marker
+            self.markers[stamp_to_ns(msg.markers[0].header.stamp)].append(msg)
+
+        self.node.create_subscription(message_class("visualization_msgs/msg/MarkerArray"),
+                                      MARKERS_TOPIC, on_markers, qos("reliable", 100))
         self.node.create_subscription(message_class("diagnostic_msgs/msg/DiagnosticArray"),
                                       "/diagnostics", self.diagnostics.append,
                                       qos("reliable", 100))

@@ -387,14 +387,14 @@ def test_engine_from_checkpoint_loads_config_and_overrides(tmp_path):
 
     net = _tiny_net()
     path = save_checkpoint(tmp_path / "tiny.pt", net, net.config)
-    engine = engine_from_checkpoint(path, thresholds={"brake": 0.8}, crop_margin=0.25,
-                                    max_tracks=7)
-    assert engine.crop == CropConfig(size=24, margin=0.25)
+    engine = engine_from_checkpoint(path, thresholds={"brake": 0.8}, max_tracks=7)
+    # The crop margin is the checkpoint's: the one the model was trained with.
+    assert engine.crop == CropConfig(size=24, margin=net.config.crop_margin)
     assert engine.config.thresholds[100] == 0.8 and engine.bank.capacity == 7
     image = np.full((H, W, 3), 90, dtype=np.uint8)
     got = engine.process(image, 0, [_box("a")]).results[0]
-    want = LightStateEngine(net, EngineConfig(crop=CropConfig(24, 0.25))).process(
-        image, 0, [_box("a")]).results[0]
+    want = LightStateEngine(net, EngineConfig()).process(image, 0, [_box("a")]).results[0]
     assert got.brake.on == pytest.approx(want.brake.on, abs=1e-6)
-    with pytest.raises(ConfigError, match="unknown engine option"):
-        engine_from_checkpoint(path, colour="red")
+    for bad in ({"colour": "red"}, {"crop_margin": 0.25}):
+        with pytest.raises(ConfigError, match="unknown engine option"):
+            engine_from_checkpoint(path, **bad)

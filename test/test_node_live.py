@@ -16,8 +16,9 @@ import numpy as np
 import pytest
 import yaml
 
-from node_harness import (COMPRESSED_TYPE, DEBUG_TOPIC, RAW_TYPE, REPO, DetectorProcess,
-                          LiveClient, load_frames, model_args, run_until_exit, scene_bag)
+from node_harness import (COMPRESSED_TYPE, DEBUG_TOPIC, MARKERS_TOPIC, RAW_TYPE, REPO,
+                          DetectorProcess, LiveClient, load_frames, model_args, run_until_exit,
+                          scene_bag)
 from signal_light_node.ros.params import NODE_NAME
 
 rclpy = pytest.importorskip("rclpy")
@@ -205,6 +206,64 @@ def test_raw_images_with_an_edited_params_file(tmp_path, rclpy_isolated_env):
               expect_params={"sync_timeout_s": 2.5, "max_tracks": 77, "threshold_brake": 0.6,
                              "image_transport": "raw", "publish_debug_image": True},
               debug_image=True)
+
+
+def test_markers_one_array_per_answered_frame(tmp_path, rclpy_isolated_env):
+    """``publish_markers: true``: each answered frame gives one MarkerArray on
+    ~/output/markers, a DELETEALL and then per vehicle its box and ID text in the image's
+    frame, blinker arrows and brake bars exactly where the result says ON."""
+    from signal_light_node.io.conversions import stamp_to_ns, vehicle_light_array_to_results
+    from signal_light_node.outputs.markers import DELETEALL, is_unknown, marker_label
+
+    bag = scene_bag(tmp_path, raw=False)
+    image_type, frames = load_frames(bag, 12)
+    args, _ = model_args(tmp_path)
+    env = rclpy_isolated_env()
+    node = DetectorProcess(["-p", "publish_markers:=true", "-p", "image_transport:=compressed",
+                            *args, *_RELIABLE], env, tmp_path / "detector.log")
+    try:
+        node.wait_ready()
+        assert "/signal_light_detector/output/markers" in node.text()
+        with LiveClient(_domain(env), image_type) as client:
+            client.wait_connected()
+            assert client.spin_until(lambda: client.node.count_publishers(MARKERS_TOPIC) > 0,
+                                     20.0)
+            # Markers are built only while someone listens: warm up until they come.
+            for k in range(30):
+                client.warm_up(frames[0].stamp_ns - k * 10_000_000_000, frames[0].frame_id)
+                if client.spin_until(lambda: len(client.markers) > 0, 1.0):
+                    break
+            assert client.markers, "no MarkerArray for any warm-up frame"
+            client.feed(frames)
+            assert client.spin_until(
+                lambda: all(f.stamp_ns in client.markers for f in frames), 20.0), \
+                f"markers for {sum(f.stamp_ns in client.markers for f in frames)} of " \
+                f"{len(frames)} frames"
+            drawn = 0
+            for frame in frames:
+                arrays = client.markers[frame.stamp_ns]
+                assert len(arrays) == 1, f"{len(arrays)} MarkerArrays for one frame"
+                markers = arrays[0].markers
+                assert markers[0].action == DELETEALL
+                for m in markers:
+                    assert m.header.frame_id == frame.frame_id
+                    assert stamp_to_ns(m.header.stamp) == frame.stamp_ns
+                _, results = vehicle_light_array_to_results(client.outputs[frame.stamp_ns][0])
+                visible = [r for r in results if r.roi[2] > 0 and r.roi[3] > 0]
+                by_ns = lambda ns: [m for m in markers if m.ns == ns]  # noqa: E731
+                assert [m.text for m in by_ns("track_id")] == [marker_label(r) for r in visible]
+                assert len(by_ns("box")) == len(visible)
+                assert len(by_ns("blinker")) == sum(
+                    (r.left.state == 1) + (r.right.state == 1) for r in visible
+                    if not is_unknown(r))
+                assert len(by_ns("brake")) == sum(r.brake.state == 1 for r in visible
+                                                  if not is_unknown(r))
+                drawn += len(visible)
+            assert drawn > 0, "no vehicle was drawn"
+        assert node.stop() == 0, node.text()
+        assert "Traceback" not in node.text()
+    finally:
+        node.stop()
 
 
 @pytest.mark.parametrize("content", [None, b"not a torch checkpoint"],

@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.runtime.pairing import COUNTERS, StampPairer
+from signal_light_node.runtime.pairing import (COUNTERS, DETECTIONS, IMAGE, OrderedPairing,
+                                            PairingConfig, StampPairer, pair_in_order)
 
 MS = 1_000_000
 
@@ -110,3 +111,92 @@ def test_reconfigure_and_bad_arguments():
         p.configure(slop_ns=-1, timeout_ns=10)
     with pytest.raises(ConfigError):
         StampPairer(max_images=0)
+
+
+# ------------------------------------------------- drops reported, offline (bag) pairing
+
+
+def test_every_drop_is_reported_with_its_item_and_reason():
+    drops = []
+    p = StampPairer(timeout_ns=10, max_images=2, on_drop=lambda *d: drops.append(d))
+    p.add_image(1, "a", now_ns=0)
+    p.add_image(1, "a2", now_ns=1)           # duplicate stamp: "a" goes
+    p.add_image(2, "b", now_ns=2)
+    p.add_image(3, "c", now_ns=3)            # overflow: "a2" goes
+    p.add_detections(9, "d", now_ns=30)      # expires "b" and "c" first
+    assert drops == [("image", 1, "a", "duplicate"), ("image", 1, "a2", "overflow"),
+                     ("image", 2, "b", "timeout"), ("image", 3, "c", "timeout")]
+    assert p.flush() == 1 and drops[-1] == ("detections", 9, "d", "timeout")
+    assert p.pending == (0, 0) and p.counters["dropped_detections_timeout"] == 1
+
+
+def test_pairing_config_validates_and_builds_the_pairer():
+    config = PairingConfig(slop_s=0.02, timeout_s=0.5, max_images=3, max_detections=4)
+    p = config.pairer()
+    assert (p.slop_ns, p.timeout_ns) == (20 * MS, 500 * MS)
+    assert config.describe() == "stamps within 0.02 s"
+    assert PairingConfig().describe() == "exact stamps"
+    for bad in (dict(slop_s=-0.1), dict(timeout_s=0), dict(slop_s=0.5, timeout_s=0.4),
+                dict(slop_s=float("nan")), dict(timeout_s="1")):
+        with pytest.raises(ConfigError):
+            PairingConfig(**bad)
+
+
+def _run(events, config=PairingConfig()):
+    pairing = OrderedPairing(config)
+    out = list(pair_in_order(events, pairing))
+    return [(f.image, f.detections) for f in out], pairing
+
+
+def test_ordered_pairing_releases_every_image_once_in_arrival_order():
+    events = [
+        (IMAGE, 100 * MS, "i1", 0),
+        (IMAGE, 200 * MS, "i2", 100 * MS),          # its detections never come
+        (DETECTIONS, 100 * MS, "d1", 105 * MS),     # after its image
+        (DETECTIONS, 300 * MS, "d3", 290 * MS),     # before its image
+        (IMAGE, 300 * MS, "i3", 300 * MS),
+        (DETECTIONS, 999 * MS, "lonely", 310 * MS),
+        (IMAGE, 400 * MS, "i4", 1500 * MS),         # i2 and the lonely one time out first
+    ]
+    got, pairing = _run(events)
+    assert got == [("i1", "d1"), ("i2", None), ("i3", "d3"), ("i4", None)]
+    c = pairing.counters
+    assert (c["images"], c["detections"], c["paired"]) == (4, 3, 2)
+    assert c["dropped_image_timeout"] == 2  # i2 by the timeout, i4 at the end
+    assert pairing.unpaired_detections == 1
+
+
+def test_ordered_pairing_holds_later_images_until_an_earlier_one_is_decided():
+    pairing = OrderedPairing()
+    assert pairing.add_image(1, "a", 0) == []
+    assert pairing.add_image(2, "b", 1) == []
+    assert pairing.add_detections(2, "db", 2) == []    # b is paired, a still waits
+    released = pairing.add_detections(1, "da", 3)
+    assert [(f.image, f.detections, f.paired) for f in released] == \
+        [("a", "da", True), ("b", "db", True)]
+    assert pairing.finish() == []
+
+
+def test_ordered_pairing_with_slop_is_the_node_pairers_greedy_choice():
+    # Jittered detection stamps: exact pairing drops them, a slop pairs them, and in the
+    # same way as a StampPairer fed the same stream (nearest waiting partner on arrival).
+    events = []
+    for i in range(30):
+        stamp = i * 100 * MS
+        jitter = (i % 5 - 2) * 3 * MS
+        events += [(IMAGE, stamp, f"i{i}", stamp + 10 * MS),
+                   (DETECTIONS, stamp + jitter, f"d{i}", stamp + (5 if i % 2 else 15) * MS)]
+    events.sort(key=lambda e: e[3])
+    exact, _ = _run(events)
+    assert [d for _, d in exact] == [f"d{i}" if i % 5 == 2 else None for i in range(30)]
+    config = PairingConfig(slop_s=0.01)
+    slop, pairing = _run(events, config)
+    reference, pairs = config.pairer(), {}
+    for kind, stamp, item, now in events:
+        pair = (reference.add_image if kind == IMAGE else reference.add_detections)(
+            stamp, item, now)
+        if pair is not None:
+            pairs[pair.image] = pair.detections
+    assert slop == [(f"i{i}", pairs.get(f"i{i}")) for i in range(30)]
+    assert all(d == f"d{i}" for i, (_, d) in enumerate(slop))
+    assert pairing.counters == {**reference.counters}

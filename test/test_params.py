@@ -147,14 +147,50 @@ def test_bad_values_on_a_real_node_become_config_errors(args, words):
         rclpy.try_shutdown(context=context)
 
 
-def test_node_defaults_equal_the_engine_and_crop_defaults():
+def test_node_defaults_equal_the_engine_and_pairing_defaults():
     # The live node and `signal-light replay` must behave alike out of the box.
-    from signal_light_node.runtime.crops import CropConfig
     from signal_light_node.runtime.engine import EngineConfig
+    from signal_light_node.runtime.pairing import PairingConfig
 
-    engine, params = EngineConfig(), DetectorParams()
+    engine, params, pairing = EngineConfig(), DetectorParams(), PairingConfig()
     assert params.thresholds == dict(engine.thresholds)
     assert (params.track_timeout_s, params.max_tracks, params.max_gap_s, params.device) == (
         engine.track_timeout_s, engine.max_tracks, engine.max_gap_s, engine.device)
-    assert params.crop_margin == CropConfig().margin
     assert params.intent_filter_config == engine.intent_filter
+    assert (params.sync_slop_s, params.sync_timeout_s, params.image_queue_size,
+            params.detection_queue_size) == (pairing.slop_s, pairing.timeout_s,
+                                             pairing.max_images, pairing.max_detections)
+
+
+def test_crop_margin_is_retired_an_old_value_is_warned_about_and_ignored(caplog):
+    # The crop margin is the checkpoint's; an old params file that still sets it must load.
+    assert "crop_margin" not in PARAM_SPECS
+    old = dict(_yaml_params(), crop_margin=0.3)
+    with caplog.at_level("WARNING"):
+        assert validate_params(old) == DetectorParams()
+    assert "crop_margin (0.3) is no longer used and is ignored" in caplog.text
+    assert "checkpoint" in caplog.text
+
+
+def test_crop_margin_on_a_real_node_is_one_warning_not_an_error(tmp_path):
+    rclpy = pytest.importorskip("rclpy")
+    from signal_light_node.ros.params import read_parameters
+
+    old = yaml.safe_load(YAML.read_text())
+    old[NODE_NAME]["ros__parameters"]["crop_margin"] = 0.25
+    path = tmp_path / "old.yaml"
+    path.write_text(yaml.safe_dump(old))
+    context = rclpy.Context()
+    rclpy.init(context=context, args=["--ros-args", "--params-file", str(path)])
+    try:
+        node = rclpy.create_node(NODE_NAME, context=context)
+        warnings = []
+        node.get_logger = lambda: type("L", (), {"warning": staticmethod(warnings.append)})()
+        try:
+            assert read_parameters(node) == DetectorParams()
+            assert len(warnings) == 1 and "crop_margin (0.25)" in warnings[0]
+            assert not node.has_parameter("crop_margin")
+        finally:
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)

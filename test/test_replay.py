@@ -30,6 +30,7 @@ from signal_light_node.labels import LIGHT_CODES, Intent, LightStatus, View
 from signal_light_node.tools.metrics import macro_f1
 from signal_light_node.tools.replay import (GROUND_TRUTH_TOPIC, OUTPUT_TOPIC, replay_bag,
                                       score_summary)
+from signal_light_node.runtime.crops import CropConfig
 from signal_light_node.runtime.results import LightEstimate, VehicleResult
 
 REPO = Path(__file__).resolve().parents[1]
@@ -346,6 +347,152 @@ def test_rendered_scene_bag_end_to_end(tmp_path):
     summary = replay_bag(bag, tmp_path / "out", _tiny_engine(), progress=False)
     assert summary.has_ground_truth and summary.tracks
     assert _check_structure(bag, tmp_path / "out", summary.image_topic, DETECTIONS_TOPIC) == 12
+
+
+# ------------------------------------------------- pairing with a slop, markers
+
+N_JITTER = 24
+SLOP_S = 0.01
+
+
+def _jitter_ms(t: int) -> int:
+    """Detection stamp minus image stamp of frame t: 0 on every third frame, a few ms on
+    the others, and 40 ms (beyond the slop) on frame 7."""
+    return 40 if t == 7 else (0 if t % 3 == 0 else (-1) ** t * (2 + t % 5))
+
+
+def _write_jittered_bag(path: Path) -> Path:
+    """A tracker that stamps its detections with its own clock: a few ms off the image.
+
+    Each detection message holds one box with track ID ``d<t>``, so an output tells which
+    message was paired with its image; the log times interleave both ways.
+    """
+    rng = np.random.default_rng(1)
+    with bagio.BagWriter(path) as bag:
+        bag.add_topic(IMAGE_T, "sensor_msgs/msg/CompressedImage")
+        bag.add_topic(DET_T, "vision_msgs/msg/Detection2DArray")
+        bag.add_topic(GROUND_TRUTH_TOPIC, "signal_light_msgs/msg/VehicleLightStateArray")
+        for t in range(N_JITTER):
+            stamp = T0 + t * 100 * MS
+            header = make_header(stamp, "camera", bagio.make)
+            image = rng.integers(0, 256, size=(H, W, 3), dtype=np.uint8)
+            bag.write(IMAGE_T, stamp + 10 * MS, bagio.make(
+                "sensor_msgs/msg/CompressedImage", header=header,
+                **bgr_to_compressed_fields(image, "png")))
+            det_header = make_header(stamp + _jitter_ms(t) * MS, "camera", bagio.make)
+            box = TrackBox(f"d{t}", 20 + t, 20, 70 + t, 60)
+            bag.write(DET_T, stamp + (4 if t % 2 else 30) * MS,
+                      boxes_to_detections(det_header, [box], bagio.make))
+            truth = VehicleResult(track_id=f"d{t}", roi=(0, 0, 1, 1),
+                                  brake=LightEstimate.certain(LightStatus.OFF),
+                                  left=LightEstimate.certain(LightStatus.OFF),
+                                  right=LightEstimate.certain(LightStatus.OFF),
+                                  intent=Intent.OFF, intent_probability=1.0,
+                                  view=View.BEHIND, view_probability=1.0)
+            bag.write(GROUND_TRUTH_TOPIC, stamp + 10 * MS,
+                      vehicle_light_array(header, [truth], bagio.make))
+    return path
+
+
+def _node_pairs(bag_path: Path, config) -> Dict[int, List[str]]:
+    """What a node's StampPairer pairs, fed the bag in log-time order (log time = receive
+    time): image stamp -> track IDs of the paired detections."""
+    pairer, pairs = config.pairer(), {}
+    with bagio.open_bag(bag_path) as bag:
+        for m in bag.messages([IMAGE_T, DET_T]):
+            stamp = stamp_to_ns(m.msg.header.stamp)
+            add = pairer.add_image if m.topic == IMAGE_T else pairer.add_detections
+            pair = add(stamp, m.msg, m.log_time_ns)
+            if pair is not None:
+                pairs[pair.stamp_ns] = [str(d.id) for d in pair.detections.detections]
+    return pairs
+
+
+def _output_ids(path: Path) -> Dict[int, List[str]]:
+    return {stamp_to_ns(m.msg.header.stamp): [v.track_id for v in m.msg.vehicles]
+            for m in _read(path)[OUTPUT_TOPIC]}
+
+
+def test_sync_slop_pairs_jittered_detections_as_the_node_pairer_does(tmp_path):
+    from signal_light_node.runtime.pairing import PairingConfig
+    from signal_light_node.training.sources import load_bag_tracks
+
+    bag = _write_jittered_bag(tmp_path / "jitter")
+    stamps = [T0 + t * 100 * MS for t in range(N_JITTER)]
+    jittered = [t for t in range(N_JITTER) if _jitter_ms(t) != 0]
+    config = PairingConfig(slop_s=SLOP_S)
+    node = _node_pairs(bag, config)
+    summary = replay_bag(bag, tmp_path / "slop", _tiny_engine(), pairing=config, progress=False)
+    got = _output_ids(tmp_path / "slop")
+    assert sorted(got) == stamps
+    for stamp in stamps:  # frame by frame: the node's pairs, an empty array where it has none
+        assert got[stamp] == node.get(stamp, []), stamp
+    assert got[stamps[7]] == [] and all(got[stamps[t]] == [f"d{t}"]
+                                        for t in range(N_JITTER) if t != 7)
+    assert summary.images_without_detections == summary.detections_without_image == 1
+    assert summary.pairing_counters["paired"] == N_JITTER - 1
+    # The CLI's --sync-slop gives the same output.
+    net = _tiny_engine().model
+    ckpt = tmp_path / "tiny.pt"
+    from signal_light_node.model import save_checkpoint
+
+    save_checkpoint(ckpt, net, net.config)
+    assert main(["replay", str(bag), "-o", str(tmp_path / "cli"), "--checkpoint", str(ckpt),
+                 "--no-progress", "--sync-slop", str(SLOP_S)]) == 0
+    assert _output_ids(tmp_path / "cli") == got
+
+    # Without a slop the jittered frames stay unpaired and are counted, as before.
+    exact = replay_bag(bag, tmp_path / "exact", _tiny_engine(), progress=False)
+    got = _output_ids(tmp_path / "exact")
+    assert got == {s: ([f"d{t}"] if t not in jittered else []) for t, s in enumerate(stamps)}
+    assert got == {s: _node_pairs(bag, PairingConfig()).get(s, []) for s in stamps}
+    assert exact.images == exact.outputs == N_JITTER
+    assert exact.images_without_detections == exact.detections_without_image == len(jittered)
+
+    # The training data of labelled bags pairs the same way.
+    frames = lambda tracks: sorted(int(s) for t in tracks for s in t.stamps_ns)  # noqa: E731
+    assert frames(load_bag_tracks(bag, CropConfig(size=24))) == \
+        [s for t, s in enumerate(stamps) if t not in jittered]
+    assert frames(load_bag_tracks(bag, CropConfig(size=24), pairing=config)) == \
+        [s for t, s in enumerate(stamps) if t != 7]
+
+
+def test_bad_sync_options_are_one_line_errors(small_bag, tmp_path, capsys):
+    for bad in (["--sync-slop", "-1"], ["--sync-slop", "0.5", "--sync-timeout", "0.2"]):
+        assert main(["replay", str(small_bag), "-o", str(tmp_path / "o"), "--no-progress",
+                     *bad]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "pairing" in err[0], err
+
+
+def test_markers_are_written_beside_the_results(small_bag, tmp_path):
+    from signal_light_node.io.topics import MARKERS_TOPIC
+    from signal_light_node.outputs.markers import DELETEALL
+
+    summary = replay_bag(small_bag, tmp_path / "out", _tiny_engine(), markers=True,
+                         progress=False)
+    assert summary.topics_written == [OUTPUT_TOPIC, MARKERS_TOPIC]
+    out = _read(tmp_path / "out")
+    results, markers = out[OUTPUT_TOPIC], out[MARKERS_TOPIC]
+    assert len(markers) == len(results) == N_FRAMES
+    for res, mark in zip(results, markers):
+        assert mark.log_time_ns == res.log_time_ns
+        first, rest = mark.msg.markers[0], mark.msg.markers[1:]
+        assert first.action == DELETEALL
+        drawn = [v for v in res.msg.vehicles if v.roi.width > 0 and v.roi.height > 0]
+        boxes = [m for m in rest if m.ns == "box"]
+        texts = [m.text for m in rest if m.ns == "track_id"]
+        assert len(boxes) == len(drawn)
+        assert [t.split(" ")[0] for t in texts] == [v.track_id for v in drawn]
+        for m in mark.msg.markers:
+            assert m.header.frame_id == "camera"
+            assert stamp_to_ns(m.header.stamp) == stamp_to_ns(res.msg.header.stamp)
+    # Frame 2's third box lies outside the image: it has an entry but nothing to draw.
+    assert len(results[2].msg.vehicles) == 3
+    assert len([m for m in markers[2].msg.markers if m.ns == "box"]) == 2
+    # Without the option: the result topic only.
+    assert replay_bag(small_bag, tmp_path / "plain", _tiny_engine(),
+                      progress=False).topics_written == [OUTPUT_TOPIC]
 
 
 # ------------------------------------------------------------------ committed bags

@@ -10,6 +10,7 @@ from typing import Dict
 from signal_light_node.commands.options import (add_intent_filter_options, add_torch_options,
                                                 intent_filter_from_args)
 from signal_light_node.errors import ConfigError
+from signal_light_node.runtime.pairing import PairingConfig
 
 LOG = logging.getLogger(__name__)
 
@@ -49,9 +50,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "codes, e.g. brake=0.6 or 101=0.4 (repeatable; default 0.5)")
     parser.add_argument("--track-timeout", type=float, default=1.0, metavar="S",
                         help="seconds a track may stay unseen before its state is dropped")
+    _add_output_and_pairing_options(parser)
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output")
     add_intent_filter_options(parser.add_argument_group("intent filter (as the node's)"))
     add_torch_options(parser)
+
+
+def _add_output_and_pairing_options(parser: argparse.ArgumentParser) -> None:
+    default = PairingConfig()
+    parser.add_argument("--markers", action="store_true",
+                        help="also write the results drawn for RViz (visualization_msgs/"
+                             "MarkerArray) on the node's ~/output/markers topic")
+    parser.add_argument("--sync-slop", type=float, default=default.slop_s, metavar="S",
+                        help="pair images and detections whose stamps are at most S seconds "
+                             "apart, as the node with sync_slop_s: S (default: exact stamps)")
+    parser.add_argument("--sync-timeout", type=float, default=default.timeout_s, metavar="S",
+                        help="log-time seconds a message waits for its partner, as the node's "
+                             f"sync_timeout_s (default {default.timeout_s:g})")
+
+
+def _pairing(args: argparse.Namespace) -> PairingConfig:
+    """The pairing of ``--sync-slop`` / ``--sync-timeout``.
+
+    Raises:
+        ConfigError: A negative slop, a non-positive timeout or a timeout within the slop.
+    """
+    return PairingConfig(slop_s=args.sync_slop, timeout_s=args.sync_timeout)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -68,13 +92,15 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError(f"--threads must be >= 1, got {args.threads}")
         torch.set_num_threads(args.threads)
     thresholds: Dict[str, float] = dict(args.threshold)
+    pairing = _pairing(args)  # before loading the model: a bad option is the quicker error
     engine = engine_from_checkpoint(args.checkpoint, device=args.device, thresholds=thresholds,
                                     track_timeout_s=args.track_timeout,
                                     intent_filter=intent_filter_from_args(args))
     summary = replay_bag(args.bag, args.output, engine, image_topic=args.image_topic,
                          detections_topic=args.detections_topic, with_inputs=args.with_inputs,
                          video=args.video, video_attention=args.attention,
-                         overwrite=args.overwrite, progress=not args.no_progress)
+                         overwrite=args.overwrite, progress=not args.no_progress,
+                         pairing=pairing, markers=args.markers)
     print(summary.text())
     if summary.has_ground_truth:
         result = score_summary(summary)

@@ -29,6 +29,8 @@ DETECTIONS_TYPE = "vision_msgs/msg/Detection2DArray"
 #: The node's output, and the ground truth of the synthetic bags.
 VEHICLE_LIGHTS_TYPE = "signal_light_msgs/msg/VehicleLightStateArray"
 DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
+#: The node's optional RViz drawing of its results.
+MARKER_ARRAY_TYPE = "visualization_msgs/msg/MarkerArray"
 
 # ------------------------------------------------------------------ synthetic bags
 
@@ -45,4 +47,6 @@ INPUT_COMPRESSED_TOPIC = "/signal_light_detector/input/image/compressed"
 INPUT_DETECTIONS_TOPIC = "/signal_light_detector/input/detections"
 #: Where the node publishes its results (and where ``signal-light replay`` writes them).
 OUTPUT_TOPIC = "/signal_light_detector/output/vehicle_lights"
+#: The results drawn for RViz (``publish_markers``; ``signal-light replay --markers``).
+MARKERS_TOPIC = "/signal_light_detector/output/markers"
 DIAGNOSTICS_TOPIC = "/diagnostics"

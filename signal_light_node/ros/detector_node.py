@@ -5,8 +5,10 @@ A thin adapter over :class:`~signal_light_node.runtime.engine.LightStateEngine`:
 * the subscription callbacks only read the header stamp and hand the message to a
   :class:`~signal_light_node.runtime.pairing.StampPairer`;
 * a complete (image, detections) pair goes into a bounded drop-oldest queue;
-* one worker thread decodes the image, runs the engine and publishes
-  ``~/output/vehicle_lights`` (and, when enabled and watched, ``~/output/debug/image``);
+* one worker thread decodes the image, runs the engine and publishes the result through
+  the output adapters (:mod:`signal_light_node.outputs`): ``~/output/vehicle_lights``,
+  with ``publish_markers`` and while watched ``~/output/markers``, and when enabled and
+  watched ``~/output/debug/image``;
 * a timer publishes the node's figures on ``/diagnostics``.
 
 Every conversion is the core's (``image_codec``, ``conversions``); nothing here knows a
@@ -27,7 +29,8 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy_impl
 from rclpy.node import Node
 
-from signal_light_node.io.conversions import detections_to_boxes, stamp_to_ns, vehicle_light_array
+from signal_light_node.io.conversions import detections_to_boxes, stamp_to_ns
+from signal_light_node.outputs import output_adapters
 from signal_light_node.ros.messages import rclpy_make
 from signal_light_node.errors import (ConfigError, ImageConversionError, ImageTooLargeError,
                                       SignalLightError)
@@ -39,7 +42,7 @@ from signal_light_node.ros.ros_io import message_class, qos
 from signal_light_node.runtime.stats import ERROR, OK, WARN, LatencyWindow, Snapshot, health
 from signal_light_node.runtime.worker import DropOldestQueue, Worker
 from signal_light_node.io.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, DIAGNOSTICS_TOPIC,
-                                      DIAGNOSTICS_TYPE, IMAGE_TYPE, VEHICLE_LIGHTS_TYPE)
+                                      DIAGNOSTICS_TYPE, IMAGE_TYPE)
 
 _NS = 1_000_000_000
 
@@ -98,13 +101,17 @@ class SignalLightDetector(Node):
         self.engine = engine_from_checkpoint(
             p.model_path or None, device=p.device, thresholds=p.thresholds,
             track_timeout_s=p.track_timeout_s, max_tracks=p.max_tracks, max_gap_s=p.max_gap_s,
-            crop_margin=p.crop_margin, intent_filter=p.intent_filter_config,
+            intent_filter=p.intent_filter_config,
             max_boxes=p.max_boxes_per_frame)
 
         self._pairer = StampPairer(int(p.sync_slop_s * _NS), int(p.sync_timeout_s * _NS),
                                    p.image_queue_size, p.detection_queue_size)
         self._queue = DropOldestQueue(p.work_queue_size)
-        self._out = self.create_publisher(message_class(VEHICLE_LIGHTS_TYPE), OUTPUT_TOPIC, 10)
+        # One publisher per output adapter; the first is the result array.
+        self._outputs = [(adapter, self.create_publisher(message_class(adapter.msgtype),
+                                                         adapter.node_topic, adapter.depth))
+                         for adapter in output_adapters(markers=p.publish_markers)]
+        self._out = self._outputs[0][1]
         self._debug = None
         if p.publish_debug_image:
             self._debug = self.create_publisher(message_class(IMAGE_TYPE), DEBUG_TOPIC, 2)
@@ -128,6 +135,9 @@ class SignalLightDetector(Node):
         self._timer = self.create_timer(p.diagnostics_period_s, self._publish_diagnostics)
         self.add_on_set_parameters_callback(self._check_new_parameters)
         self.add_post_set_parameters_callback(self._apply_new_parameters)
+        self.get_logger().info(
+            f"outputs: {', '.join(pub.topic_name for _, pub in self._outputs)}; crop margin "
+            f"{self.engine.crop.margin:g} (the model checkpoint's)")
         self.get_logger().info(
             f"ready: {self._image_topic} ({p.image_transport}, {p.reliability}) + "
             f"{self._det_sub.topic_name} "
@@ -175,14 +185,18 @@ class SignalLightDetector(Node):
     def _process(self, pair: Any) -> None:
         boxes = detections_to_boxes(pair.detections)
         image, frame = self._run_engine(pair, boxes)
-        out = vehicle_light_array(pair.image.header, frame.results, rclpy_make)
-        if not self._publish(self._out, out):
+        (result_out, out), *others = self._outputs
+        if not self._publish(out, result_out.build(pair.image.header, frame.results, rclpy_make)):
             return
         done = time.monotonic_ns()
         self._counts["outputs"] += 1
         self._latency.add((done - pair.image_received_ns) / _NS)
         self._processing.add(
             (done - max(pair.image_received_ns, pair.detections_received_ns)) / _NS)
+        for adapter, publisher in others:
+            if not adapter.when_subscribed or publisher.get_subscription_count() > 0:
+                self._publish(publisher, adapter.build(pair.image.header, frame.results,
+                                                       rclpy_make))
         if image is None:
             return  # no engine run, no debug image
         self._engine_time.add(frame.latency_s)

@@ -11,6 +11,7 @@ lazily, so the rest is usable and testable without ROS.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import re
 from dataclasses import dataclass
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple, Union
@@ -19,6 +20,8 @@ from signal_light_node.errors import ConfigError
 from signal_light_node.io.image_codec import DEFAULT_MAX_IMAGE_PIXELS
 from signal_light_node.runtime.intent_filter import IntentFilterConfig
 from signal_light_node.labels import LIGHT_CODES
+
+LOG = logging.getLogger(__name__)
 
 #: The node's name; also the top-level key of ``config/detector.yaml``.
 NODE_NAME = "signal_light_detector"
@@ -48,7 +51,6 @@ class DetectorParams:
         track_timeout_s: A track unseen this long loses its recurrent state.
         max_tracks: At most this many track states; the longest unseen is evicted.
         max_gap_s: A forward stamp jump larger than this resets every track.
-        crop_margin: Context added around each box before cropping, as a fraction of its size.
         intent_filter: Hold the blinkers through blinks and derive the intent from them
             (``intent_filter.IntentFilterConfig``, whose defaults these are); false
             publishes the raw model.
@@ -58,6 +60,8 @@ class DetectorParams:
         filter_brake_hold_s: The brake stays ON this long after its last ON frame (0: as
             the model says).
         publish_debug_image: Publish the annotated frame on ``~/output/debug/image``.
+        publish_markers: Publish the results drawn for RViz on ``~/output/markers``
+            (``visualization_msgs/MarkerArray``, see :mod:`signal_light_node.outputs.markers`).
         diagnostics_period_s: Period of the ``/diagnostics`` status.
         num_threads: torch intra-op threads; 0 keeps torch's default.
         max_image_pixels: Larger images (width x height) are refused before decoding.
@@ -79,13 +83,13 @@ class DetectorParams:
     track_timeout_s: float = 1.0
     max_tracks: int = 128
     max_gap_s: float = 2.0
-    crop_margin: float = 0.15
     intent_filter: bool = IntentFilterConfig.enabled
     filter_on_threshold: float = IntentFilterConfig.on_threshold
     filter_hold_s: float = IntentFilterConfig.hold_s
     filter_confirm_s: float = IntentFilterConfig.confirm_s
     filter_brake_hold_s: float = IntentFilterConfig.brake_hold_s
     publish_debug_image: bool = False
+    publish_markers: bool = False
     diagnostics_period_s: float = 1.0
     num_threads: int = 0
     max_image_pixels: int = DEFAULT_MAX_IMAGE_PIXELS
@@ -163,8 +167,6 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
                             low=1, high=100000),
     "max_gap_s": ParamSpec("A forward stamp jump larger than this many seconds resets all "
                            "tracks (backward jumps always do).", low=0.01, high=3600.0),
-    "crop_margin": ParamSpec("Context added around each box before cropping, as a fraction of "
-                             "the box size.", low=0.0, high=1.0),
     "intent_filter": ParamSpec("Hold the blinkers ON through the dark half of a blink and "
                                "derive the intent from them (HAZARD only when both are held); "
                                "false publishes the model's per-frame outputs."),
@@ -179,6 +181,9 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
                                      "frame; 0 = as the model says.", low=0.0, high=10.0),
     "publish_debug_image": ParamSpec("Publish the annotated frame on ~/output/debug/image "
                                      "(costs CPU)."),
+    "publish_markers": ParamSpec("Publish the results drawn for RViz on ~/output/markers "
+                                 "(visualization_msgs/MarkerArray in the image's frame, "
+                                 "0.01 m per pixel; built only while subscribed)."),
     "diagnostics_period_s": ParamSpec("Period of the status published on /diagnostics.",
                                       low=0.1, high=60.0),
     "num_threads": ParamSpec("Torch intra-op threads; 0 keeps torch's default.", low=0, high=256),
@@ -189,6 +194,19 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
                                      "unjudged (counted as boxes_over_limit).", low=1,
                                      high=100000),
 }
+
+
+#: Parameters of earlier releases that an old params file may still set: name -> why the
+#: value is ignored. Setting one is warned about, never an error.
+RETIRED_PARAMS: Dict[str, str] = {
+    "crop_margin": "the crop margin is the one the model was trained with, read from its "
+                   "checkpoint",
+}
+
+
+def retired_warning(name: str, value: Any) -> str:
+    """The one-line warning for a retired parameter that is still set."""
+    return f"parameter {name} ({value!r}) is no longer used and is ignored: {RETIRED_PARAMS[name]}"
 
 
 def _field_types() -> Dict[str, type]:
@@ -227,7 +245,7 @@ def validate_params(values: Union[DetectorParams, Mapping[str, Any]]) -> Detecto
 
     Args:
         values: A :class:`DetectorParams` or a mapping name -> value; missing names take
-            their defaults.
+            their defaults; names in :data:`RETIRED_PARAMS` are warned about and ignored.
 
     Returns:
         The validated parameters (integers given for float parameters become floats).
@@ -236,6 +254,8 @@ def validate_params(values: Union[DetectorParams, Mapping[str, Any]]) -> Detecto
         ConfigError: Naming every unknown parameter and every bad value with the reason.
     """
     given = values.as_dict() if isinstance(values, DetectorParams) else dict(values)
+    for name in [n for n in given if n in RETIRED_PARAMS]:
+        LOG.warning("%s", retired_warning(name, given.pop(name)))
     kinds = _field_types()
     problems = [f"unknown parameter {name!r}" for name in given if name not in kinds]
     clean: Dict[str, Any] = {}
@@ -324,14 +344,21 @@ def _override(node: Any, name: str) -> Any:
 def read_parameters(node: Any) -> DetectorParams:
     """Declare the parameters on ``node`` and return their validated values.
 
+    A retired parameter (:data:`RETIRED_PARAMS`) still set is warned about in one line
+    and ignored.
+
     Raises:
         ConfigError: If any value is unusable; the message says which and why.
     """
     declare_parameters(node)
     # rclpy keeps the command-line / params-file values it was given; names nobody declared
-    # (qos_overrides.* are declared later by rclpy itself) are almost always typos.
-    extra = sorted(n for n in getattr(node, "_parameter_overrides", {})
-                   if not node.has_parameter(n) and not n.startswith("qos_overrides."))
+    # (qos_overrides.* are declared later by rclpy itself) are almost always typos, except
+    # the retired ones an old params file may still hold: those are warned about.
+    overrides = getattr(node, "_parameter_overrides", {})
+    for name in sorted(n for n in overrides if n in RETIRED_PARAMS):
+        node.get_logger().warning(retired_warning(name, overrides[name].value))
+    extra = sorted(n for n in overrides if not node.has_parameter(n)
+                   and not n.startswith("qos_overrides.") and n not in RETIRED_PARAMS)
     if extra:
         raise ConfigError(f"invalid parameters: unknown parameter(s) {', '.join(extra)} "
                           f"(known: {', '.join(PARAM_SPECS)})")

@@ -443,8 +443,7 @@ def engine_from_checkpoint(path: Optional[str] = None, device: str = "cpu",
         path: Checkpoint file, or None for ``model.checkpoint.DEFAULT_WEIGHTS``.
         device: Torch device.
         **overrides: Other ``EngineConfig`` fields (thresholds, track_timeout_s,
-            intent_filter, ...); a ``crop_margin`` key overrides only the margin of the
-            model's crop config.
+            intent_filter, ...). The crop (size and margin) is the checkpoint's.
 
     Returns:
         The engine.
@@ -457,9 +456,6 @@ def engine_from_checkpoint(path: Optional[str] = None, device: str = "cpu",
 
     require_device(device)  # before loading: torch would blame the file
     loaded = load_checkpoint(DEFAULT_WEIGHTS if path is None else path, map_location=device)
-    margin = overrides.pop("crop_margin", None)
-    if margin is not None and overrides.get("crop") is None:
-        overrides["crop"] = CropConfig(size=loaded.config.input_size, margin=margin)
     try:
         config = EngineConfig(device=device, **overrides)
     except TypeError as exc:

@@ -2,13 +2,19 @@
 
 This is ``signal-light replay``: the same :class:`~signal_light_node.runtime.engine.LightStateEngine`
 as the live node, fed from a bag as fast as the CPU allows. Images and detections are
-paired by exact header stamp. Every image gets one ``VehicleLightStateArray`` on
-:data:`OUTPUT_TOPIC` (header = the image's header, logged at the image's log time), with
-one entry per detection of its stamp, or none when it has no detections.
+paired by the node's own pairing (:class:`~signal_light_node.runtime.pairing.OrderedPairing`
+over a :class:`~signal_light_node.runtime.pairing.StampPairer`, the log time standing in
+for the receive time): exact stamps by default, the nearest within a slop with
+``PairingConfig(slop_s=S)`` (``--sync-slop S``), as a node with ``sync_slop_s: S``. Every
+image gets one output per output adapter (:mod:`signal_light_node.outputs`; the
+``VehicleLightStateArray`` on :data:`OUTPUT_TOPIC`, with ``markers=True`` also the
+``MarkerArray`` on :data:`MARKERS_TOPIC`), header = the image's header, logged at the
+image's log time, with one entry per detection paired with it, or none when the node
+would have dropped the image unpaired.
 
-The bag is read twice: a first pass collects the (small) detection and ground-truth
-messages by stamp, so that the order in which the recorder logged an image and its
-detections does not matter; the second pass decodes the images one by one.
+The bag is read twice: a first pass collects the (small) ground-truth messages by stamp;
+the second pass pairs images and detections in log-time order and decodes the images
+one by one, in their order.
 """
 
 from __future__ import annotations
@@ -18,20 +24,23 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Iterator, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
 from signal_light_node.io.bagio import BagWriter, find_topic, make, open_bag
 from signal_light_node.boxes import TrackBox
 from signal_light_node.io.conversions import (detections_to_boxes, result_row, stamp_to_ns,
-                                           truth_row, vehicle_light_array)
+                                           truth_row)
 from signal_light_node.runtime.engine import FrameResult, LightStateEngine
 from signal_light_node.errors import ImageConversionError
 from signal_light_node.io.image_codec import DEFAULT_MAX_IMAGE_PIXELS, msg_to_bgr
 from signal_light_node.runtime.results import VehicleResult
 from signal_light_node.io.topics import (DETECTIONS_TYPE, GROUND_TRUTH_TOPIC, IMAGE_TYPES,
-                                      OUTPUT_TOPIC, VEHICLE_LIGHTS_TYPE)
+                                      MARKERS_TOPIC, OUTPUT_TOPIC, VEHICLE_LIGHTS_TYPE)
+from signal_light_node.outputs import output_adapters
+from signal_light_node.runtime.pairing import (DETECTIONS, IMAGE, OrderedPairing,
+                                               PairingConfig, pair_in_order)
 
 LOG = logging.getLogger(__name__)
 
@@ -65,8 +74,9 @@ class ReplaySummary:
         outputs: Output messages written (one per image).
         detections: Boxes given to the engine.
         entries: Vehicle entries written (one per box).
-        images_without_detections: Images with no detection message of their stamp.
-        detections_without_image: Detection messages whose stamp has no image.
+        images_without_detections: Images the pairing left without detections (the node
+            would have dropped them; replay writes an empty array).
+        detections_without_image: Detection messages the pairing left without an image.
         bad_images: Images that could not be decoded or exceed the pixel limit (their
             boxes are written unjudged).
         skipped: Per topic, messages skipped because they could not be deserialized or
@@ -79,6 +89,9 @@ class ReplaySummary:
         tracks: Per track (by ID), the frames with ground truth; empty without it.
         has_ground_truth: Whether the bag has the ground-truth topic.
         video: The annotated video written, if any.
+        pairing: How images and detections were paired.
+        pairing_counters: The pairer's counters (``runtime.pairing.COUNTERS``).
+        topics_written: The output topics written, result array first.
     """
 
     output: Path
@@ -100,6 +113,9 @@ class ReplaySummary:
     tracks: Dict[str, TrackRecord] = field(default_factory=dict)
     has_ground_truth: bool = False
     video: Optional[Path] = None
+    pairing: PairingConfig = PairingConfig()
+    pairing_counters: Dict[str, int] = field(default_factory=dict)
+    topics_written: List[str] = field(default_factory=list)
 
     @property
     def frames_per_s(self) -> float:
@@ -124,9 +140,12 @@ class ReplaySummary:
         mean, p95 = self.latency_ms()
         c = self.counters
         lines = [
-            f"output: {self.output} ({self.outputs} messages on {OUTPUT_TOPIC})",
+            f"output: {self.output} ({self.outputs} messages on "
+            f"{', '.join(self.topics_written or [OUTPUT_TOPIC])})",
             f"images: {self.images} from {self.image_topic}, detections from "
             f"{self.detections_topic}: {self.detections} boxes -> {self.entries} entries",
+            f"pairing: {self.pairing.describe()}, timeout {self.pairing.timeout_s:g} s "
+            f"(as the node's): {self.pairing_counters.get('paired', 0)} pairs",
             f"frames without detections: {self.images_without_detections}; detection messages "
             f"without an image: {self.detections_without_image}; undecodable images: "
             f"{self.bad_images}",
@@ -177,12 +196,36 @@ def _collect(bag: Any, topic: Optional[str], key: Callable[[Any], Any]) -> Dict[
     return out
 
 
+def _arrivals(bag: Any, topics: Sequence[str], img_t: str, det_t: str,
+              writer: Optional[BagWriter]) -> Iterator[Tuple[str, int, Any, int]]:
+    """The bag's images and detections in log-time order, as ``pair_in_order`` takes them.
+
+    Images go in as their ``BagMessage``, detections as their boxes; the log time stands
+    in for the receive time. A detection message that cannot be converted is skipped,
+    counted in ``bag.skipped``. With a ``writer`` every message read is copied into it.
+    """
+    for m in bag.messages(topics, skip_undecodable=True):
+        if writer is not None:
+            writer.write(m.topic, m.log_time_ns, m.msg)
+        if m.topic == img_t:
+            yield IMAGE, stamp_to_ns(m.msg.header.stamp), m, m.log_time_ns
+        elif m.topic == det_t:
+            try:
+                stamp, boxes = stamp_to_ns(m.msg.header.stamp), detections_to_boxes(m.msg)
+            except _CONVERSION_ERRORS as exc:
+                bag.note_skipped(det_t, f"cannot convert {m.msgtype} on {det_t} at "
+                                 f"{m.log_time_ns} ns: {type(exc).__name__}: {exc}")
+                continue
+            yield DETECTIONS, stamp, boxes, m.log_time_ns
+
+
 def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateEngine,
                image_topic: Optional[str] = None, detections_topic: Optional[str] = None,
                with_inputs: bool = False, video: "str | Path | None" = None,
                video_attention: bool = False, overwrite: bool = False,
                progress: bool = True, max_pixels: Optional[int] = DEFAULT_MAX_IMAGE_PIXELS,
-               on_frame: Optional[Callable[[Any, List[TrackBox], FrameResult], None]] = None
+               on_frame: Optional[Callable[[Any, List[TrackBox], FrameResult], None]] = None,
+               pairing: PairingConfig = PairingConfig(), markers: bool = False
                ) -> ReplaySummary:
     """Replay a bag through the engine and write the output bag.
 
@@ -200,6 +243,9 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
         progress: Show a tqdm progress bar.
         max_pixels: Images of more pixels are not decoded (counted as bad images).
         on_frame: Called as ``on_frame(image_bgr_or_None, boxes, frame_result)`` per image.
+        pairing: How images and detections are paired (default: the node's defaults,
+            exact stamps).
+        markers: Also write the results drawn as a ``MarkerArray`` on :data:`MARKERS_TOPIC`.
 
     Returns:
         The summary, with per-track records for scoring when the bag has ground truth.
@@ -211,7 +257,9 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
     from signal_light_node.tools.visualize import VideoSink, draw_results
 
     bag_path, output = Path(bag_path), Path(output)
-    summary = ReplaySummary(output=output)
+    adapters = output_adapters(markers=markers)
+    summary = ReplaySummary(output=output, pairing=pairing,
+                            topics_written=[a.topic for a in adapters])
     with open_bag(bag_path) as bag:
         topics = bag.topics()
         img_t = find_topic(topics, IMAGE_TYPES, image_topic, "image", bag_path)
@@ -223,8 +271,7 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
         summary.has_ground_truth = gt_t is not None
         n_images = topics[img_t].count
 
-        # Pass 1: the small messages, keyed by header stamp.
-        detections = _collect(bag, det_t, detections_to_boxes)
+        # Pass 1: the small ground-truth messages, keyed by header stamp.
         truth = _collect(bag, gt_t, lambda msg: {str(v.track_id): truth_row(v)
                                                  for v in msg.vehicles})
         skipped = dict(bag.skipped)  # pass 2 may read these topics again (with_inputs)
@@ -234,32 +281,29 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
             fps = (n_images - 1) / duration_s if n_images > 1 and duration_s > 0 else 10.0
             sink = VideoSink(video, fps=min(max(fps, 1.0), 60.0))
 
-        # Pass 2: decode each image, run the engine, write.
+        # Pass 2: pair as the node would, decode each image in its order, run the engine,
+        # write.
         bar = None
         if progress:
             from tqdm import tqdm
 
             bar = tqdm(total=n_images, unit="frame", desc=bag_path.name, leave=False)
         input_topics = [img_t, det_t] + ([gt_t] if gt_t else [])
-        seen_stamps = set()
+        ordered = OrderedPairing(pairing)
         start = time.perf_counter()
         with BagWriter(output, overwrite=overwrite) as writer:
-            writer.add_topic(OUTPUT_TOPIC, VEHICLE_LIGHTS_TYPE)
+            for adapter in adapters:
+                writer.add_topic(adapter.topic, adapter.msgtype)
             if with_inputs:
                 for t in input_topics:
                     writer.add_topic(t, topics[t].msgtype)
-            for m in bag.messages(input_topics if with_inputs else [img_t],
-                                  skip_undecodable=True):
-                if with_inputs:
-                    writer.write(m.topic, m.log_time_ns, m.msg)
-                if m.topic != img_t:
-                    continue
-                stamp = stamp_to_ns(m.msg.header.stamp)
-                seen_stamps.add(stamp)
-                boxes = detections.get(stamp)
-                if boxes is None:
+            arrivals = _arrivals(bag, input_topics if with_inputs else [img_t, det_t], img_t,
+                                 det_t, writer if with_inputs else None)
+            for paired in pair_in_order(arrivals, ordered):
+                m, stamp = paired.image, paired.stamp_ns
+                boxes = paired.detections if paired.paired else []
+                if not paired.paired:
                     summary.images_without_detections += 1
-                    boxes = []
                 try:
                     image = msg_to_bgr(m.msg, img_t, stamp, max_pixels)
                 except ImageConversionError as exc:
@@ -274,8 +318,9 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
                     frame = engine.process(image, stamp, boxes)
                     summary.engine_s += frame.latency_s
                     summary.latencies_s.append(frame.latency_s)
-                writer.write(OUTPUT_TOPIC, m.log_time_ns,
-                             vehicle_light_array(m.msg.header, frame.results, make))
+                for adapter in adapters:
+                    writer.write(adapter.topic, m.log_time_ns,
+                                 adapter.build(m.msg.header, frame.results, make))
                 summary.images += 1
                 summary.outputs += 1
                 summary.detections += len(boxes)
@@ -296,10 +341,11 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
             bar.close()
         if sink is not None:
             summary.video = sink.close()
-        if bag.skipped.get(img_t):
-            skipped[img_t] = bag.skipped[img_t]
-        summary.skipped, summary.recovered = skipped, bag.recovered
-    summary.detections_without_image = len(set(detections) - seen_stamps)
+        # Pass 1's counts for the topics it read (pass 2 reads them again with_inputs).
+        summary.skipped = {**bag.skipped, **skipped}
+        summary.recovered = bag.recovered
+    summary.detections_without_image = ordered.unpaired_detections
+    summary.pairing_counters = ordered.counters
     summary.counters = engine.counters
     return summary
 

@@ -10,9 +10,11 @@ Sources:
 
 * **Labelled bags** (:func:`load_bag_tracks`): images (raw or compressed), tracked
   detections (``vision_msgs/Detection2DArray``) and ground truth on
-  ``/ground_truth/vehicle_lights`` (``signal_light_msgs/VehicleLightStateArray``), matched
-  by header stamp. A vehicle is used in a frame when the frame has its detection (the
-  box the engine would crop) and its ground-truth entry (same track ID).
+  ``/ground_truth/vehicle_lights`` (``signal_light_msgs/VehicleLightStateArray``). Images
+  and detections are paired as the node pairs them (:mod:`signal_light_node.runtime.pairing`,
+  exact stamps unless a slop is given), the ground truth by the image's stamp. A vehicle is
+  used in a frame when the frame has its detection (the box the engine would crop) and
+  its ground-truth entry (same track ID).
 * **UC Merced Vehicle Rear Signal layout** (:func:`load_ucm_tracks`):
   ``<footage>/<footage>_<XXX>/<footage>_<XXX>_<start>/light_mask/frameNNNNNNNN.png``
   with XXX in OOO, BOO, OLO, BLO, OOR, BOR, OLR, BLR (B brake, L left, R right, O off).
@@ -37,6 +39,8 @@ import torch
 
 from signal_light_node.boxes import TrackBox
 from signal_light_node.runtime.crops import CropConfig, crop_vehicle
+from signal_light_node.runtime.pairing import (DETECTIONS, IMAGE, OrderedPairing, PairingConfig,
+                                               pair_in_order)
 from signal_light_node.data.stream import PAD_LABEL
 from signal_light_node.errors import BagIOError, ConfigError, CropError
 from signal_light_node.labels import TASKS, LightStatus, View, intent_from_lights
@@ -220,13 +224,16 @@ def load_ucm_tracks(root: Path, crop_config: CropConfig = CropConfig(), fps: flo
 def load_bag_tracks(path: Path, crop_config: CropConfig = CropConfig(),
                     image_topic: Optional[str] = None, detection_topic: Optional[str] = None,
                     ground_truth_topic: str = GROUND_TRUTH_TOPIC,
-                    lighting: str = "unknown") -> List[TrackSequence]:
+                    lighting: str = "unknown",
+                    pairing: PairingConfig = PairingConfig()) -> List[TrackSequence]:
     """Per-track sequences of a bag with ground truth.
 
-    Images, detections and ground truth are matched by header stamp; a frame is used
-    when all three exist for its stamp. Within one frame, a track is used when both its
-    detection and its ground-truth entry exist; a box that cannot be cropped gives a
-    masked frame (never stepped, never scored), as in the engine.
+    Images and detections are paired exactly as the node pairs them (the same
+    :class:`~signal_light_node.runtime.pairing.StampPairer`, fed in log-time order); the
+    ground truth is matched by the image's stamp. A frame is used when its image has
+    both. Within one frame, a track is used when both its detection and its ground-truth
+    entry exist; a box that cannot be cropped gives a masked frame (never stepped, never
+    scored), as in the engine.
 
     Args:
         path: The bag.
@@ -236,6 +243,8 @@ def load_bag_tracks(path: Path, crop_config: CropConfig = CropConfig(),
         detection_topic: Detection topic (default: the first Detection2DArray topic).
         ground_truth_topic: Ground-truth topic (a ``VehicleLightStateArray``).
         lighting: Lighting written into the tracks (bags do not say).
+        pairing: How images and detections are paired (default: the node's defaults,
+            exact stamps).
 
     Returns:
         Tracks sorted by track ID; frames of a track in stamp order.
@@ -250,24 +259,28 @@ def load_bag_tracks(path: Path, crop_config: CropConfig = CropConfig(),
 
     path = Path(path)
     per_track: Dict[str, Dict[str, list]] = {}
-    pending: Dict[int, Dict[str, Any]] = {}
+    ordered = OrderedPairing(pairing)
+    no_truth = 0
     with open_bag(path) as bag:
         topics = bag.topics()
         img_t = find_topic(topics, IMAGE_TYPES, image_topic, "image", path)
         det_t = find_topic(topics, (DETECTIONS_TYPE,), detection_topic, "detection", path)
         gt_t = find_topic(topics, (VEHICLE_LIGHTS_TYPE,), ground_truth_topic, "ground truth",
                           path)
-        kinds = {img_t: "image", det_t: "det", gt_t: "gt"}
-        for m in bag.messages([img_t, det_t, gt_t]):
-            stamp = stamp_to_ns(m.msg.header.stamp)
-            entry = pending.setdefault(stamp, {})
-            entry[kinds[m.topic]] = m.msg
-            if len(entry) < 3:
+        ground_truth: Dict[int, Any] = {}
+        for m in bag.messages([gt_t]):
+            ground_truth.setdefault(stamp_to_ns(m.msg.header.stamp), m.msg)
+        arrivals = ((IMAGE if m.topic == img_t else DETECTIONS, stamp_to_ns(m.msg.header.stamp),
+                     m.msg, m.log_time_ns) for m in bag.messages([img_t, det_t]))
+        for frame in pair_in_order(arrivals, ordered):
+            gt_msg = ground_truth.get(frame.stamp_ns)
+            if not frame.paired or gt_msg is None:
+                no_truth += frame.paired
                 continue
-            del pending[stamp]
-            image = msg_to_bgr(entry["image"], img_t, stamp)
-            truth = {str(v.track_id): v for v in entry["gt"].vehicles}
-            for box in detections_to_boxes(entry["det"]):
+            stamp = frame.stamp_ns
+            image = msg_to_bgr(frame.image, img_t, stamp)
+            truth = {str(v.track_id): v for v in gt_msg.vehicles}
+            for box in detections_to_boxes(frame.detections):
                 gt = truth.get(box.track_id)
                 if gt is None:
                     continue
@@ -285,9 +298,12 @@ def load_bag_tracks(path: Path, crop_config: CropConfig = CropConfig(),
                 size = math.sqrt(max(box.width, 0.0) * max(box.height, 0.0))
                 rec["size"].append(float(size) if math.isfinite(size) else math.nan)
                 rec["ok"].append(ok)
-    if pending:
-        logger.info("bag %s: %d stamps lacked an image, detections or ground truth", path,
-                    len(pending))
+    counters = ordered.counters
+    unpaired = counters["images"] - counters["paired"]
+    if unpaired or no_truth or ordered.unpaired_detections:
+        logger.info("bag %s (pairing: %s): %d images without detections, %d detection "
+                    "messages without an image, %d paired frames without ground truth", path,
+                    ordered.config.describe(), unpaired, ordered.unpaired_detections, no_truth)
     tracks = []
     for track_id in sorted(per_track):
         rec = per_track[track_id]
