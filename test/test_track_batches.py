@@ -13,7 +13,8 @@ from signal_light_node.data.stream import PAD_LABEL
 from signal_light_node.errors import ConfigError
 from signal_light_node.training.sources import TrackSequence
 from signal_light_node.training.track_batches import FrameBatches, LaneBatches
-from signal_light_node.training.train import TrainOptions, Trainer
+from signal_light_node.training.options import TrainOptions
+from signal_light_node.training.train import Trainer
 
 from test_training import TINY
 

@@ -21,8 +21,8 @@ from signal_light_node.training.sampling import (
     stratum_weights,
 )
 from signal_light_node.training.sources import WindowDataset, load_ucm_tracks
+from signal_light_node.training.options import TrainOptions
 from signal_light_node.training.train import (
-    TrainOptions,
     Trainer,
     annealed_lr,
     multitask_loss,

@@ -154,7 +154,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def options_from_args(args: argparse.Namespace) -> "Any":
     """Turn parsed arguments into :class:`TrainOptions`."""
-    from signal_light_node.training.train import DEFAULT_TASK_WEIGHTS, TrainOptions
+    from signal_light_node.training.options import DEFAULT_TASK_WEIGHTS, TrainOptions
 
     task_weights = dict(DEFAULT_TASK_WEIGHTS)
     task_weights.update({k: float(v) for k, v in
