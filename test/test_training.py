@@ -21,15 +21,12 @@ from signal_light_node.training.sampling import (
     stratum_weights,
 )
 from signal_light_node.training.sources import WindowDataset, load_ucm_tracks
+from signal_light_node.training.loop import Trainer
+from signal_light_node.training.loss import multitask_loss, warmup_frames
 from signal_light_node.training.options import TrainOptions
-from signal_light_node.training.train import (
-    Trainer,
-    annealed_lr,
-    multitask_loss,
-    resolve_precision,
-    validate,
-    warmup_frames,
-)
+from signal_light_node.training.precision import resolve_precision
+from signal_light_node.training.schedule import annealed_lr
+from signal_light_node.training.validation import validate
 
 from test_ucm_loader import make_ucm
 

@@ -19,7 +19,7 @@ Examples::
     # data-parallel over two processes (gloo on CPU; NCCL with --device cuda)
     torchrun --nproc_per_node=2 -m signal_light_node.cli train --out runs/ddp --steps 1000
 
-See :mod:`signal_light_node.training.train` for the recipe and the files written.
+See :mod:`signal_light_node.training.loop` for the recipe and the files written.
 """
 
 from __future__ import annotations
@@ -188,7 +188,7 @@ def options_from_args(args: argparse.Namespace) -> "Any":
 
 def run(args: argparse.Namespace) -> int:
     """Train; prints a JSON summary (rank 0 only under torchrun)."""
-    from signal_light_node.training.train import train
+    from signal_light_node.training.loop import train  # imports torch: only when training
 
     summary = train(options_from_args(args))
     import os
