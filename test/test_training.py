@@ -100,6 +100,25 @@ def test_options_are_checked(tmp_path):
         TrainOptions(out=tmp_path, max_steps=1, precision="fp16").validate()
 
 
+def test_command_line_defaults_are_the_options_defaults(tmp_path):
+    """``signal-light train`` with no options trains with ``TrainOptions``' own defaults."""
+    from signal_light_node.cli import build_parser
+    from signal_light_node.commands.train import options_from_args
+
+    parser = build_parser(["train"])
+    args = parser.parse_args(["train", "--out", str(tmp_path)])
+    assert options_from_args(args) == TrainOptions(out=tmp_path)
+    # what --help shows is that default too (e.g. --lr, --patience -> plateau_patience)
+    train_parser = parser._subparsers._group_actions[0].choices["train"]
+    shown = {a.dest: a.default for a in train_parser._actions}
+    assert shown["lr"] == TrainOptions.default("lr")
+    assert shown["patience"] == TrainOptions.default("plateau_patience")
+    with pytest.raises(ConfigError, match="no training option"):
+        TrainOptions.default("horn")
+    with pytest.raises(ConfigError, match="has no default"):
+        TrainOptions.default("out")
+
+
 def test_auto_precision_is_bf16_only_where_the_cpu_computes_it_natively(monkeypatch):
     cpu = torch.device("cpu")
     for avx512_bf16, amx, expected in ((True, False, "bf16"), (False, True, "bf16"),
