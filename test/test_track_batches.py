@@ -13,7 +13,9 @@ from signal_light_node.data.stream import PAD_LABEL
 from signal_light_node.errors import ConfigError
 from signal_light_node.training.sources import TrackSequence
 from signal_light_node.training.track_batches import FrameBatches, LaneBatches
-from signal_light_node.training.train import TrainOptions, Trainer
+from signal_light_node.training.loop import Trainer
+from signal_light_node.training.loss import batch_loss_warmup
+from signal_light_node.training.options import TrainOptions
 
 from test_training import TINY
 
@@ -99,9 +101,9 @@ def test_trainer_runs_on_a_pool(tmp_path, tiny_pool, mode):
     summary = trainer.run()
     assert summary["steps"] == 4 and summary["last_validation"] is not None
     if mode == "lanes":  # the lanes' state is carried: one (h, c) row per lane
-        assert trainer._lanes is not None and trainer._lanes[0][0].shape[0] == 3
+        assert trainer.lanes.carried is not None and trainer.lanes.carried[0][0].shape[0] == 3
     else:
-        assert trainer._lanes is None
+        assert trainer.lanes.carried is None
     meta = torch.load(tmp_path / mode / "best.pt", weights_only=False)
     assert "pool" in str(meta)
 
@@ -110,15 +112,16 @@ def test_bf16_lanes_carry_a_float32_state(tmp_path, tiny_pool):
     trainer = Trainer(pool_options(tmp_path / "bf16", tiny_pool, mode="lanes",
                                    precision="bf16"))
     assert trainer.run()["steps"] == 4
-    assert {x.dtype for h, c in trainer._lanes for x in (h, c)} == {torch.float32}
+    assert {x.dtype for h, c in trainer.lanes.carried for x in (h, c)} == {torch.float32}
 
 
 def test_lane_state_is_zeroed_where_a_track_starts(tmp_path, tiny_pool):
     trainer = Trainer(pool_options(tmp_path / "z", tiny_pool, mode="lanes"))
-    assert trainer._lane_state(torch.tensor([False, False, False]))[0][0].abs().sum() == 0
-    trainer._lanes = tuple((torch.ones_like(h), torch.ones_like(c))
-                           for h, c in trainer.model.initial_state(3))
-    state = trainer._lane_state(torch.tensor([True, False, True]))
+    lanes, model, device = trainer.lanes, trainer.model, trainer.device
+    assert lanes.begin(torch.tensor([False, False, False]), model, device)[0][0].abs().sum() == 0
+    lanes.carried = tuple((torch.ones_like(h), torch.ones_like(c))
+                          for h, c in model.initial_state(3))
+    state = lanes.begin(torch.tensor([True, False, True]), model, device)
     for h, c in state:
         for x in (h, c):
             assert x[0].abs().sum() == 0 and x[2].abs().sum() == 0 and (x[1] == 1).all()
@@ -129,7 +132,10 @@ def test_lane_warmup_counts_from_the_track_start(tmp_path, tiny_pool):
                                    loss_warmup_seconds=0.0))
     batch = {"labels": torch.zeros(3, 3, 5), "start": torch.tensor([0, 3, 6]),
              "meta": {"fps": [10.0, 10.0, 10.0]}}
-    assert trainer._loss_warmup(batch).tolist() == [4, 1, 0]  # max(0, 4 - first)
+    opts = trainer.opts
+    warm = batch_loss_warmup(batch, opts.loss_warmup, opts.loss_warmup_seconds,
+                             per_frame=False, device=trainer.device)
+    assert warm.tolist() == [4, 1, 0]  # max(0, 4 - first)
 
 
 def test_pool_cropped_for_another_model_is_refused(tmp_path, tiny_pool):

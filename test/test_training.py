@@ -21,15 +21,12 @@ from signal_light_node.training.sampling import (
     stratum_weights,
 )
 from signal_light_node.training.sources import WindowDataset, load_ucm_tracks
-from signal_light_node.training.train import (
-    TrainOptions,
-    Trainer,
-    annealed_lr,
-    multitask_loss,
-    resolve_precision,
-    validate,
-    warmup_frames,
-)
+from signal_light_node.training.loop import Trainer
+from signal_light_node.training.loss import multitask_loss, warmup_frames
+from signal_light_node.training.options import TrainOptions
+from signal_light_node.training.precision import resolve_precision
+from signal_light_node.training.schedule import annealed_lr
+from signal_light_node.training.validation import validate
 
 from test_ucm_loader import make_ucm
 
@@ -101,6 +98,25 @@ def test_options_are_checked(tmp_path):
         TrainOptions(out=tmp_path, max_steps=1, anneal_fraction=1.0).validate()
     with pytest.raises(ConfigError, match="precision must be one of"):
         TrainOptions(out=tmp_path, max_steps=1, precision="fp16").validate()
+
+
+def test_command_line_defaults_are_the_options_defaults(tmp_path):
+    """``signal-light train`` with no options trains with ``TrainOptions``' own defaults."""
+    from signal_light_node.cli import build_parser
+    from signal_light_node.commands.train import options_from_args
+
+    parser = build_parser(["train"])
+    args = parser.parse_args(["train", "--out", str(tmp_path)])
+    assert options_from_args(args) == TrainOptions(out=tmp_path)
+    # what --help shows is that default too (e.g. --lr, --patience -> plateau_patience)
+    train_parser = parser._subparsers._group_actions[0].choices["train"]
+    shown = {a.dest: a.default for a in train_parser._actions}
+    assert shown["lr"] == TrainOptions.default("lr")
+    assert shown["patience"] == TrainOptions.default("plateau_patience")
+    with pytest.raises(ConfigError, match="no training option"):
+        TrainOptions.default("horn")
+    with pytest.raises(ConfigError, match="has no default"):
+        TrainOptions.default("out")
 
 
 def test_auto_precision_is_bf16_only_where_the_cpu_computes_it_natively(monkeypatch):

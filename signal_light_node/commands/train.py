@@ -19,7 +19,9 @@ Examples::
     # data-parallel over two processes (gloo on CPU; NCCL with --device cuda)
     torchrun --nproc_per_node=2 -m signal_light_node.cli train --out runs/ddp --steps 1000
 
-See :mod:`signal_light_node.training.train` for the recipe and the files written.
+See :mod:`signal_light_node.training.loop` for the recipe and the files written, and
+:class:`signal_light_node.training.options.TrainOptions` for every option; the defaults
+here are read from it.
 """
 
 from __future__ import annotations
@@ -32,6 +34,10 @@ from typing import Any, Dict
 from signal_light_node.commands.options import add_labelled_data_options, add_torch_options
 from signal_light_node.errors import ConfigError
 from signal_light_node.training import BATCH_MODES, FRAME_TARGETS, PRECISIONS
+from signal_light_node.training.options import TrainOptions
+
+#: The default of a training option (``TrainOptions``: the one place they are set).
+_default = TrainOptions.default
 
 
 def _key_values(text: str, what: str) -> Dict[str, Any]:
@@ -59,20 +65,27 @@ def _key_values(text: str, what: str) -> Dict[str, Any]:
     return out
 
 
+def _task_weights_text() -> str:
+    """The default task weights as ``--task-weights`` spells them."""
+    return ",".join(f"{task}={weight:g}" for task, weight in _default("task_weights").items())
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``signal-light train``."""
     parser.formatter_class = argparse.ArgumentDefaultsHelpFormatter
     g = parser.add_argument_group("run")
     g.add_argument("--out", required=True, type=Path, help="output directory (checkpoints, logs)")
-    g.add_argument("--steps", type=int, default=None, help="total optimiser steps to reach")
-    g.add_argument("--max-minutes", type=float, default=None,
+    g.add_argument("--steps", type=int, default=_default("max_steps"),
+                   help="total optimiser steps to reach")
+    g.add_argument("--max-minutes", type=float, default=_default("max_minutes"),
                    help="wall-clock budget of this invocation")
-    g.add_argument("--seed", type=int, default=0, help="seed of init, data and sampling")
-    g.add_argument("--workers", type=int, default=1,
+    g.add_argument("--seed", type=int, default=_default("seed"),
+                   help="seed of init, data and sampling")
+    g.add_argument("--workers", type=int, default=_default("workers"),
                    help="DataLoader processes rendering synthetic data (0: in the main process)")
-    g.add_argument("--resume", nargs="?", const="", default=None, metavar="CKPT",
+    g.add_argument("--resume", nargs="?", const="", default=_default("resume"), metavar="CKPT",
                    help="resume from CKPT (default OUT/last.pt) and its .state.pt")
-    g.add_argument("--init-from", default=None, metavar="CKPT",
+    g.add_argument("--init-from", default=_default("init_from"), metavar="CKPT",
                    help="start from these weights ('default' = the shipped weights)")
     g.add_argument("--freeze-encoder", action="store_true",
                    help="train only the ConvLSTM and the heads on the --init-from encoder")
@@ -80,22 +93,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     g = parser.add_argument_group("data")
     add_labelled_data_options(g)
-    g.add_argument("--synthetic-fraction", type=float, default=None,
+    g.add_argument("--synthetic-fraction", type=float,
+                   default=_default("synthetic_fraction"),
                    help="share of synthetic sequences (default 1 without --bags/--ucm, else 0)")
-    g.add_argument("--pool", dest="pools", action="append", type=Path, default=[],
-                   metavar="SPLIT", help="materialised synthetic split to train on as whole "
+    g.add_argument("--pool", dest="pools", action="append", type=Path,
+                   default=_default("pools"), metavar="SPLIT",
+                   help="materialised synthetic split to train on as whole "
                    "tracks (python -m signal_light_node.data.split ... --full-tracks); repeatable")
-    g.add_argument("--mode", choices=BATCH_MODES, default="windows",
+    g.add_argument("--mode", choices=BATCH_MODES, default=_default("mode"),
                    help="windows: sequences from a zero state; frames: single frames from "
                    "anywhere (per-frame pre-training); lanes: --batch tracks side by side, "
                    "--seq-len frames per step, state carried (frames/lanes need --pool/--bags)")
-    g.add_argument("--frame-targets", choices=tuple(FRAME_TARGETS), default="state",
+    g.add_argument("--frame-targets", choices=tuple(FRAME_TARGETS),
+                   default=_default("frame_targets"),
                    help="--mode frames only: state: the lights' logical states; lit: what "
                    "each frame shows (a blink's dark half counts as off; --pool splits only)")
-    g.add_argument("--batch", type=int, default=8,
+    g.add_argument("--batch", type=int, default=_default("batch"),
                    help="sequences (frames in --mode frames, lanes in --mode lanes) per step "
                    "per process")
-    g.add_argument("--seq-len", type=int, default=16, help="frames per training sequence")
+    g.add_argument("--seq-len", type=int, default=_default("seq_len"),
+                   help="frames per training sequence")
     g.add_argument("--no-mirror", action="store_true", help="no mirroring augmentation")
     g.add_argument("--no-jitter", action="store_true", help="no colour jitter")
     g.add_argument("--camera-response", action="store_true",
@@ -103,60 +120,69 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "noise, blur, resolution, JPEG)")
     g.add_argument("--freeze-norms", action="store_true",
                    help="keep the init weights' batch-norm statistics (fine-tuning on augmented data)")
-    g.add_argument("--grown-init-scale", type=float, default=0.0, metavar="S",
+    g.add_argument("--grown-init-scale", type=float, default=_default("grown_init_scale"),
+                   metavar="S",
                    help="with --init-from and --model adding input channels: their initial "
                         "weights' spread relative to the trained ones (0: zeros)")
     g.add_argument("--shape-warp", action="store_true",
                    help="a random perspective warp per sequence (vehicle shape and view)")
     g.add_argument("--no-balance", action="store_true",
                    help="replay synthetic sequences in natural shares, not stratified")
-    g.add_argument("--balance-drop", type=float, default=0.0,
+    g.add_argument("--balance-drop", type=float, default=_default("balance_max_drop"),
                    help="also drop up to this share of fresh sequences of common strata")
-    g.add_argument("--reuse", type=float, default=2.0,
+    g.add_argument("--reuse", type=float, default=_default("reuse"),
                    help="average times a rendered synthetic sequence is served (replay)")
     g.add_argument("--stream", default="", metavar="K=V,...",
                    help="extra SyntheticSequenceStream options, e.g. 'vehicles=[2,5]'")
 
     g = parser.add_argument_group("optimisation")
-    g.add_argument("--lr", type=float, default=1e-3, help="initial Adam learning rate")
-    g.add_argument("--weight-decay", type=float, default=1e-4, help="L2 on dense layers")
-    g.add_argument("--precision", choices=PRECISIONS, default="fp32",
+    g.add_argument("--lr", type=float, default=_default("lr"),
+                   help="initial Adam learning rate")
+    g.add_argument("--weight-decay", type=float, default=_default("weight_decay"),
+                   help="L2 on dense layers")
+    g.add_argument("--precision", choices=PRECISIONS, default=_default("precision"),
                    help="bf16: the forward pass autocast to bfloat16 (about 1.2x faster on a "
                         "CPU with AVX512-BF16; weights and validation stay float32); auto: "
                         "bf16 where the hardware supports it natively")
     g.add_argument("--task-weights", default="", metavar="T=W,...",
-                   help="loss weight per head, e.g. 'intent=1,brake=1,left=0.5,right=0.5,view=0.5'")
-    g.add_argument("--class-weight-power", type=float, default=0.5,
+                   help=f"loss weight per head, e.g. '{_task_weights_text()}'")
+    g.add_argument("--class-weight-power", type=float,
+                   default=_default("class_weight_power"),
                    help="class weights (share)^-power; 0 disables")
-    g.add_argument("--loss-warmup", type=int, default=2,
+    g.add_argument("--loss-warmup", type=int, default=_default("loss_warmup"),
                    help="leading frames per window without intent/left/right loss")
-    g.add_argument("--loss-warmup-seconds", type=float, default=0.4,
+    g.add_argument("--loss-warmup-seconds", type=float,
+                   default=_default("loss_warmup_seconds"),
                    help="the same in seconds; the larger of the two applies")
     g.add_argument("--model", default="", metavar="K=V,...",
                    help="ModelConfig fields, e.g. 'use_attention=false' (ignored with --init-from)")
 
     g = parser.add_argument_group("validation")
-    g.add_argument("--val-split", type=Path, default=None,
+    g.add_argument("--val-split", type=Path, default=_default("val_split"),
                    help="materialised split to validate on (default: OUT/val_split, "
                         "or held-out bag/UCM tracks)")
-    g.add_argument("--val-sequences", type=int, default=96,
+    g.add_argument("--val-sequences", type=int, default=_default("val_sequences"),
                    help="size of OUT/val_split when it has to be made")
-    g.add_argument("--val-every", type=int, default=200, help="steps between validations")
-    g.add_argument("--val-fraction", type=float, default=0.1,
+    g.add_argument("--val-every", type=int, default=_default("val_every"),
+                   help="steps between validations")
+    g.add_argument("--val-fraction", type=float, default=_default("val_fraction"),
                    help="share of bag/UCM tracks held out for validation")
-    g.add_argument("--patience", type=int, default=3,
+    g.add_argument("--patience", type=int, default=_default("plateau_patience"),
                    help="validations without improvement before the LR drops")
-    g.add_argument("--anneal-fraction", type=float, default=0.0,
+    g.add_argument("--anneal-fraction", type=float,
+                   default=_default("anneal_fraction"),
                    help="final share of the budget (--max-minutes or --steps) over which the "
                         "LR decays along a cosine to its minimum, on top of the plateau "
                         "schedule (0: off)")
 
 
-def options_from_args(args: argparse.Namespace) -> "Any":
-    """Turn parsed arguments into :class:`TrainOptions`."""
-    from signal_light_node.training.train import DEFAULT_TASK_WEIGHTS, TrainOptions
+def options_from_args(args: argparse.Namespace) -> TrainOptions:
+    """Turn parsed arguments into :class:`TrainOptions`.
 
-    task_weights = dict(DEFAULT_TASK_WEIGHTS)
+    ``--task-weights`` changes the default weights of the heads it names; the ``--no-*``
+    flags switch off what is on by default.
+    """
+    task_weights = _default("task_weights")
     task_weights.update({k: float(v) for k, v in
                          _key_values(args.task_weights, "--task-weights").items()})
     resume = None
@@ -180,7 +206,8 @@ def options_from_args(args: argparse.Namespace) -> "Any":
         ucm=list(args.ucm), pools=list(args.pools), mode=args.mode,
         frame_targets=args.frame_targets,
         synthetic_fraction=args.synthetic_fraction,
-        mirror_prob=0.0 if args.no_mirror else 0.5, jitter=not args.no_jitter,
+        mirror_prob=0.0 if args.no_mirror else _default("mirror_prob"),
+        jitter=not args.no_jitter,
         camera_response=args.camera_response, shape_warp=args.shape_warp,
         model=_key_values(args.model, "--model"), stream=_key_values(args.stream, "--stream"),
         progress=not args.no_progress)
@@ -188,7 +215,7 @@ def options_from_args(args: argparse.Namespace) -> "Any":
 
 def run(args: argparse.Namespace) -> int:
     """Train; prints a JSON summary (rank 0 only under torchrun)."""
-    from signal_light_node.training.train import train
+    from signal_light_node.training.loop import train  # imports torch: only when training
 
     summary = train(options_from_args(args))
     import os

@@ -1,0 +1,108 @@
+"""The multi-task loss: weighted per-head cross-entropies over the valid frames.
+
+Each head's cross-entropy is averaged over the frames of the batch that count (``mask``
+True and a label >= 0) and weighted by ``TrainOptions.task_weights``; class weights
+(``share^-power``, :class:`.sampling.ClassFrequency`) counter the imbalance of the
+classes. The blinker-driven heads (:data:`TEMPORAL_TASKS`) skip the first ``max(frames,
+ceil(seconds * fps))`` frames of every window: a window starts from a blank state, and a
+blink cannot be told from a dark lamp before part of a cycle has been seen.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Dict, Mapping, Optional, Sequence, Tuple
+
+import torch
+import torch.nn.functional as F
+
+from signal_light_node.labels import TASKS
+
+#: Tasks whose label needs time to be seen (no loss during a window's warm-up).
+TEMPORAL_TASKS = ("intent", "left", "right")
+
+
+def multitask_loss(logits: Mapping[str, torch.Tensor], labels: torch.Tensor, mask: torch.Tensor,
+                   task_weights: Mapping[str, float],
+                   class_weights: Optional[Mapping[str, torch.Tensor]] = None,
+                   loss_warmup: "int | torch.Tensor" = 0) -> Tuple[torch.Tensor, Dict[str, float]]:
+    """Weighted sum of per-head cross-entropies over the valid frames.
+
+    Args:
+        logits: Task -> ``[B, T, K]``.
+        labels: int64 ``[B, T, len(TASKS)]``; negative entries are ignored.
+        mask: bool ``[B, T]``; False frames are ignored.
+        task_weights: Task -> weight (missing or 0: not in the loss).
+        class_weights: Task -> ``[K]`` class weights, or None.
+        loss_warmup: Leading frames without loss for :data:`TEMPORAL_TASKS`: one number
+            for all sequences, or an int64 ``[B]`` tensor per sequence.
+
+    Returns:
+        ``(total loss, {task: its mean cross-entropy})``.
+    """
+    total = logits[TASKS[0]].new_zeros(())
+    parts: Dict[str, float] = {}
+    for i, task in enumerate(TASKS):
+        w = float(task_weights.get(task, 0.0))
+        if w <= 0 or task not in logits:
+            continue
+        valid = _valid_frames(labels[..., i], mask, loss_warmup if task in TEMPORAL_TASKS
+                              else None)
+        loss = _masked_cross_entropy(logits[task], labels[..., i], valid,
+                                     None if class_weights is None else class_weights.get(task))
+        parts[task] = float(loss.detach())
+        total = total + w * loss
+    return total, parts
+
+
+def _valid_frames(y: torch.Tensor, mask: torch.Tensor,
+                  warmup: "int | torch.Tensor | None") -> torch.Tensor:
+    """bool ``[B, T]``: frames with a label, past the warm-up when one is given."""
+    valid = mask & (y >= 0)
+    if warmup is not None:
+        t_idx = torch.arange(y.shape[1], device=y.device)
+        warm = torch.as_tensor(warmup, device=y.device).reshape(-1, 1)
+        valid = valid & (t_idx[None, :] >= warm)
+    return valid
+
+
+def _masked_cross_entropy(logits: torch.Tensor, y: torch.Tensor, valid: torch.Tensor,
+                          weight: Optional[torch.Tensor]) -> torch.Tensor:
+    """Mean cross-entropy of ``[B, T, K]`` logits over the ``valid`` frames (0 if none)."""
+    k = logits.shape[-1]
+    ce = F.cross_entropy(logits.reshape(-1, k), y.clamp(min=0).reshape(-1), weight=weight,
+                         reduction="none")
+    valid_f = valid.reshape(-1).to(ce.dtype)
+    return (ce * valid_f).sum() / valid_f.sum().clamp(min=1.0)
+
+
+def warmup_frames(fps: Sequence[float], frames: int, seconds: float) -> torch.Tensor:
+    """Per-sequence warm-up length: ``max(frames, ceil(seconds * fps))``, int64 ``[B]``."""
+    rates = torch.as_tensor([float(f) if f else 10.0 for f in fps], dtype=torch.float64)
+    return torch.clamp(torch.ceil(rates * float(seconds)), min=float(frames)).to(torch.int64)
+
+
+def batch_loss_warmup(batch: Mapping[str, Any], frames: int, seconds: float, per_frame: bool,
+                      device: torch.device) -> "int | torch.Tensor":
+    """Leading frames per sequence of a training batch without loss on :data:`TEMPORAL_TASKS`.
+
+    Args:
+        batch: A collated batch (``labels``, ``meta`` with ``fps``; lanes add ``start``,
+            each lane's first frame's index in its track).
+        frames: ``TrainOptions.loss_warmup``.
+        seconds: ``TrainOptions.loss_warmup_seconds``.
+        per_frame: Single-frame batches (``--mode frames``): no warm-up. A lit lamp is a
+            per-frame cue; a blinker's dark phase is label noise the recurrent stage
+            later resolves.
+        device: Where the loss is computed.
+
+    Returns:
+        0 for single frames, else an int64 ``[B]`` tensor on ``device``; in lanes only the
+        start of each track warms up.
+    """
+    if per_frame:
+        return 0
+    fps = batch["meta"].get("fps", [None] * len(batch["labels"]))
+    warm = warmup_frames(fps, frames, seconds)
+    if "start" in batch:
+        warm = (warm - batch["start"]).clamp(min=0)
+    return warm.to(device)

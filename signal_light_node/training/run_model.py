@@ -1,0 +1,100 @@
+"""The model a run trains: fresh, warm-started from other weights, or resumed.
+
+* ``--resume``: the checkpoint's model and config as saved.
+* ``--init-from``: those weights (and their config); with ``--model`` changes the
+  architecture is grown (e.g. ``temporal_input``) and starts from the old weights
+  (:func:`signal_light_node.model.warm_start.warm_start`).
+* otherwise a fresh ``ModelConfig`` (with the ``--model`` changes), initialised from the
+  torch seed.
+
+``--freeze-encoder`` / ``--freeze-norms`` then fix parts of it (:func:`freeze_parts`).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, Mapping, Optional
+
+from torch import nn
+
+from signal_light_node.errors import ConfigError
+from signal_light_node.model import DEFAULT_WEIGHTS, ModelConfig, build_model, load_checkpoint
+from signal_light_node.model.warm_start import warm_start
+from signal_light_node.training.options import TrainOptions
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class RunModel:
+    """A run's model before training.
+
+    Attributes:
+        config: Its configuration.
+        model: The model (on the CPU).
+        init_meta: What checkpoints record of ``--init-from`` (empty otherwise).
+    """
+
+    config: ModelConfig
+    model: nn.Module
+    init_meta: Dict[str, Any] = field(default_factory=dict)
+
+
+def resolve_init(path: Optional[Path]) -> Optional[Path]:
+    """The checkpoint ``--init-from`` names ("default" or "shipped": the shipped weights)."""
+    if path is None:
+        return None
+    return DEFAULT_WEIGHTS if str(path) in ("default", "shipped") else Path(path)
+
+
+def load_run_model(opts: TrainOptions) -> RunModel:
+    """The model ``opts`` starts from (resumed, warm-started or fresh; see the module doc).
+
+    Raises:
+        CheckpointError: A checkpoint cannot be loaded.
+    """
+    if opts.resume is not None:
+        loaded = load_checkpoint(opts.resume, map_location="cpu")
+        return RunModel(loaded.config, loaded.model)
+    init = resolve_init(opts.init_from)
+    if init is not None:
+        return _warm_started(init, opts.model, opts.grown_init_scale)
+    config = ModelConfig().replace(**opts.model) if opts.model else ModelConfig()
+    return RunModel(config, build_model(config))
+
+
+def _warm_started(init: Path, changes: Mapping[str, Any], grown_init_scale: float) -> RunModel:
+    """The weights of ``init``, in an architecture grown by ``changes`` if any."""
+    loaded = load_checkpoint(init, map_location="cpu")
+    meta = {"init_from": str(init), "init_training_data": loaded.meta.get("training_data")}
+    if not changes:
+        return RunModel(loaded.config, loaded.model, meta)
+    # A grown architecture (e.g. temporal_input) starts from the old weights.
+    config = loaded.config.replace(**changes)
+    model = build_model(config)
+    grown = warm_start(model, loaded.model.state_dict(), grown_init_scale)
+    meta["init_model_changes"] = dict(changes)
+    logger.info("warm start from %s with %s; new input channels in %s", init, dict(changes),
+                grown)
+    return RunModel(config, model, meta)
+
+
+def freeze_parts(model: nn.Module, config: ModelConfig, encoder: bool, norms: bool) -> None:
+    """``--freeze-encoder`` (train only the ConvLSTM and the heads) and ``--freeze-norms``
+    (keep the batch-norm statistics; the weights still train).
+
+    Raises:
+        ConfigError: The architecture cannot freeze what is asked.
+    """
+    if encoder:
+        if not hasattr(model, "freeze_encoder"):
+            raise ConfigError(f"--freeze-encoder: architecture {config.arch!r} has no "
+                              "encoder to freeze")
+        model.freeze_encoder()
+    if norms:
+        if not hasattr(model, "freeze_norms"):
+            raise ConfigError(f"--freeze-norms: architecture {config.arch!r} cannot "
+                              "freeze its norms")
+        model.freeze_norms()
