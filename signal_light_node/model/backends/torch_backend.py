@@ -16,7 +16,7 @@ from typing import Any, Optional, Tuple
 import numpy as np
 import torch
 
-from signal_light_node.errors import ConfigError
+from signal_light_node.errors import CheckpointError, ConfigError
 from signal_light_node.labels import TASKS
 from signal_light_node.model.interface import State, to_input
 from signal_light_node.runtime.backend import StepOutput, check_device
@@ -113,6 +113,9 @@ class TorchBackend:
 
         require_device(check_device(device))  # before loading: torch would blame the file
         path = str(DEFAULT_WEIGHTS if path is None else path)
+        if path.lower().endswith(".onnx"):
+            raise CheckpointError(f"{path} is an ONNX export; run it with backend onnxruntime "
+                                  "(backend torch loads a .pt checkpoint)")
         loaded = load_checkpoint(path, map_location=device)
         return cls(loaded.model, device=device, threads=threads, source=path)
 
