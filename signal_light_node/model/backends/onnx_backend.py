@@ -84,6 +84,10 @@ class OnnxRuntimeBackend:
         options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         options.log_severity_level = 3  # errors only: the node logs what matters
+        # Idle intra-op threads sleep instead of spinning: on a small shared CPU (the node's
+        # worker, rclpy and the camera driver) spinning threads slow everyone down, as
+        # OMP_WAIT_POLICY=PASSIVE does for torch (signal_light_node/__init__.py).
+        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         try:
             self._session = ort.InferenceSession(str(source), options, providers=providers)
         except Exception as exc:  # onnxruntime raises its own pybind types for a bad file
