@@ -22,6 +22,7 @@ SUBCOMMANDS = {
     "train": ("train", "train the light-state model"),
     "evaluate": ("evaluate", "score a checkpoint on a synthetic split or on labelled bags"),
     "replay": ("replay", "run the detector engine over a bag without ROS, writing an output bag"),
+    "export": ("export", "export a checkpoint's model step to ONNX (for the onnxruntime backend)"),
     "play": ("play", "publish a bag's image and detection topics into a live ROS graph"),
     "record": ("record", "record topics of a live ROS graph into an MCAP bag"),
 }

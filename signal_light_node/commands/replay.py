@@ -29,11 +29,17 @@ def _threshold(text: str) -> tuple:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``signal-light replay``."""
+    from signal_light_node.runtime.backend import known_backends
+
     parser.add_argument("bag", type=Path, help="input bag (rosbag2 directory or .mcap)")
     parser.add_argument("-o", "--output", type=Path, required=True,
                         help="output MCAP rosbag2 directory")
     parser.add_argument("--checkpoint", type=Path, default=None,
-                        help="model checkpoint (default: the shipped weights)")
+                        help="model file: a .pt checkpoint (--backend torch) or its .onnx export "
+                             "(--backend onnxruntime); default: the shipped one")
+    parser.add_argument("--backend", choices=known_backends(), default="torch",
+                        help="model backend (default torch); onnxruntime runs the file "
+                             "`signal-light export --onnx` writes")
     parser.add_argument("--image-topic", default=None,
                         help="image topic (default: the first CompressedImage, else Image topic)")
     parser.add_argument("--detections-topic", default=None,
@@ -80,20 +86,17 @@ def _pairing(args: argparse.Namespace) -> PairingConfig:
 
 def run(args: argparse.Namespace) -> int:
     """Replay the bag, print the summary and, with ground truth, the metrics."""
-    import torch  # OMP_WAIT_POLICY is already set by importing signal_light_node
-
     from signal_light_node.runtime.engine import engine_from_checkpoint
     from signal_light_node.tools.replay import replay_bag, score_summary
 
     if args.video is not None and args.video.suffix.lower() not in (".mp4", ".gif"):
         raise ConfigError(f"--video must end in .mp4 or .gif, got {args.video.name!r}")
-    if args.threads is not None:
-        if args.threads < 1:
-            raise ConfigError(f"--threads must be >= 1, got {args.threads}")
-        torch.set_num_threads(args.threads)
+    if args.threads is not None and args.threads < 1:
+        raise ConfigError(f"--threads must be >= 1, got {args.threads}")
     thresholds: Dict[str, float] = dict(args.threshold)
     pairing = _pairing(args)  # before loading the model: a bad option is the quicker error
-    engine = engine_from_checkpoint(args.checkpoint, device=args.device, thresholds=thresholds,
+    engine = engine_from_checkpoint(args.checkpoint, device=args.device, backend=args.backend,
+                                    threads=args.threads, thresholds=thresholds,
                                     track_timeout_s=args.track_timeout,
                                     intent_filter=intent_filter_from_args(args))
     summary = replay_bag(args.bag, args.output, engine, image_topic=args.image_topic,

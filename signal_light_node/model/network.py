@@ -209,16 +209,22 @@ class LightStateNet(nn.Module):
             evidence: ``[N, 6, S, S]`` temporal evidence (``model.temporal``); required
                 exactly when the config has ``temporal_input``.
         """
+        return self._encode(crops, evidence)[0]
+
+    def _encode(self, crops: Tensor, evidence: Optional[Tensor]) -> Tuple[Tensor, Optional[Tensor]]:
+        """:meth:`encode` and the attention mask it applied (None without attention)."""
         x = self._normalise(crops)
+        mask = None
         if self.attention_net is not None:
-            x = x * self.attention_net(x)
+            mask = self.attention_net(x)
+            x = x * mask
         if self.config.temporal_input:
             if evidence is None:
                 raise ConfigError("this model takes temporal evidence with its crops")
             # Differences are scaled like the crop, by 1/std per channel.
             scale = torch.cat((self._inv_std, self._inv_std), 1)
             x = torch.cat((x, (evidence * scale).contiguous(memory_format=MEMORY_FORMAT)), 1)
-        return self.backbone(x)
+        return self.backbone(x), mask
 
     def _evidence(self, crops: Tensor, state: Optional[State]) -> Tuple[Tensor, Tuple[Tensor, Tensor]]:
         """Temporal evidence of one frame and the track history after it."""
@@ -327,19 +333,36 @@ class LightStateNet(nn.Module):
             crops: float32 ``[N, 3, S, S]`` in [0, 1], BGR.
             state: The tracks' states (batch ``N``), e.g. from :meth:`initial_state`.
         """
+        logits, state, _ = self._step(crops, state)
+        return logits, state
+
+    def _step(self, crops: Tensor, state: State
+              ) -> Tuple[Dict[str, Tensor], State, Optional[Tensor]]:
+        """Logits, new state and the attention mask applied (None without attention)."""
         self._check_crops(crops, 4)
         self._check_state(state, crops.shape[0])
         if not self.config.temporal_input:
-            hidden, state = self._recur(self.encode(crops), state)
-            return self._heads(hidden), state
+            features, mask = self._encode(crops, None)
+            hidden, state = self._recur(features, state)
+            return self._heads(hidden), state, mask
         evidence, history = self._evidence(crops, state)
-        hidden, lstm_state = self._recur(self.encode(crops, evidence), state[:len(self.cells)])
-        return self._heads(hidden), lstm_state + (history,)
+        features, mask = self._encode(crops, evidence)
+        hidden, lstm_state = self._recur(features, state[:len(self.cells)])
+        return self._heads(hidden), lstm_state + (history,), mask
 
     def step(self, crops: Tensor, state: State) -> Tuple[Dict[str, Tensor], State]:
         """Like :meth:`step_logits` but with probabilities (softmax over classes)."""
         logits, state = self.step_logits(crops, state)
         return {t: torch.softmax(v, dim=1) for t, v in logits.items()}, state
+
+    def step_with_attention(self, crops: Tensor, state: State
+                            ) -> Tuple[Dict[str, Tensor], State, Tensor]:
+        """:meth:`step` plus the attention mask ``[N, 1, S, S]`` it applied (what
+        :meth:`attention` gives for the same crops), so an overlay costs no second pass."""
+        logits, state, mask = self._step(crops, state)
+        if mask is None:
+            mask = crops.new_ones((crops.shape[0], 1) + tuple(crops.shape[2:]))
+        return {t: torch.softmax(v, dim=1) for t, v in logits.items()}, state, mask
 
     def forward_sequence(self, crops: Tensor,
                          state: Optional[State] = None) -> Tuple[Dict[str, Tensor], State]:

@@ -7,7 +7,8 @@ average), both in the coordinates of the last frame. Each step
 
 1. estimates the integer shift between the previous and the current crop (tracker
    boxes jitter by a few pixels) by trying every shift within ``radius`` pixels on the
-   grey images and keeping the one with the smallest mean absolute difference,
+   grey images and keeping the one with the smallest mean absolute difference (no
+   shift on a tie),
 2. shifts the previous crop and the running mean by it,
 3. returns two difference images: current minus previous (a lamp switching on or off
    right now) and current minus the running mean (a region that departs from how the
@@ -48,22 +49,38 @@ def best_shifts(reference: Tensor, current: Tensor, radius: int) -> Tensor:
     r = int(radius)
     if r == 0:
         return current.new_zeros((n, 2), dtype=torch.long)
+    # No shift first: argmin returns the first of equal scores, so ties (flat crops)
+    # keep the crop where it is.
+    candidates = [(0, 0)] + [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1)
+                             if (dy, dx) != (0, 0)]
+    inner = size - 2 * r
+    # Scores are sums of whole numbers of at most 765: exact in float32 (fast) while they
+    # stay below 2**24, else in float64.
+    dtype = torch.float32 if ((inner + 1) // 2) ** 2 * 765 < 2 ** 24 else torch.float64
     with torch.no_grad():
         # Every other row and column of the grey images: a quarter of the work, the same
         # one-pixel precision of the shift.
-        cur = current.float().mean(1, keepdim=True)[..., r:size - r:2, r:size - r:2]
-        pad = F.pad(reference.float().mean(1, keepdim=True), (r, r, r, r), mode="replicate")
-        inner = size - 2 * r
+        cur = _grey_levels(current, dtype)[..., r:size - r:2, r:size - r:2]
+        pad = F.pad(_grey_levels(reference, dtype), (r, r, r, r), mode="replicate")
         # Current row y (inner: y >= r) against reference row y + dy = padded row y + r + dy.
-        scores = torch.stack([(pad[..., 2 * r + dy:2 * r + dy + inner:2,
-                                   2 * r + dx:2 * r + dx + inner:2] - cur)
+        scores = torch.stack([(pad[..., r + dy + r:r + dy + r + inner:2,
+                                   r + dx + r:r + dx + r + inner:2] - cur)
                               .abs().sum(dim=(1, 2, 3))
-                              for dy in range(-r, r + 1) for dx in range(-r, r + 1)], 1)
-        # Ties (flat crops) prefer no shift: the centre candidate gets a tiny bonus.
-        scores[:, (2 * r + 1) * r + r] -= 1e-3
+                              for dy, dx in candidates], 1)
         best = scores.argmin(1)
-    side = 2 * r + 1
-    return torch.stack((best // side, best % side), 1)
+    offsets = torch.tensor([(dy + r, dx + r) for dy, dx in candidates], dtype=torch.long,
+                           device=current.device)
+    return offsets.index_select(0, best)
+
+
+def _grey_levels(images: Tensor, dtype: torch.dtype) -> Tensor:
+    """``[N, 1, H, W]``: the sum of the three channels in steps of 1/255, rounded.
+
+    Whole numbers, so the alignment scores are exact sums: the shift chosen cannot
+    depend on the order a framework adds them in (torch and onnxruntime, CPU and CUDA
+    pick the same one). Crops cut from uint8 images lose nothing by the rounding.
+    """
+    return torch.round(images.float().sum(1, keepdim=True) * 255.0).to(dtype)
 
 
 def shift_images(images: Tensor, offsets: Tensor, radius: int) -> Tensor:

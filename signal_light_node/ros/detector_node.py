@@ -90,19 +90,15 @@ class SignalLightDetector(Node):
             ConfigError: The model does not fit the parameters (device, crop size).
         """
         from signal_light_node.runtime.engine import engine_from_checkpoint
-        from signal_light_node.model.checkpoint import DEFAULT_WEIGHTS
 
         p = self.params
-        if p.num_threads > 0:
-            import torch
-
-            torch.set_num_threads(p.num_threads)
-        self.model_path = p.model_path or str(DEFAULT_WEIGHTS)
         self.engine = engine_from_checkpoint(
-            p.model_path or None, device=p.device, thresholds=p.thresholds,
+            p.model_path or None, device=p.device, backend=p.backend, threads=p.num_threads,
+            thresholds=p.thresholds,
             track_timeout_s=p.track_timeout_s, max_tracks=p.max_tracks, max_gap_s=p.max_gap_s,
             intent_filter=p.intent_filter_config,
             max_boxes=p.max_boxes_per_frame)
+        self.model_path = self.engine.backend.source
 
         self._pairer = StampPairer(int(p.sync_slop_s * _NS), int(p.sync_timeout_s * _NS),
                                    p.image_queue_size, p.detection_queue_size)
@@ -141,7 +137,7 @@ class SignalLightDetector(Node):
         self.get_logger().info(
             f"ready: {self._image_topic} ({p.image_transport}, {p.reliability}) + "
             f"{self._det_sub.topic_name} "
-            f"-> {self._out.topic_name}; model {self.model_path} on {p.device}, "
+            f"-> {self._out.topic_name}; model {self.model_path} ({p.backend}) on {p.device}, "
             f"pairing {'exact' if p.sync_slop_s == 0 else f'within {p.sync_slop_s} s'}")
 
     def stop(self) -> None:

@@ -34,8 +34,10 @@ class DetectorParams:
     """Parameter values of the detector node (defaults = the shipped configuration).
 
     Attributes:
-        model_path: Checkpoint file; "" means the shipped weights.
+        model_path: Model file (a ``.pt`` checkpoint for the torch backend, an ``.onnx``
+            export for onnxruntime); "" means the one shipped with the package.
         device: ``cpu`` or ``cuda``.
+        backend: Model backend, ``torch`` or ``onnxruntime`` (``runtime.backend``).
         image_transport: ``raw`` (``~/input/image``) or ``compressed``
             (``~/input/image/compressed``).
         reliability: QoS reliability of the input subscriptions.
@@ -63,13 +65,14 @@ class DetectorParams:
         publish_markers: Publish the results drawn for RViz on ``~/output/markers``
             (``visualization_msgs/MarkerArray``, see :mod:`signal_light_node.outputs.markers`).
         diagnostics_period_s: Period of the ``/diagnostics`` status.
-        num_threads: torch intra-op threads; 0 keeps torch's default.
+        num_threads: Intra-op threads of the backend; 0 keeps its default.
         max_image_pixels: Larger images (width x height) are refused before decoding.
         max_boxes_per_frame: Boxes judged per frame; later ones are reported unjudged.
     """
 
     model_path: str = ""
     device: str = "cpu"
+    backend: str = "torch"
     image_transport: str = "raw"
     reliability: str = "best_effort"
     sync_slop_s: float = 0.0
@@ -136,8 +139,12 @@ class ParamSpec:
 
 #: One entry per field of :class:`DetectorParams`, same order.
 PARAM_SPECS: Dict[str, ParamSpec] = {
-    "model_path": ParamSpec("Model checkpoint (.pt); empty = the weights shipped with the package."),
-    "device": ParamSpec("Torch device for inference.", choices=("cpu", "cuda")),
+    "model_path": ParamSpec("Model file: a checkpoint (.pt) for backend torch, an export "
+                            "(.onnx, signal-light export --onnx) for backend onnxruntime; "
+                            "empty = the one shipped with the package."),
+    "device": ParamSpec("Device for inference.", choices=("cpu", "cuda")),
+    "backend": ParamSpec("Model backend: torch (the .pt checkpoint) or onnxruntime (its ONNX "
+                         "export).", choices=("torch", "onnxruntime")),
     "image_transport": ParamSpec(
         "raw: subscribe ~/input/image (sensor_msgs/Image); compressed: subscribe "
         "~/input/image/compressed (sensor_msgs/CompressedImage).", choices=("raw", "compressed")),
@@ -186,7 +193,8 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
                                  "0.01 m per pixel; built only while subscribed)."),
     "diagnostics_period_s": ParamSpec("Period of the status published on /diagnostics.",
                                       low=0.1, high=60.0),
-    "num_threads": ParamSpec("Torch intra-op threads; 0 keeps torch's default.", low=0, high=256),
+    "num_threads": ParamSpec("Intra-op threads of the backend (torch or onnxruntime); 0 keeps "
+                             "its default.", low=0, high=256),
     "max_image_pixels": ParamSpec("Images of more pixels (width x height) are refused before "
                                   "decoding (counted as oversized_images); their boxes are "
                                   "published unjudged.", low=1, high=2**31 - 1),
@@ -266,6 +274,13 @@ def validate_params(values: Union[DetectorParams, Mapping[str, Any]]) -> Detecto
                 problems.append(problem)
     if not problems:
         params = DetectorParams(**clean)
+        suffix = {"torch": ".pt", "onnxruntime": ".onnx"}[params.backend]
+        if params.model_path and params.model_path.lower().endswith((".pt", ".onnx")) \
+                and not params.model_path.lower().endswith(suffix):
+            problems.append(f"model_path {params.model_path!r} does not fit backend "
+                            f"{params.backend}, which loads a {suffix} file (a checkpoint "
+                            "becomes an .onnx file with signal-light export --onnx OUT "
+                            "--weights CKPT)")
         if params.sync_slop_s > 0 and params.sync_timeout_s <= params.sync_slop_s:
             problems.append(f"sync_timeout_s ({params.sync_timeout_s}) must exceed sync_slop_s "
                             f"({params.sync_slop_s}): a message must be able to wait for a "

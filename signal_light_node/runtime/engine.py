@@ -2,8 +2,9 @@
 
 The engine is what the ROS node and ``signal-light replay`` share. Per frame it crops
 every box with the shared crop code, gathers the tracks' recurrent states from the
-:class:`~signal_light_node.runtime.state_bank.StateBank`, runs ONE batched model step for all
-boxes that could be cropped, holds the outputs through blinks with the
+:class:`~signal_light_node.runtime.state_bank.StateBank`, runs ONE batched step of the model
+backend (:mod:`signal_light_node.runtime.backend`: torch or onnxruntime; the engine never
+sees a tensor) for all boxes that could be cropped, holds the outputs through blinks with the
 :class:`~signal_light_node.runtime.intent_filter.IntentFilter` (its per-track rows live in the
 state bank too), stores the new states and turns the probabilities into
 :class:`~signal_light_node.runtime.results.VehicleResult`\\ s. It never imports rclpy.
@@ -14,19 +15,20 @@ from __future__ import annotations
 import logging
 import math
 import time
+import weakref
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
-import torch
 
 from signal_light_node.boxes import TrackBox
 from signal_light_node.runtime.crops import CropConfig, clip_roi, crop_region, crop_vehicles
 from signal_light_node.errors import ConfigError
 from signal_light_node.runtime.intent_filter import IntentFilter, IntentFilterConfig
-from signal_light_node.labels import LIGHT_CODES, LIGHT_TASKS, TASKS, Intent, LightStatus, View
-from signal_light_node.model.interface import to_input
+from signal_light_node.labels import LIGHT_CODES, LIGHT_TASKS, Intent, LightStatus, View
+from signal_light_node.runtime.backend import ModelBackend, as_backend, check_device, create_backend
 from signal_light_node.runtime.results import LightEstimate, VehicleResult
 from signal_light_node.runtime.state_bank import StateBank, check_limits
 
@@ -85,7 +87,8 @@ class EngineConfig:
         track_timeout_s: A track unseen this long starts over from the initial state.
         max_tracks: Most track states kept; the least recently seen one is evicted.
         max_gap_s: A forward stamp jump larger than this resets every track.
-        device: Torch device of the model and the states ("cpu", "cuda", "cuda:1").
+        device: Device of the model and the states ("cpu", "cuda", "cuda:1"); a model
+            backend given to the engine keeps its own.
         intent_filter: The hold over the model's light outputs and the intent derived
             from it (``enabled=False`` publishes the raw model).
         max_boxes: Boxes judged per frame; later ones are reported unjudged and counted
@@ -114,13 +117,7 @@ class EngineConfig:
         limits = check_limits(self.track_timeout_s, self.max_tracks, self.max_gap_s)
         for name, value in zip(("track_timeout_s", "max_tracks", "max_gap_s"), limits):
             object.__setattr__(self, name, value)
-        try:
-            device = torch.device(self.device)
-        except (RuntimeError, TypeError) as exc:
-            raise ConfigError(f"device {self.device!r} is not a torch device: {exc}") from None
-        if device.type not in ("cpu", "cuda"):
-            raise ConfigError(f"device must be 'cpu' or 'cuda[:N]', got {self.device!r}")
-        object.__setattr__(self, "device", str(device))
+        object.__setattr__(self, "device", check_device(self.device))
 
 
 @dataclass(frozen=True)
@@ -142,23 +139,6 @@ class FrameResult:
     n_judged: int
 
 
-def require_device(device: "str | torch.device") -> torch.device:
-    """The torch device, checked to be usable here.
-
-    Raises:
-        ConfigError: Not a torch device, or CUDA is asked for on a machine (or torch
-            build) without it.
-    """
-    try:
-        device = torch.device(device)
-    except (RuntimeError, TypeError) as exc:
-        raise ConfigError(f"device {device!r} is not a torch device: {exc}") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ConfigError(f"CUDA requested but not available (device {str(device)!r}); "
-                          "use device cpu")
-    return device
-
-
 def unjudged_result(box: TrackBox, width: int, height: int,
                     frames_observed: int = 0) -> VehicleResult:
     """The result of a box that could not be judged: every light UNKNOWN with P(ON) = 0."""
@@ -177,8 +157,10 @@ class LightStateEngine:
     that jumps back resets every track, as when a bag loops).
 
     Args:
-        model: A ``LightStateModel`` (``initial_state``, ``step``, ``config``); put in
-            eval mode and moved to ``config.device`` here.
+        model: A model backend (``runtime.backend.ModelBackend``, e.g. from
+            ``create_backend``), or a bare torch ``LightStateModel`` (``initial_state``,
+            ``step``, ``config``), which is wrapped in the ``torch`` backend on
+            ``config.device``.
         config: Engine settings.
 
     Raises:
@@ -188,8 +170,9 @@ class LightStateEngine:
 
     def __init__(self, model: Any, config: Optional[EngineConfig] = None) -> None:
         config = config or EngineConfig()
-        model_config = model.config
-        input_size = int(getattr(model, "input_size", model_config.input_size))
+        backend: ModelBackend = as_backend(model, config.device)
+        model_config = backend.config
+        input_size = int(getattr(backend, "input_size", model_config.input_size))
         crop = config.crop or model_config.crop_config()
         if crop.size != input_size:
             raise ConfigError(f"crop size {crop.size} differs from the model's input size "
@@ -198,28 +181,32 @@ class LightStateEngine:
         if trained_margin is not None and abs(crop.margin - trained_margin) > 1e-9:
             LOG.warning("crop margin %.3f differs from the %.3f the model was trained with",
                         crop.margin, trained_margin)
-        device = require_device(config.device)
-        if hasattr(model, "to"):
-            model = model.to(device)
-        if hasattr(model, "eval"):
-            model.eval()
-        self.model = model
+        self.backend = backend
         self.config = config
         self.crop = crop
-        self.device = device
+        self.device = backend.device
+        #: Keep the attention masks of each step for ``attention_masks`` (switched on by
+        #: its first call, so engines without an overlay never pay for them).
+        self.keep_attention = False
+        self._frame_attention: Optional[_FrameAttention] = None
         codes = dict(getattr(model_config, "light_codes", LIGHT_CODES))
         if codes != LIGHT_CODES:
             raise ConfigError(f"model light codes {codes} differ from {LIGHT_CODES}")
         self._thresholds = [(task, LIGHT_CODES[task], config.thresholds[LIGHT_CODES[task]])
                             for task in LIGHT_TASKS]
         self.filter = IntentFilter(config.intent_filter)
-        self.bank = StateBank(model, track_timeout_s=config.track_timeout_s,
+        self.bank = StateBank(backend, track_timeout_s=config.track_timeout_s,
                               max_tracks=config.max_tracks, max_gap_s=config.max_gap_s,
-                              device=device, filter_row=self.filter.initial_rows(1)[0])
+                              filter_row=self.filter.initial_rows(1)[0])
         self._counts = {"frames": 0, "boxes": 0, "judged": 0, "unjudged": 0,
                         "duplicates": 0, "over_limit": 0, "model_steps": 0}
 
     # -------------------------------------------------------------- diagnostics
+    @property
+    def model(self) -> Any:
+        """The backend's underlying model (``TorchBackend.model``), else the backend."""
+        return getattr(self.backend, "model", self.backend)
+
     @property
     def counters(self) -> Dict[str, int]:
         """Running totals: frames, boxes, judged, unjudged, duplicates, over_limit (boxes
@@ -282,21 +269,22 @@ class LightStateEngine:
         if reset_reason is not None:
             warnings.append(f"all track states reset at stamp {stamp_ns}: "
                             f"{_RESET_TEXT.get(reset_reason, reset_reason)}")
-        with torch.inference_mode():
-            state = self.bank.gather(ids, stamp_ns)
-            if ids:
-                batch = crops if len(valid) == len(crops) else crops[valid]
-                x = to_input(batch).to(self.device)
-                probs, new_state = self.model.step(x, state)
-                self._counts["model_steps"] += 1
-                out = self.filter.step({t: probs[t].detach().float().cpu().numpy()
-                                        for t in TASKS}, stamp_ns,
-                                       self.bank.gather_filter_rows(ids))
-                frames = self.bank.store(ids, new_state, stamp_ns, out.rows)
-                table = _ProbTable(out.probs, out.states)
-            else:
-                frames = self.bank.store(ids, state, stamp_ns)
-                table = None
+        state = self.bank.gather(ids, stamp_ns)
+        self._frame_attention = None
+        if ids:
+            batch = crops if len(valid) == len(crops) else crops[valid]
+            step = self.backend.step(batch, state, attention=self.keep_attention)
+            self._counts["model_steps"] += 1
+            out = self.filter.step(step.probs, stamp_ns, self.bank.gather_filter_rows(ids))
+            frames = self.bank.store(ids, step.state, stamp_ns, out.rows)
+            table = _ProbTable(out.probs, out.states)
+            if step.attention is not None:
+                self._frame_attention = _FrameAttention(
+                    image, {_box_key(boxes[unique[k]]): mask
+                            for k, mask in zip(valid, step.attention)})
+        else:
+            frames = self.bank.store(ids, state, stamp_ns)
+            table = None
         row_of = {unique[k]: j for j, k in enumerate(valid)}
         reason_of = {i: reasons[k] for k, i in enumerate(unique)}
         reason_of.update(over)
@@ -368,7 +356,10 @@ class LightStateEngine:
     def attention_masks(self, image: np.ndarray, boxes: Sequence[TrackBox]) -> np.ndarray:
         """The model's attention masks pasted back into the image, for debug overlays.
 
-        Does not touch any track state.
+        Does not touch any track state. For the image and boxes of the last ``process``
+        the masks its step computed are reused; only other boxes (or a backend whose
+        step does not return masks) are cropped and run through the attention net. The
+        first call switches on ``keep_attention``.
 
         Args:
             image: The camera frame, HxWx3 uint8 BGR.
@@ -380,22 +371,46 @@ class LightStateEngine:
         """
         height, width = image.shape[:2]
         heat = np.zeros((height, width), dtype=np.float32)
-        attention = getattr(self.model, "attention", None)
-        if attention is None or not boxes:
+        self.keep_attention = True
+        if not boxes:
             return heat
         boxes = list(boxes)[:self.config.max_boxes]
-        crops, reasons = crop_vehicles(image, boxes, self.crop)
-        valid = [k for k, reason in enumerate(reasons) if reason is None]
-        if not valid:
-            return heat
-        with torch.inference_mode():
-            masks = attention(to_input(crops[valid]).to(self.device))
-        masks = masks.detach().float().cpu().numpy().reshape(len(valid), *masks.shape[-2:])
-        masks = np.ascontiguousarray(masks, dtype=np.float32)
-        for mask, k in zip(masks, valid):
+        kept = self._frame_attention.masks if self._frame_attention is not None \
+            and self._frame_attention.image() is image else {}
+        masks: Dict[int, np.ndarray] = {}
+        missing = []
+        for k, box in enumerate(boxes):
+            mask = kept.get(_box_key(box))
+            if mask is not None:
+                masks[k] = mask
+            else:
+                missing.append(k)
+        if missing:
+            crops, reasons = crop_vehicles(image, [boxes[k] for k in missing], self.crop)
+            valid = [j for j, reason in enumerate(reasons) if reason is None]
+            computed = self.backend.attention(crops[valid]) if valid else None
+            if computed is not None:
+                masks.update({missing[j]: mask for j, mask in zip(valid, computed)})
+        for k, mask in masks.items():
             # The crop's own square, so the mask lands where it was cut.
             _paste_mask(heat, mask, *crop_region(boxes[k], width, height, self.crop))
         return np.clip(heat, 0.0, 1.0)
+
+
+class _FrameAttention:
+    """The attention masks of the last step, by box, and (weakly) the image they came from."""
+
+    def __init__(self, image: np.ndarray, masks: Dict[tuple, np.ndarray]) -> None:
+        try:
+            self.image = weakref.ref(image)
+        except TypeError:  # not weak-referenceable: never matches, masks are recomputed
+            self.image = lambda: None
+        self.masks = masks
+
+
+def _box_key(box: TrackBox) -> tuple:
+    """What decides a box's crop within one image."""
+    return (box.track_id, box.x0, box.y0, box.x1, box.y1)
 
 
 def _paste_mask(heat: np.ndarray, mask: np.ndarray, x0: int, y0: int, side: int) -> None:
@@ -435,13 +450,18 @@ _RESET_TEXT = {"stamp_backwards": "the stamp jumped backwards (bag looped?)",
                "stamp_gap": "the stamp jumped forward by more than max_gap_s"}
 
 
-def engine_from_checkpoint(path: Optional[str] = None, device: str = "cpu",
+def engine_from_checkpoint(path: "str | Path | None" = None, device: str = "cpu",
+                           backend: str = "torch", threads: Optional[int] = None,
                            **overrides: Any) -> LightStateEngine:
-    """Load a checkpoint (the shipped weights when ``path`` is None) into an engine.
+    """Load a model file (the shipped one when ``path`` is None) into an engine.
 
     Args:
-        path: Checkpoint file, or None for ``model.checkpoint.DEFAULT_WEIGHTS``.
-        device: Torch device.
+        path: The model file: a ``.pt`` checkpoint for ``backend="torch"``, an ``.onnx``
+            export (``signal-light export --onnx``) for ``"onnxruntime"``; None for the
+            one shipped with the package.
+        device: ``cpu``, ``cuda`` or ``cuda:N``.
+        backend: A name of ``runtime.backend.known_backends()``.
+        threads: Intra-op CPU threads of the backend; None or 0 keeps its default.
         **overrides: Other ``EngineConfig`` fields (thresholds, track_timeout_s,
             intent_filter, ...). The crop (size and margin) is the checkpoint's.
 
@@ -450,14 +470,12 @@ def engine_from_checkpoint(path: Optional[str] = None, device: str = "cpu",
 
     Raises:
         CheckpointError: The file is missing, unreadable or incompatible.
-        ConfigError: An override is invalid.
+        ConfigError: An override, the backend or the device is invalid.
     """
-    from signal_light_node.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint
-
-    require_device(device)  # before loading: torch would blame the file
-    loaded = load_checkpoint(DEFAULT_WEIGHTS if path is None else path, map_location=device)
+    model = create_backend(backend, None if path is None else str(path), device=device,
+                           threads=threads)
     try:
         config = EngineConfig(device=device, **overrides)
     except TypeError as exc:
         raise ConfigError(f"unknown engine option: {exc}") from None
-    return LightStateEngine(loaded.model, config)
+    return LightStateEngine(model, config)

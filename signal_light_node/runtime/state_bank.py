@@ -1,10 +1,12 @@
 """Per-track recurrent state of the light-state model, kept outside the model.
 
-The model is stateless between calls: the engine gathers the ConvLSTM ``(h, c)`` pairs
-of the tracks of a frame from this bank, runs one batched step and stores the new
-pairs back. All layers of one track are kept flattened in one row of a single tensor,
-so gathering or storing a whole frame costs one ``index_select`` / ``index_copy_``
-however many layers and tracks there are.
+The model is stateless between calls: the engine gathers the recurrent states of the
+tracks of a frame from this bank, runs one batched step and stores the new states back.
+The states themselves are opaque here: they live in a row store owned by the model
+backend (:mod:`signal_light_node.runtime.backend`; a torch tensor on the model's device,
+a numpy array for onnxruntime), one row per track, and the bank only decides which row
+belongs to which track. Gathering or storing a whole frame is one ``gather_rows`` /
+``store_rows`` call however many layers and tracks there are.
 
 Beside the model state, each track may own a fixed-size float64 row of the output
 filter (:mod:`signal_light_node.runtime.intent_filter`): created with the track, gathered and
@@ -19,35 +21,19 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
-from typing import Any, Dict, List, Optional, Protocol, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
-import torch
 
 from signal_light_node.errors import ConfigError
+from signal_light_node.runtime.backend import BackendState, as_backend
 
 LOG = logging.getLogger(__name__)
-
-#: ``((h, c), ...)``, one pair per ConvLSTM layer, batch first (as in ``model.interface``).
-State = Tuple[Tuple[torch.Tensor, torch.Tensor], ...]
 
 #: Reasons of a full reset, as counted in ``StateBank.reset_reasons``.
 RESET_BACKWARDS = "stamp_backwards"
 RESET_GAP = "stamp_gap"
 RESET_MANUAL = "manual"
-
-
-class _HasInitialState(Protocol):
-    def initial_state(self, n: int) -> State: ...
-
-
-@dataclass(frozen=True)
-class _Layout:
-    """Shapes of the per-track state tensors (without the batch axis) and their widths."""
-
-    shapes: Tuple[torch.Size, ...]
-    widths: Tuple[int, ...]
 
 
 def check_limits(track_timeout_s: Any, max_tracks: Any,
@@ -75,14 +61,8 @@ def check_limits(track_timeout_s: Any, max_tracks: Any,
     return float(track_timeout_s), int(max_tracks), float(max_gap_s)
 
 
-def _flatten(state: State, n: int) -> torch.Tensor:
-    """``[n, total]`` rows holding every layer's h and c of each track."""
-    parts = [t.reshape(n, -1) for pair in state for t in pair]
-    return torch.cat(parts, dim=1) if len(parts) > 1 else parts[0]
-
-
 class StateBank:
-    """ConvLSTM states of the tracked vehicles, keyed by track ID.
+    """Recurrent model states of the tracked vehicles, keyed by track ID.
 
     Call ``gather`` then ``store`` once per frame, in stamp order. ``gather`` also
     checks the stamp (backward or large forward jumps reset everything) and expires
@@ -90,11 +70,12 @@ class StateBank:
     the timeout starts from the initial state.
 
     Args:
-        model: Anything with ``initial_state(n) -> State``; called once, for the layout.
+        model: The model backend (``runtime.backend.ModelBackend``) that owns the
+            states; a bare torch ``LightStateModel`` is wrapped in the ``torch`` backend.
         track_timeout_s: Seconds a track may stay unseen before its state is dropped.
         max_tracks: Most tracks kept; the least recently seen one is evicted for a new one.
         max_gap_s: A forward stamp jump larger than this resets the bank.
-        device: Where the states live (the model's device).
+        device: Device of a wrapped bare model (a backend keeps its own).
         filter_row: The filter row a new track starts with (float64 ``[W]``); None
             keeps rows of width 0.
 
@@ -102,26 +83,18 @@ class StateBank:
         ConfigError: A limit is not a positive finite number.
     """
 
-    def __init__(self, model: _HasInitialState, track_timeout_s: float = 1.0,
-                 max_tracks: int = 128, max_gap_s: float = 2.0,
-                 device: str | torch.device = "cpu",
+    def __init__(self, model: Any, track_timeout_s: float = 1.0,
+                 max_tracks: int = 128, max_gap_s: float = 2.0, device: str = "cpu",
                  filter_row: Optional[np.ndarray] = None) -> None:
         track_timeout_s, max_tracks, max_gap_s = check_limits(track_timeout_s, max_tracks,
                                                               max_gap_s)
         self.track_timeout_ns = int(round(track_timeout_s * 1e9))
         self.max_gap_ns = int(round(max_gap_s * 1e9))
         self.capacity = max_tracks
-        self.device = torch.device(device)
-
-        with torch.inference_mode():
-            initial = model.initial_state(1)
-        self._layout = _Layout(tuple(t.shape[1:] for pair in initial for t in pair),
-                               tuple(t[0].numel() for pair in initial for t in pair))
-        # A clone made outside inference mode can be written into and read anywhere.
-        self._initial = _flatten(initial, 1).to(self.device).clone()
+        self.backend = as_backend(model, device)
         # Row `capacity` is a scratch row that always holds the initial state: tracks that
         # find no free row (more tracks in one frame than max_tracks) read it and are not stored.
-        self._rows = self._initial.repeat(self.capacity + 1, 1)
+        self._rows = self.backend.new_rows(self.capacity + 1)
         self._filter_initial = np.asarray([] if filter_row is None else filter_row,
                                           np.float64).reshape(-1)
         self._filter = np.tile(self._filter_initial, (self.capacity + 1, 1))
@@ -157,15 +130,16 @@ class StateBank:
         slot = self._slot.get(track_id)
         return None if slot is None else int(self._last_seen[slot])
 
-    def initial_state(self, n: int) -> State:
-        """The state a new track starts from, for ``n`` tracks."""
-        return self._unflatten(self._initial.expand(n, -1))
+    def initial_state(self, n: int) -> BackendState:
+        """The state a new track starts from, for ``n`` tracks (the backend's type)."""
+        return self.backend.initial_state(n)
 
     # ---------------------------------------------------------------- lifecycle
     def reset(self, reason: str = RESET_MANUAL) -> None:
         """Forget every track (and the last stamp); counted under ``reason``."""
         if self._slot:
-            self._rows[: self.capacity] = self._initial
+            self.backend.reset_rows(self._rows, np.fromiter(self._slot.values(), np.int64,
+                                                            len(self._slot)))
             self._filter[:] = self._filter_initial
         self._slot.clear()
         self._free = list(range(self.capacity - 1, -1, -1))
@@ -215,7 +189,7 @@ class StateBank:
         return gone
 
     # ------------------------------------------------------------ gather/store
-    def gather(self, track_ids: Sequence[str], stamp_ns: int) -> State:
+    def gather(self, track_ids: Sequence[str], stamp_ns: int) -> BackendState:
         """States of the given tracks for the frame at ``stamp_ns``.
 
         Checks the stamp (see ``check_stamp``) and expires old tracks first; a track
@@ -227,7 +201,7 @@ class StateBank:
             stamp_ns: The frame's stamp.
 
         Returns:
-            The batched state, ``len(track_ids)`` first.
+            The batched state of ``len(track_ids)`` tracks, in the backend's type.
 
         Raises:
             ValueError: ``track_ids`` holds a duplicate (the engine removes them first).
@@ -248,13 +222,12 @@ class StateBank:
                     new_slots.append(slot)
             slots[i] = slot
         if new_slots:
-            self._rows[torch.as_tensor(new_slots, device=self.device)] = self._initial
+            self.backend.reset_rows(self._rows, np.asarray(new_slots, dtype=np.int64))
             self._filter[new_slots] = self._filter_initial
         self._pending = (ids, slots, int(stamp_ns))
         if not ids:
             return self.initial_state(0)
-        index = torch.from_numpy(slots).to(self.device)
-        return self._unflatten(self._rows.index_select(0, index))
+        return self.backend.gather_rows(self._rows, slots)
 
     def gather_filter_rows(self, track_ids: Sequence[str]) -> np.ndarray:
         """Filter rows of the tracks of the last ``gather`` (a copy).
@@ -271,13 +244,13 @@ class StateBank:
         """
         return self._filter[self._pending_slots(track_ids)]
 
-    def store(self, track_ids: Sequence[str], new_state: State, stamp_ns: int,
+    def store(self, track_ids: Sequence[str], new_state: BackendState, stamp_ns: int,
               filter_rows: Optional[np.ndarray] = None) -> np.ndarray:
         """Keep the states the model returned for the tracks of the last ``gather``.
 
         Args:
             track_ids: The same IDs, in the same order, as passed to ``gather``.
-            new_state: The model's new batched state.
+            new_state: The backend's new batched state (from its ``step``).
             stamp_ns: The frame's stamp (the tracks' new last-seen stamp).
             filter_rows: The tracks' new filter rows ``[N, W]``; None leaves them.
 
@@ -296,13 +269,9 @@ class StateBank:
         if filter_rows is not None:
             self._filter[slots[kept]] = np.asarray(filter_rows, np.float64)[kept]
         if kept.all():
-            rows = _flatten(new_state, len(slots))
-            self._rows.index_copy_(0, torch.from_numpy(slots).to(self.device),
-                                   rows.to(self._rows.dtype))
+            self.backend.store_rows(self._rows, slots, new_state)
         elif kept.any():
-            rows = _flatten(new_state, len(slots))[torch.from_numpy(kept).to(self.device)]
-            self._rows.index_copy_(0, torch.from_numpy(slots[kept]).to(self.device),
-                                   rows.to(self._rows.dtype))
+            self.backend.store_rows(self._rows, slots[kept], new_state, np.flatnonzero(kept))
         held = slots[kept]
         self._last_seen[held] = int(stamp_ns)
         self._frames[held] += 1
@@ -316,12 +285,6 @@ class StateBank:
             raise ValueError("store and gather_filter_rows must follow gather with the same "
                              "track IDs")
         return self._pending[1]
-
-    def _unflatten(self, rows: torch.Tensor) -> State:
-        n = rows.shape[0]
-        parts = torch.split(rows, self._layout.widths, dim=1)
-        tensors = [p.reshape(n, *shape) for p, shape in zip(parts, self._layout.shapes)]
-        return tuple((tensors[i], tensors[i + 1]) for i in range(0, len(tensors), 2))
 
     def _release(self, track_id: str) -> None:
         slot = self._slot.pop(track_id)

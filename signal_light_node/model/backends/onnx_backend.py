@@ -1,0 +1,198 @@
+"""The ``onnxruntime`` model backend: a step exported by ``signal-light export --onnx``.
+
+Everything comes from the ``.onnx`` file: the graph (uint8 crops and flattened state
+rows in, probabilities, new state rows and attention masks out) and, in its metadata,
+the ``ModelConfig`` (:mod:`signal_light_node.model.onnx_format`). States are numpy
+float32 rows: a frame's states are gathered with one fancy index and stored with one
+assignment. The session runs on the CPU provider, or on CUDA (TensorRT first when the
+installed onnxruntime has it) for ``device="cuda[:N]"``.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any, Dict, List, Optional
+
+import numpy as np
+
+from signal_light_node.errors import CheckpointError, ConfigError, CropError
+from signal_light_node.labels import TASKS
+from signal_light_node.model import onnx_format as fmt
+from signal_light_node.runtime.backend import StepOutput, check_device
+
+LOG = logging.getLogger(__name__)
+
+_INSTALL_HINT = "pip install onnxruntime (pinned in requirements.txt)"
+
+
+def _onnxruntime() -> Any:
+    try:
+        import onnxruntime
+    except ImportError:
+        raise ConfigError(f"backend onnxruntime needs the onnxruntime package ({_INSTALL_HINT})"
+                          ) from None
+    return onnxruntime
+
+
+def execution_providers(device: str, available: List[str]) -> List[Any]:
+    """The providers for ``device`` given the installed onnxruntime's ``available`` ones.
+
+    Raises:
+        ConfigError: CUDA asked for but neither the CUDA nor the TensorRT provider exists.
+    """
+    device = check_device(device)
+    if device == "cpu":
+        return ["CPUExecutionProvider"]
+    index = int(device.partition(":")[2] or 0)
+    chosen: List[Any] = [(name, {"device_id": index}) for name in
+                         ("TensorrtExecutionProvider", "CUDAExecutionProvider")
+                         if name in available]
+    if not chosen:
+        raise ConfigError(f"CUDA requested (device {device!r}) but the installed onnxruntime "
+                          f"has only the providers {available}; install onnxruntime-gpu or use "
+                          "device cpu")
+    return chosen + ["CPUExecutionProvider"]
+
+
+class OnnxRuntimeBackend:
+    """Runs an exported light-state step with onnxruntime.
+
+    Args:
+        path: The ``.onnx`` file (``signal-light export --onnx``).
+        device: ``cpu``, ``cuda`` or ``cuda:N``.
+        threads: Intra-op threads of the session; None keeps onnxruntime's default.
+
+    Raises:
+        ConfigError: onnxruntime is missing or cannot use the device.
+        CheckpointError: The file is missing, not an ONNX model, or not a light-state
+            export this code can run.
+    """
+
+    name = "onnxruntime"
+
+    def __init__(self, path: str, device: str = "cpu", threads: Optional[int] = None) -> None:
+        ort = _onnxruntime()
+        device = check_device(device)
+        source = Path(path)
+        if not source.is_file():
+            raise CheckpointError(f"ONNX model {source} does not exist or is not a file")
+        providers = execution_providers(device, list(ort.get_available_providers()))
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = int(threads or 0)
+        options.inter_op_num_threads = 1
+        options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        options.log_severity_level = 3  # errors only: the node logs what matters
+        # Idle intra-op threads sleep instead of spinning: on a small shared CPU (the node's
+        # worker, rclpy and the camera driver) spinning threads slow everyone down, as
+        # OMP_WAIT_POLICY=PASSIVE does for torch (signal_light_node/__init__.py).
+        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        try:
+            self._session = ort.InferenceSession(str(source), options, providers=providers)
+        except Exception as exc:  # onnxruntime raises its own pybind types for a bad file
+            raise CheckpointError(
+                f"{source} cannot be loaded as an ONNX model ({type(exc).__name__}: "
+                f"{str(exc).splitlines()[0] if str(exc) else ''}); a .pt checkpoint must be "
+                f"exported first: signal-light export --onnx OUT.onnx --weights {source}"
+            ) from None
+        meta = self._session.get_modelmeta().custom_metadata_map
+        self.config, shapes = fmt.parse_metadata(meta, source)
+        self.input_size = self.config.input_size
+        self.device = device
+        self.source = str(source)
+        self.metadata: Dict[str, str] = dict(meta)
+        self._width = fmt.state_width(shapes)
+        self._check_graph(source)
+        self._initial = np.zeros(self._width, dtype=np.float32)
+        self._no_attention = [name for name in fmt.OUTPUTS if name != fmt.ATTENTION_OUTPUT]
+        LOG.info("onnxruntime %s: %s on %s", ort.__version__, source,
+                 self._session.get_providers()[0])
+
+    @classmethod
+    def from_file(cls, path: Optional[str] = None, device: str = "cpu",
+                  threads: Optional[int] = None) -> "OnnxRuntimeBackend":
+        """Load an export (None: the shipped ``weights/default.onnx``)."""
+        return cls(str(fmt.DEFAULT_ONNX if path is None else path), device=device,
+                   threads=threads)
+
+    def _check_graph(self, source: Path) -> None:
+        inputs = {i.name: i for i in self._session.get_inputs()}
+        outputs = {o.name for o in self._session.get_outputs()}
+        missing = [n for n in (fmt.CROPS_INPUT, fmt.STATE_INPUT) if n not in inputs]
+        missing += [n for n in fmt.OUTPUTS if n not in outputs]
+        if missing:
+            raise CheckpointError(f"ONNX model {source} lacks the inputs/outputs {missing}")
+        crops = inputs[fmt.CROPS_INPUT].shape
+        state = inputs[fmt.STATE_INPUT].shape
+        size = self.input_size
+        if list(crops[1:]) != [size, size, 3] or list(state[1:]) != [self._width]:
+            raise CheckpointError(f"ONNX model {source}: inputs crops {crops} and state {state} "
+                                  f"do not fit its config (S={size}, state width {self._width})")
+
+    @property
+    def state_width(self) -> int:
+        """Floats per track row."""
+        return self._width
+
+    # ------------------------------------------------------------------ the step
+    def initial_state(self, n: int) -> np.ndarray:
+        """float32 ``[n, W]`` zeros: the state of ``n`` new tracks."""
+        return np.tile(self._initial, (int(n), 1))
+
+    def step(self, crops: np.ndarray, state: np.ndarray, *,
+             attention: bool = False) -> StepOutput:
+        """One batched step (see ``runtime.backend.ModelBackend.step``).
+
+        Raises:
+            CropError: ``crops`` is not ``[N, S, S, 3]`` uint8 of the model's size.
+        """
+        crops = self._check_crops(crops)
+        n = crops.shape[0]
+        state = np.ascontiguousarray(state, dtype=np.float32)
+        if state.shape != (n, self._width):
+            raise ConfigError(f"state must be [{n}, {self._width}], got {state.shape}")
+        if n == 0:
+            size = self.input_size
+            probs = {t: np.zeros((0, len(self.config.class_names[t])), np.float32)
+                     for t in TASKS}
+            return StepOutput(probs, state, np.zeros((0, size, size), np.float32)
+                              if attention else None)
+        names = list(fmt.OUTPUTS) if attention else self._no_attention
+        values = self._session.run(names, {fmt.CROPS_INPUT: crops, fmt.STATE_INPUT: state})
+        out = dict(zip(names, values))
+        return StepOutput({t: out[t] for t in TASKS}, out[fmt.STATE_OUTPUT],
+                          out.get(fmt.ATTENTION_OUTPUT))
+
+    def attention(self, crops: np.ndarray) -> Optional[np.ndarray]:
+        """float32 ``[N, S, S]`` attention masks of uint8 crops (a step from new tracks)."""
+        crops = self._check_crops(crops)
+        return self.step(crops, self.initial_state(crops.shape[0]), attention=True).attention
+
+    def _check_crops(self, crops: Any) -> np.ndarray:
+        size = self.input_size
+        if not isinstance(crops, np.ndarray) or crops.dtype != np.uint8 \
+                or crops.shape[1:] != (size, size, 3):
+            raise CropError(f"model input must be [N, {size}, {size}, 3] uint8 crops, got "
+                            f"shape {getattr(crops, 'shape', None)} dtype "
+                            f"{getattr(crops, 'dtype', type(crops).__name__)}")
+        return np.ascontiguousarray(crops)
+
+    # ---------------------------------------------------------------- the rows
+    def new_rows(self, n: int) -> np.ndarray:
+        """float32 ``[n, W]`` rows, each the initial state."""
+        return self.initial_state(n)
+
+    def gather_rows(self, rows: np.ndarray, index: np.ndarray) -> np.ndarray:
+        """Rows ``index`` as a new contiguous ``[N, W]`` batch."""
+        return rows[np.asarray(index, dtype=np.int64)]
+
+    def store_rows(self, rows: np.ndarray, index: np.ndarray, state: np.ndarray,
+                   select: Optional[np.ndarray] = None) -> None:
+        """Write ``state`` (its rows ``select``) into rows ``index``."""
+        rows[np.asarray(index, dtype=np.int64)] = state if select is None else state[select]
+
+    def reset_rows(self, rows: np.ndarray, index: np.ndarray) -> None:
+        """Set rows ``index`` to the initial state."""
+        rows[np.asarray(index, dtype=np.int64)] = self._initial
+

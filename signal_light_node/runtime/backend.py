@@ -1,0 +1,221 @@
+"""The model backend seam: what the engine and the state bank need from a model.
+
+A backend runs one model, in one framework, on one device. The engine and the state
+bank only talk to this protocol and never see a framework's tensor type: crops go in as
+the uint8 arrays ``crops.crop_vehicles`` cuts, probabilities come out as numpy arrays,
+and the recurrent state is an opaque value the backend owns (torch tensors on the
+model's device for ``torch``, numpy arrays for ``onnxruntime``). The bank keeps every
+track's state as one row of a backend-owned row store and moves a whole frame's rows
+with one ``gather_rows`` and one ``store_rows``.
+
+Backends are chosen by name (:func:`create_backend`); the built-in ones are imported
+only when asked for, so this module imports neither torch nor onnxruntime:
+
+* ``torch``: :class:`signal_light_node.model.backends.torch_backend.TorchBackend`, the
+  network of a checkpoint (``.pt``).
+* ``onnxruntime``:
+  :class:`signal_light_node.model.backends.onnx_backend.OnnxRuntimeBackend`, a model
+  exported by ``signal-light export --onnx`` (``.onnx``).
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from typing import (TYPE_CHECKING, Any, Callable, Dict, NamedTuple, Optional, Protocol, Tuple,
+                    runtime_checkable)
+
+import numpy as np
+
+from signal_light_node.errors import ConfigError
+
+if TYPE_CHECKING:  # pragma: no cover - typing only
+    from signal_light_node.model.config import ModelConfig
+
+LOG = logging.getLogger(__name__)
+
+#: A backend's batched state or row store: opaque to everyone but the backend.
+BackendState = Any
+
+#: Devices a backend may be asked for: ``cpu``, ``cuda`` or ``cuda:N``.
+_DEVICE = re.compile(r"(cpu|cuda(:\d+)?)\Z")
+
+
+class StepOutput(NamedTuple):
+    """What one batched step returns.
+
+    Attributes:
+        probs: float32 ``[N, K]`` per task of ``labels.TASKS`` (rows sum to 1).
+        state: The tracks' new state (the backend's own type).
+        attention: float32 ``[N, S, S]`` attention masks in [0, 1] of the crops, when
+            asked for and the model computes them inside its step; else None.
+    """
+
+    probs: Dict[str, np.ndarray]
+    state: BackendState
+    attention: Optional[np.ndarray] = None
+
+
+@runtime_checkable
+class ModelBackend(Protocol):
+    """A light-state model behind a framework-free interface.
+
+    Attributes:
+        name: The registry name (``torch``, ``onnxruntime``).
+        config: The model's ``ModelConfig`` (input size, crop margin, class names).
+        device: Where it runs (``cpu``, ``cuda``, ``cuda:N``).
+        source: The file it was loaded from ("" when built in memory).
+    """
+
+    name: str
+    config: "ModelConfig"
+    device: str
+    source: str
+
+    def initial_state(self, n: int) -> BackendState:
+        """The state of ``n`` tracks that have not been seen yet."""
+        ...
+
+    def step(self, crops: np.ndarray, state: BackendState, *,
+             attention: bool = False) -> StepOutput:
+        """Advance ``N`` tracks by one frame.
+
+        Args:
+            crops: uint8 ``[N, S, S, 3]`` BGR crops (``crops.crop_vehicles``).
+            state: The tracks' state, batch ``N`` (from ``initial_state`` or
+                ``gather_rows``).
+            attention: Also return the attention masks the step computed.
+        """
+        ...
+
+    def attention(self, crops: np.ndarray) -> Optional[np.ndarray]:
+        """float32 ``[N, S, S]`` attention masks of uint8 crops (no state involved);
+        None when the model has no attention."""
+        ...
+
+    def new_rows(self, n: int) -> BackendState:
+        """A row store of ``n`` tracks, every row the initial state."""
+        ...
+
+    def gather_rows(self, rows: BackendState, index: np.ndarray) -> BackendState:
+        """The batched state of rows ``index`` (int64 ``[N]``, in that order)."""
+        ...
+
+    def store_rows(self, rows: BackendState, index: np.ndarray, state: BackendState,
+                   select: Optional[np.ndarray] = None) -> None:
+        """Write batch rows ``select`` (all when None) of ``state`` into rows ``index``."""
+        ...
+
+    def reset_rows(self, rows: BackendState, index: np.ndarray) -> None:
+        """Set rows ``index`` back to the initial state."""
+        ...
+
+
+def is_backend(obj: Any) -> bool:
+    """Whether ``obj`` implements :class:`ModelBackend` (rather than being a bare model)."""
+    return all(callable(getattr(obj, name, None))
+               for name in ("new_rows", "gather_rows", "store_rows", "reset_rows", "step"))
+
+
+def check_device(device: Any) -> str:
+    """``device`` as a normalised string, checked to name a CPU or CUDA device.
+
+    Whether the device is usable is the backend's check (it knows its framework).
+
+    Raises:
+        ConfigError: Not ``cpu``, ``cuda`` or ``cuda:N``.
+    """
+    text = str(device).strip()
+    if not _DEVICE.match(text):
+        raise ConfigError(f"device must be 'cpu' or 'cuda[:N]', got {device!r}")
+    return text
+
+
+# ------------------------------------------------------------------ the registry
+#: A factory builds a backend from a model file (None: the shipped one).
+Factory = Callable[..., ModelBackend]
+
+def _torch(path: Optional[str], **options: Any) -> ModelBackend:
+    from signal_light_node.model.backends.torch_backend import TorchBackend
+
+    return TorchBackend.from_file(path, **options)
+
+
+def _onnxruntime(path: Optional[str], **options: Any) -> ModelBackend:
+    from signal_light_node.model.backends.onnx_backend import OnnxRuntimeBackend
+
+    return OnnxRuntimeBackend.from_file(path, **options)
+
+
+#: name -> factory; the built-in ones import their framework only when called.
+_REGISTRY: Dict[str, Factory] = {"torch": _torch, "onnxruntime": _onnxruntime}
+
+
+def register_backend(name: str, factory: Factory) -> None:
+    """Make ``create_backend(name, ...)`` call ``factory(path, device=..., threads=...)``.
+
+    Raises:
+        ConfigError: ``name`` is empty or not a string.
+    """
+    if not isinstance(name, str) or not name:
+        raise ConfigError(f"backend name must be a non-empty string, got {name!r}")
+    _REGISTRY[name] = factory
+
+
+def known_backends() -> Tuple[str, ...]:
+    """Names :func:`create_backend` accepts, sorted."""
+    return tuple(sorted(_REGISTRY))
+
+
+def _factory(name: str) -> Factory:
+    factory = _REGISTRY.get(name) if isinstance(name, str) else None
+    if factory is None:
+        raise ConfigError(f"unknown model backend {name!r}; known: {', '.join(known_backends())}")
+    return factory
+
+
+def create_backend(name: str, path: Optional[str] = None, *, device: str = "cpu",
+                   threads: Optional[int] = None) -> ModelBackend:
+    """Load a model file into the backend called ``name``.
+
+    Args:
+        name: A name of :func:`known_backends`.
+        path: The model file (a ``.pt`` checkpoint for ``torch``, an ``.onnx`` export for
+            ``onnxruntime``); None takes the one shipped with the package.
+        device: ``cpu``, ``cuda`` or ``cuda:N``.
+        threads: Intra-op CPU threads; None or 0 keeps the framework's default.
+
+    Raises:
+        ConfigError: Unknown backend, bad device or thread count, or the backend's
+            framework is missing or cannot use the device.
+        CheckpointError: The model file is missing, unreadable or incompatible.
+    """
+    device = check_device(device)
+    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int)
+                                or threads < 0):
+        raise ConfigError(f"threads must be a non-negative integer, got {threads!r}")
+    factory = _factory(name)
+    LOG.debug("creating model backend %s on %s from %s", name, device, path or "the default")
+    return factory(path, device=device, threads=threads or None)
+
+
+def as_backend(model: Any, device: str = "cpu") -> ModelBackend:
+    """``model`` itself when it is a backend, else a bare torch model wrapped in ``torch``'s.
+
+    Args:
+        model: A :class:`ModelBackend`, or a ``model.interface.LightStateModel``
+            (``config``, ``initial_state``, ``step``, torch tensors).
+        device: Device of a wrapped model (a backend keeps its own).
+
+    Raises:
+        ConfigError: ``model`` is neither, or the device cannot be used.
+    """
+    if is_backend(model):
+        return model
+    if not (callable(getattr(model, "step", None)) and callable(getattr(model, "initial_state",
+                                                                         None))):
+        raise ConfigError(f"{type(model).__name__} is neither a model backend nor a model with "
+                          "initial_state and step")
+    from signal_light_node.model.backends.torch_backend import TorchBackend
+
+    return TorchBackend(model, device=check_device(device))
