@@ -15,6 +15,7 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+        (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
     ],
     install_requires=["setuptools"],
     zip_safe=False,
@@ -23,6 +24,7 @@ setup(
     entry_points={
         "console_scripts": [
             "detector = signal_light_node.ros.detector_node:main",
+            "detector_lifecycle = signal_light_node.ros.lifecycle_node:main",
             "signal-light = signal_light_node.cli:main",
         ],
     },

@@ -37,7 +37,8 @@ if ! stamp_is requirements "$req_fp"; then
   [ "${PIPESTATUS[0]}" = 0 ] || { echo "[setup] error: pip install -r requirements.txt failed" >&2; exit 1; }
   py_inc="$("$VPY" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')"
   np_inc="$("$VPY" -c 'import numpy; print(numpy.get_include())')"
-  grep -rl --include='*.cmake' '/opt/python/cp311-cp311' "$VENV/share" 2>/dev/null | while read -r f; do
+  # grep finds nothing once they are rewritten (a re-run after a requirements change).
+  { grep -rl --include='*.cmake' '/opt/python/cp311-cp311' "$VENV/share" 2>/dev/null || true; } | while read -r f; do
     sed -i -e "s#/opt/python/cp311-cp311/include/python3.11#${py_inc}#g" \
            -e "s#/opt/python/cp311-cp311/lib/python3.11/site-packages/numpy/_core/include#${np_inc}#g" "$f"
   done

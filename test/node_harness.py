@@ -128,22 +128,25 @@ class DetectorProcess:
         args: Arguments after ``--ros-args``.
         env: Environment (the test's ROS domain).
         log: Log file.
+        executable: ``detector`` or ``detector_lifecycle``.
     """
 
-    def __init__(self, args: Sequence[str], env: Dict[str, str], log: Path) -> None:
+    def __init__(self, args: Sequence[str], env: Dict[str, str], log: Path,
+                 executable: str = "detector") -> None:
         self.log = log
         self._file = open(log, "w")
-        self.proc = subprocess.Popen(["detector", "--ros-args", *args], env=env, cwd=REPO,
+        self.proc = subprocess.Popen([executable, "--ros-args", *args], env=env, cwd=REPO,
                                      stdout=self._file, stderr=subprocess.STDOUT)
 
     def text(self) -> str:
         """Everything the node logged so far (it writes to the file directly)."""
         return self.log.read_text()
 
-    def wait_ready(self, timeout: float = 60.0) -> None:
-        """Wait for the node's ``ready`` line; fail with its log if it exits or hangs."""
+    def wait_ready(self, timeout: float = 60.0, line: str = "ready:") -> None:
+        """Wait for the node's ``ready`` line (or ``line``); fail with its log if it exits
+        or hangs."""
         deadline = time.monotonic() + timeout
-        while "ready:" not in self.text():
+        while line not in self.text():
             if self.proc.poll() is not None:
                 raise AssertionError(f"detector exited with {self.proc.returncode}:\n{self.text()}")
             if time.monotonic() > deadline:

@@ -80,10 +80,24 @@ class SignalLightDetector(Node):
         self._engine_time = LatencyWindow()
         self._last_snapshot: Optional[Snapshot] = None
         self._last_engine: Dict[str, int] = {}
+        self._param_callbacks = False
+        self._dropped_before = 0  # work-queue drops of queues closed by deactivate
 
     # ------------------------------------------------------------------ start-up
+    # The lifecycle variant (ros/lifecycle_node.py) calls the same four steps from its
+    # transitions; the plain node runs configure + activate at start.
     def setup(self) -> None:
         """Load the model and start the topics, the worker and the diagnostics timer.
+
+        Raises:
+            CheckpointError: The model file is missing or incompatible.
+            ConfigError: The model does not fit the parameters (device, crop size).
+        """
+        self.configure()
+        self.activate()
+
+    def configure(self) -> None:
+        """Load and check the model and build the engine and the pairing (no topics yet).
 
         Raises:
             CheckpointError: The model file is missing or incompatible.
@@ -99,10 +113,24 @@ class SignalLightDetector(Node):
             intent_filter=p.intent_filter_config,
             max_boxes=p.max_boxes_per_frame)
         self.model_path = self.engine.backend.source
-
         self._pairer = StampPairer(int(p.sync_slop_s * _NS), int(p.sync_timeout_s * _NS),
                                    p.image_queue_size, p.detection_queue_size)
         self._queue = DropOldestQueue(p.work_queue_size)
+        self._decode = _decoder(p.image_transport)
+        if not self._param_callbacks:
+            self.add_on_set_parameters_callback(self._check_new_parameters)
+            self.add_post_set_parameters_callback(self._apply_new_parameters)
+            self._param_callbacks = True
+        self.get_logger().info(
+            f"model {self.model_path} ({p.backend}) on {p.device}; crop margin "
+            f"{self.engine.crop.margin:g} (the model checkpoint's)")
+
+    def activate(self) -> None:
+        """Create the publishers, the worker, the subscriptions and the diagnostics timer."""
+        p = self.params
+        if self._queue.closed:  # a worker stopped by deactivate closed it; keep its count
+            self._dropped_before += self._queue.dropped
+            self._queue = DropOldestQueue(p.work_queue_size)
         # One publisher per output adapter; the first is the result array.
         self._outputs = [(adapter, self.create_publisher(message_class(adapter.msgtype),
                                                          adapter.node_topic, adapter.depth))
@@ -126,19 +154,41 @@ class SignalLightDetector(Node):
             message_class(DETECTIONS_TYPE), DETECTIONS_TOPIC,
             self._on_detections, qos(p.reliability, p.detection_queue_size))
         self._image_topic = self._image_sub.topic_name
-        self._decode = _decoder(p.image_transport)
         self._last_snapshot = self._snapshot()
         self._timer = self.create_timer(p.diagnostics_period_s, self._publish_diagnostics)
-        self.add_on_set_parameters_callback(self._check_new_parameters)
-        self.add_post_set_parameters_callback(self._apply_new_parameters)
-        self.get_logger().info(
-            f"outputs: {', '.join(pub.topic_name for _, pub in self._outputs)}; crop margin "
-            f"{self.engine.crop.margin:g} (the model checkpoint's)")
+        self.get_logger().info(f"outputs: {', '.join(pub.topic_name for _, pub in self._outputs)}")
         self.get_logger().info(
             f"ready: {self._image_topic} ({p.image_transport}, {p.reliability}) + "
             f"{self._det_sub.topic_name} "
             f"-> {self._out.topic_name}; model {self.model_path} ({p.backend}) on {p.device}, "
             f"pairing {'exact' if p.sync_slop_s == 0 else f'within {p.sync_slop_s} s'}")
+
+    def deactivate(self) -> None:
+        """Stop taking and publishing frames; the track states and counters are kept.
+
+        Frames still queued are dropped and counted; messages waiting for a partner
+        stay in the pairing and expire there as usual.
+        """
+        self.stop()
+        self._worker = None
+        for name in ("_image_sub", "_det_sub"):
+            sub = getattr(self, name, None)
+            if sub is not None:
+                self.destroy_subscription(sub)
+                setattr(self, name, None)
+        if getattr(self, "_timer", None) is not None:
+            self.destroy_timer(self._timer)
+            self._timer = None
+        publishers = [pub for _, pub in getattr(self, "_outputs", [])]
+        publishers += [getattr(self, "_debug", None), getattr(self, "_diag", None)]
+        for pub in publishers:
+            if pub is not None:
+                self.destroy_publisher(pub)
+        self._outputs, self._debug, self._diag = [], None, None
+
+    def cleanup(self) -> None:
+        """Free the model and every track state (``configure`` loads them again)."""
+        self.engine = None
 
     def stop(self) -> None:
         """Stop the worker (frames still queued are dropped and counted)."""
@@ -232,7 +282,7 @@ class SignalLightDetector(Node):
         """Totals since start: inputs, pairs, outputs, every drop by reason."""
         out = dict(self._pairer.counters)
         out.update(self._counts)
-        out["dropped_work_queue"] = self._queue.dropped
+        out["dropped_work_queue"] = self._dropped_before + self._queue.dropped
         for kind, gaps in self._gaps.items():
             out[f"dropped_{kind}_middleware"] = gaps.lost
         out["processing_errors"] = self._worker.errors if self._worker else 0

@@ -87,6 +87,11 @@ class DropOldestQueue:
             self._closed = True
             self._cond.notify_all()
 
+    @property
+    def closed(self) -> bool:
+        """Whether :meth:`close` was called."""
+        return self._closed
+
     def clear(self) -> int:
         """Discard every waiting item (counted as dropped); returns how many."""
         with self._cond:
