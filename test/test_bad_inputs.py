@@ -62,13 +62,17 @@ def test_startup_bad_remap_rule_is_one_line(tmp_path, rclpy_isolated_env):
     _one_fatal_line(lines, "bad ROS arguments", "remap")
 
 
-def test_startup_cuda_without_cuda_names_cuda(tmp_path, rclpy_isolated_env):
+@pytest.mark.parametrize("backend", ["torch", "onnxruntime"])
+def test_startup_cuda_without_cuda_names_cuda(tmp_path, rclpy_isolated_env, backend):
+    import onnxruntime
     import torch
 
-    if torch.cuda.is_available():
+    if torch.cuda.is_available() or "CUDAExecutionProvider" in \
+            onnxruntime.get_available_providers():
         pytest.skip("this machine has CUDA")
-    model = tiny_checkpoint(tmp_path / "tiny.pt")
-    code, lines = run_until_exit(["-p", f"model_path:={model}", "-p", "device:=cuda"],
+    model = [] if backend == "onnxruntime" else \
+        ["-p", f"model_path:={tiny_checkpoint(tmp_path / 'tiny.pt')}"]
+    code, lines = run_until_exit([*model, "-p", "device:=cuda", "-p", f"backend:={backend}"],
                                  rclpy_isolated_env(), tmp_path)
     assert code == 1
     _one_fatal_line(lines, "CUDA requested but not available")

@@ -49,9 +49,9 @@ def execution_providers(device: str, available: List[str]) -> List[Any]:
                          ("TensorrtExecutionProvider", "CUDAExecutionProvider")
                          if name in available]
     if not chosen:
-        raise ConfigError(f"CUDA requested (device {device!r}) but the installed onnxruntime "
-                          f"has only the providers {available}; install onnxruntime-gpu or use "
-                          "device cpu")
+        raise ConfigError(f"CUDA requested but not available (device {device!r}): the "
+                          f"installed onnxruntime has only the providers {available}; install "
+                          "onnxruntime-gpu or use device cpu")
     return chosen + ["CPUExecutionProvider"]
 
 
