@@ -337,3 +337,72 @@ def test_camera_queue_close_wakes_a_waiting_get_and_refuses_new_items():
         CameraQueue(["a"], maxsize=0)
     with pytest.raises(KeyError):
         CameraQueue(["a"], maxsize=1).put(("b", 1))
+
+
+# ------------------------------------------------------------------ parameters
+def test_cameras_parameter_defaults_to_one_camera_and_validates_names():
+    from signal_light_node.ros.params import DetectorParams, updated, validate_params
+
+    assert DetectorParams().cameras == [] and validate_params({}).cameras == []
+    assert validate_params({"cameras": ("front", "rear")}).cameras == ["front", "rear"]
+    for value, words in (("front", "list of names"), (["front", "front"], "twice"),
+                         (["front", "2nd"], "ROS topic token"), ([1], "strings"),
+                         (["a/b"], "token")):
+        with pytest.raises(ConfigError) as info:
+            validate_params({"cameras": value})
+        assert "cameras" in str(info.value) and words in str(info.value)
+        assert "\n" not in str(info.value)
+    with pytest.raises(ConfigError, match="read-only"):
+        updated(DetectorParams(), {"cameras": ["front"]})
+
+
+@pytest.mark.parametrize("args, want", [
+    ([], []),
+    (["-p", "cameras:=[]"], []),
+    (["-p", "cameras:=[front, rear]"], ["front", "rear"]),
+    (["--params-file", "config/detector.yaml"], []),
+])
+def test_cameras_on_a_real_node_is_a_read_only_string_array(args, want, repo_root, monkeypatch):
+    rclpy = pytest.importorskip("rclpy")
+    from rcl_interfaces.msg import ParameterType
+    from rclpy.parameter import Parameter
+
+    from signal_light_node.ros.params import NODE_NAME, read_parameters
+
+    monkeypatch.chdir(repo_root)
+    context = rclpy.Context()
+    rclpy.init(context=context, args=["--ros-args", *args])
+    try:
+        node = rclpy.create_node(NODE_NAME, context=context)
+        try:
+            assert read_parameters(node).cameras == want
+            (desc,) = node.describe_parameters(["cameras"])
+            assert desc.type == ParameterType.PARAMETER_STRING_ARRAY and desc.read_only
+            assert node.get_parameter("cameras").value == want
+            result = node.set_parameters([Parameter("cameras", value=["x"])])[0]
+            assert not result.successful and "read-only" in result.reason.lower()
+        finally:
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+@pytest.mark.parametrize("value, words", [("front", "list of names"),
+                                          ("[front, front]", "twice"),
+                                          ("[9lives]", "ROS topic token")])
+def test_bad_cameras_on_a_real_node_become_config_errors(value, words):
+    rclpy = pytest.importorskip("rclpy")
+    from signal_light_node.ros.params import read_parameters
+
+    context = rclpy.Context()
+    rclpy.init(context=context, args=["--ros-args", "-p", f"cameras:={value}"])
+    try:
+        node = rclpy.create_node("params_probe", context=context)
+        try:
+            with pytest.raises(ConfigError) as info:
+                read_parameters(node)
+            assert "cameras" in str(info.value) and words in str(info.value)
+        finally:
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)

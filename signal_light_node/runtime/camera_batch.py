@@ -1,7 +1,6 @@
 """Several cameras' frames through the engine in ONE batched model step.
 
-:meth:`LightStateEngine.process_many <signal_light_node.runtime.engine.LightStateEngine.process_many>`
-lands here. Per frame it does what ``process`` does (drop repeated track IDs, keep at most
+``LightStateEngine.process_many`` (:mod:`signal_light_node.runtime.engine`) lands here. Per frame it does what ``process`` does (drop repeated track IDs, keep at most
 ``max_boxes`` boxes, crop with the shared crop code, check the camera's stamp), then
 gathers the tracks of every frame from the state bank at once (keyed by camera and track
 ID, each camera with its own clock: :meth:`StateBank.gather_cameras
