@@ -349,6 +349,7 @@ class CamerasClient:
     cameras: Sequence[str]
     image_type: str = RAW_TYPE
     outputs: Dict[str, Dict[int, List[object]]] = field(default_factory=dict)
+    debug_images: Dict[str, List[object]] = field(default_factory=dict)
     diagnostics: List[object] = field(default_factory=list)
 
     def __enter__(self) -> "CamerasClient":
@@ -382,6 +383,10 @@ class CamerasClient:
             self.node.create_subscription(
                 message_class("signal_light_msgs/msg/VehicleLightStateArray"),
                 self.output_topic(camera), on_output, qos("reliable", 100))
+            self.debug_images[camera] = []
+            self.node.create_subscription(
+                message_class(RAW_TYPE), f"{base}/output/debug/image",
+                self.debug_images[camera].append, qos("reliable", 100))
         self.node.create_subscription(message_class("diagnostic_msgs/msg/DiagnosticArray"),
                                       "/diagnostics", self.diagnostics.append,
                                       qos("reliable", 100))
@@ -421,10 +426,14 @@ class CamerasClient:
         image_pub.publish(image_msg)
         dets_pub.publish(dets_msg)
 
-    def warm_up(self, before_stamp_ns: int, timeout: float = 30.0) -> Dict[str, int]:
+    def warm_up(self, before_stamp_ns: int, timeout: float = 30.0,
+                debug: bool = False) -> Dict[str, int]:
         """Small empty frames on every camera, stamped 100 s before ``before_stamp_ns``,
-        until each camera's output comes back; returns how many each camera sent."""
+        until each camera's output (and with ``debug`` its debug image) comes back;
+        returns how many each camera sent."""
         import numpy as np
+
+        from signal_light_node.io.conversions import stamp_to_ns
 
         image = np.full((48, 64, 3), 60, np.uint8)
         sent = {camera: 0 for camera in self.cameras}
@@ -434,7 +443,9 @@ class CamerasClient:
                 stamp = before_stamp_ns - 100_000_000_000 + sent[camera] * 100_000_000
                 self.publish(camera, stamp, f"{camera}_warm_up", image, [])
                 sent[camera] += 1
-                if self.spin_until(lambda: stamp in self.outputs[camera], 1.0):
+                if self.spin_until(lambda: stamp in self.outputs[camera] and (not debug or any(
+                        stamp_to_ns(i.header.stamp) == stamp
+                        for i in self.debug_images[camera])), 1.0):
                     break
                 assert time.monotonic() < deadline, f"no output for camera {camera}"
         return sent

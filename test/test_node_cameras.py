@@ -87,7 +87,8 @@ def test_two_cameras_live(tmp_path, rclpy_isolated_env):
     args, _ = model_args(tmp_path)
     node = DetectorProcess(["-p", "cameras:=[front, rear]", "-p", "reliability:=reliable",
                             "-p", "work_queue_size:=20", "-p", "diagnostics_period_s:=0.2",
-                            "-p", "track_timeout_s:=30.0", "-p", "max_tracks:=200", *args],
+                            "-p", "track_timeout_s:=30.0", "-p", "max_tracks:=200",
+                            "-p", "publish_debug_image:=true", *args],
                            env, tmp_path / "detector.log")
     try:
         node.wait_ready()
@@ -98,7 +99,7 @@ def test_two_cameras_live(tmp_path, rclpy_isolated_env):
             assert f"/signal_light_detector/{camera}/output/vehicle_lights" in log
         with CamerasClient(int(env["ROS_DOMAIN_ID"]), CAMERAS) as client:
             client.wait_connected()
-            warm = client.warm_up(T0)
+            warm = client.warm_up(T0, debug=True)
             stamps = [T0 + t * 100 * MS for t in range(8)]
             _publish_burst(client, stamps)
             assert client.spin_until(lambda: all(_answered(client, c, stamps) for c in CAMERAS),
@@ -117,6 +118,17 @@ def test_two_cameras_live(tmp_path, rclpy_isolated_env):
                     # ... and its own recurrent state: one more frame per frame of its camera
                     assert {v.frames_observed for v in out.vehicles} == {t + 1}
                     assert all(v.view_probability > 0 for v in out.vehicles)  # judged
+            # each camera's debug images on its own topic, of its own image size
+            from signal_light_node.io.conversions import stamp_to_ns
+
+            def debug_of(camera: str) -> list:
+                return [i for i in client.debug_images[camera]
+                        if stamp_to_ns(i.header.stamp) in stamps]
+
+            assert client.spin_until(lambda: all(len(debug_of(c)) == len(stamps)
+                                                 for c in CAMERAS), 30.0)
+            for camera in CAMERAS:
+                assert {(i.height, i.width) for i in debug_of(camera)} == {SCENES[camera][0]}
             # the two cameras' "1" are different tracks: different lamps, different outputs
             front, rear = (client.outputs[c][stamps[-1]][0].vehicles[0] for c in CAMERAS)
             assert (front.brake.on_probability, front.left_blinker.on_probability) != \
@@ -170,7 +182,10 @@ def test_bad_camera_names_stop_the_node_with_one_clear_line(tmp_path, rclpy_isol
     assert "cameras" in lines[0] and "twice" in lines[0]
 
 
-def test_lifecycle_steps_with_cameras_create_and_remove_every_cameras_topics(tmp_path):
+@pytest.mark.parametrize("transport, image", [("raw", "image"),
+                                              ("compressed", "image/compressed")])
+def test_lifecycle_steps_with_cameras_create_and_remove_every_cameras_topics(
+        tmp_path, transport, image):
     """configure/activate/deactivate/activate/cleanup (the lifecycle variant's steps) with
     two cameras: each camera's inputs and outputs exist exactly while active."""
     from signal_light_node.ros.lifecycle_node import LifecycleSignalLightDetector
@@ -178,7 +193,9 @@ def test_lifecycle_steps_with_cameras_create_and_remove_every_cameras_topics(tmp
     args, _ = model_args(tmp_path)
     context = rclpy.Context()
     rclpy.init(context=context, args=["--ros-args", "-p", "cameras:=[front, rear]",
-                                      "-p", "publish_markers:=true", *args])
+                                      "-p", "publish_markers:=true",
+                                      "-p", "publish_debug_image:=true",
+                                      "-p", f"image_transport:={transport}", *args])
     try:
         node = LifecycleSignalLightDetector(context=context)
         try:
@@ -192,10 +209,10 @@ def test_lifecycle_steps_with_cameras_create_and_remove_every_cameras_topics(tmp
                 node.activate()
                 assert topics(node.subscriptions) == {
                     f"/signal_light_detector/{c}/input/{what}"
-                    for c in ("front", "rear") for what in ("image", "detections")}
+                    for c in ("front", "rear") for what in (image, "detections")}
                 assert topics(node.publishers) == {
-                    f"/signal_light_detector/{c}/output/{what}"
-                    for c in ("front", "rear") for what in ("vehicle_lights", "markers")}
+                    f"/signal_light_detector/{c}/output/{what}" for c in ("front", "rear")
+                    for what in ("vehicle_lights", "markers", "debug/image")}
                 node.stop()  # the worker ends; the queue is closed
                 node._queue.put(("rear", object()))  # refused by the closed queue, counted
                 node.deactivate()
