@@ -43,14 +43,14 @@ from signal_light_node.ros.messages import rclpy_make
 from signal_light_node.errors import (ConfigError, ImageConversionError, ImageTooLargeError,
                                       SignalLightError)
 from signal_light_node.ros.cameras import CameraIO, GapsSum, PairerGroup, camera_ios
+from signal_light_node.runtime.camera_batch import unjudged_camera_frame
+from signal_light_node.runtime.camera_queue import CameraQueue
 from signal_light_node.ros.gaps import SequenceGaps
 from signal_light_node.runtime.pairing import StampPairer
 from signal_light_node.ros.params import (NODE_NAME, DetectorParams, foreign_params_file,
                                            params_file_paths, read_parameters, updated)
 from signal_light_node.ros.ros_io import message_class, qos
 from signal_light_node.runtime.stats import ERROR, OK, WARN, LatencyWindow, Snapshot, health
-from signal_light_node.runtime.camera_batch import unjudged_camera_frame
-from signal_light_node.runtime.camera_queue import CameraQueue
 from signal_light_node.runtime.worker import DropOldestQueue, Worker
 from signal_light_node.io.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, DIAGNOSTICS_TOPIC,
                                       DIAGNOSTICS_TYPE, IMAGE_TYPE)
