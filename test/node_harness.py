@@ -322,3 +322,135 @@ class LiveClient:
             self.det_pub.publish(frame.detections)
             assert self.spin_until(lambda: frame.stamp_ns in self.outputs, timeout_per_frame), \
                 f"no output for the frame stamped {frame.stamp_ns}"
+
+
+def camera_frame(stamp_ns: int, frame_id: str, image, boxes, image_type: str = RAW_TYPE):
+    """``(image message, detections message)`` of one frame, as rclpy messages."""
+    from signal_light_node.io.conversions import boxes_to_detections, make_header
+    from signal_light_node.io.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
+    from signal_light_node.ros.messages import rclpy_make
+
+    header = make_header(stamp_ns, frame_id, rclpy_make)
+    fields = (bgr_to_compressed_fields(image) if image_type == COMPRESSED_TYPE
+              else bgr_to_image_fields(image))
+    return (rclpy_make(image_type, header=header, **fields),
+            boxes_to_detections(header, list(boxes), rclpy_make))
+
+
+@dataclass
+class CamerasClient:
+    """Publishes frames to a several-camera node and collects each camera's outputs.
+
+    Use as a context manager; ``domain_id`` must be the node's. ``outputs[camera][stamp]``
+    lists the ``VehicleLightStateArray`` s received on ``~/<camera>/output/vehicle_lights``.
+    """
+
+    domain_id: int
+    cameras: Sequence[str]
+    image_type: str = RAW_TYPE
+    outputs: Dict[str, Dict[int, List[object]]] = field(default_factory=dict)
+    debug_images: Dict[str, List[object]] = field(default_factory=dict)
+    diagnostics: List[object] = field(default_factory=list)
+
+    def __enter__(self) -> "CamerasClient":
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+
+        from signal_light_node.io.conversions import stamp_to_ns
+        from signal_light_node.ros.ros_io import message_class, qos
+
+        self._rclpy = rclpy
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=self.domain_id,
+                   signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+        self.node = rclpy.create_node(f"cameras_test_client_{os.getpid()}", context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        image = "image/compressed" if self.image_type == COMPRESSED_TYPE else "image"
+        self.publishers: Dict[str, Tuple[object, object]] = {}
+        for camera in self.cameras:
+            base = f"/signal_light_detector/{camera}"
+            self.publishers[camera] = (
+                self.node.create_publisher(message_class(self.image_type),
+                                           f"{base}/input/{image}", qos("reliable", 50)),
+                self.node.create_publisher(message_class(DETECTIONS_TYPE),
+                                           f"{base}/input/detections", qos("reliable", 50)))
+            self.outputs[camera] = defaultdict(list)
+
+            def on_output(msg: object, camera: str = camera) -> None:
+                self.outputs[camera][stamp_to_ns(msg.header.stamp)].append(msg)
+
+            self.node.create_subscription(
+                message_class("signal_light_msgs/msg/VehicleLightStateArray"),
+                self.output_topic(camera), on_output, qos("reliable", 100))
+            self.debug_images[camera] = []
+            self.node.create_subscription(
+                message_class(RAW_TYPE), f"{base}/output/debug/image",
+                self.debug_images[camera].append, qos("reliable", 100))
+        self.node.create_subscription(message_class("diagnostic_msgs/msg/DiagnosticArray"),
+                                      "/diagnostics", self.diagnostics.append,
+                                      qos("reliable", 100))
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self._rclpy.try_shutdown(context=self.context)
+
+    @staticmethod
+    def output_topic(camera: str) -> str:
+        """Where the node publishes the camera's results."""
+        return f"/signal_light_detector/{camera}/output/vehicle_lights"
+
+    def spin_until(self, condition, timeout: float) -> bool:
+        """Process callbacks until ``condition()`` holds or the timeout passes."""
+        deadline = time.monotonic() + timeout
+        while not condition():
+            if time.monotonic() > deadline:
+                return False
+            self.executor.spin_once(timeout_sec=0.05)
+        return True
+
+    def wait_connected(self, timeout: float = 30.0) -> None:
+        """Wait until the node subscribes every input and publishes every output."""
+        ok = self.spin_until(lambda: all(
+            image.get_subscription_count() > 0 and dets.get_subscription_count() > 0
+            and self.node.count_publishers(self.output_topic(camera)) > 0
+            for camera, (image, dets) in self.publishers.items()), timeout)
+        assert ok, "the detector and the test client did not discover each other"
+
+    def publish(self, camera: str, stamp_ns: int, frame_id: str, image, boxes) -> None:
+        """Publish one frame (image, then detections) of ``camera``."""
+        image_msg, dets_msg = camera_frame(stamp_ns, frame_id, image, boxes, self.image_type)
+        image_pub, dets_pub = self.publishers[camera]
+        image_pub.publish(image_msg)
+        dets_pub.publish(dets_msg)
+
+    def warm_up(self, before_stamp_ns: int, timeout: float = 30.0,
+                debug: bool = False) -> Dict[str, int]:
+        """Small empty frames on every camera, stamped 100 s before ``before_stamp_ns``,
+        until each camera's output (and with ``debug`` its debug image) comes back;
+        returns how many each camera sent."""
+        import numpy as np
+
+        from signal_light_node.io.conversions import stamp_to_ns
+
+        image = np.full((48, 64, 3), 60, np.uint8)
+        sent = {camera: 0 for camera in self.cameras}
+        deadline = time.monotonic() + timeout
+        for camera in self.cameras:
+            while True:
+                stamp = before_stamp_ns - 100_000_000_000 + sent[camera] * 100_000_000
+                self.publish(camera, stamp, f"{camera}_warm_up", image, [])
+                sent[camera] += 1
+                if self.spin_until(lambda: stamp in self.outputs[camera] and (not debug or any(
+                        stamp_to_ns(i.header.stamp) == stamp
+                        for i in self.debug_images[camera])), 1.0):
+                    break
+                assert time.monotonic() < deadline, f"no output for camera {camera}"
+        return sent
+
+    def diagnostics_values(self) -> Dict[str, str]:
+        """The latest status's key/values."""
+        status = self.diagnostics[-1].status[0]
+        return {kv.key: kv.value for kv in status.values}

@@ -1,4 +1,11 @@
-"""``signal-light replay BAG -o OUT``: the detector engine over a bag, without ROS."""
+"""``signal-light replay BAG -o OUT``: the detector engine over a bag, without ROS.
+
+Several cameras: ``signal-light replay FRONT_BAG REAR_BAG -o OUT`` (one camera per bag,
+named after the bags or by ``--camera NAME`` per bag), or ``signal-light replay BAG -o OUT
+--camera front=/front/image,/front/dets --camera rear`` (pairs of one bag; a bare name is
+found by namespace) or ``--all-cameras`` (every pair found by namespace); each camera's
+outputs go to ``/signal_light_detector/<camera>/output/...``.
+"""
 
 from __future__ import annotations
 
@@ -31,7 +38,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``signal-light replay``."""
     from signal_light_node.runtime.backend import known_backends
 
-    parser.add_argument("bag", type=Path, help="input bag (rosbag2 directory or .mcap)")
+    parser.add_argument("bag", type=Path, nargs="+",
+                        help="input bag (rosbag2 directory or .mcap); several bags = one "
+                             "camera each, replayed together as a node with cameras")
     parser.add_argument("-o", "--output", type=Path, required=True,
                         help="output MCAP rosbag2 directory")
     parser.add_argument("--checkpoint", type=Path, default=None,
@@ -44,6 +53,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="image topic (default: the first CompressedImage, else Image topic)")
     parser.add_argument("--detections-topic", default=None,
                         help="Detection2DArray topic (default: the first one)")
+    parser.add_argument("--camera", action="append", default=[],
+                        metavar="NAME[=IMAGE_TOPIC,DETECTIONS_TOPIC]",
+                        help="a camera (repeatable): with several bags one per bag in order "
+                             "(default names: the bags'); with one bag a camera topic pair of "
+                             "it (a bare NAME: the pair under namespace NAME); each camera's "
+                             "outputs go to /signal_light_detector/NAME/output/...")
+    parser.add_argument("--all-cameras", action="store_true",
+                        help="one bag: every camera found by namespace (a detection topic "
+                             "and the image topic sharing the longest namespace with it)")
     parser.add_argument("--with-inputs", action="store_true",
                         help="also write the image, detection and ground-truth topics")
     parser.add_argument("--video", type=Path, default=None,
@@ -95,11 +113,14 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--threads must be >= 1, got {args.threads}")
     thresholds: Dict[str, float] = dict(args.threshold)
     pairing = _pairing(args)  # before loading the model: a bad option is the quicker error
+    if len(args.bag) > 1 or args.camera or args.all_cameras:
+        return _run_cameras(args, thresholds, pairing)
+    bag = args.bag[0]
     engine = engine_from_checkpoint(args.checkpoint, device=args.device, backend=args.backend,
                                     threads=args.threads, thresholds=thresholds,
                                     track_timeout_s=args.track_timeout,
                                     intent_filter=intent_filter_from_args(args))
-    summary = replay_bag(args.bag, args.output, engine, image_topic=args.image_topic,
+    summary = replay_bag(bag, args.output, engine, image_topic=args.image_topic,
                          detections_topic=args.detections_topic, with_inputs=args.with_inputs,
                          video=args.video, video_attention=args.attention,
                          overwrite=args.overwrite, progress=not args.no_progress,
@@ -110,11 +131,45 @@ def run(args: argparse.Namespace) -> int:
         if result is None:
             print("ground truth present, but no judged detection matched it")
         else:
-            print(render_scores(result, args.bag, engine.config.intent_filter.describe()))
+            print(render_scores(result, bag, engine.config.intent_filter.describe()))
     return 0
 
 
-def render_scores(result: dict, bag: Path, intent_filter: str = "") -> str:
+def _run_cameras(args: argparse.Namespace, thresholds: Dict[str, float],
+                 pairing: PairingConfig) -> int:
+    """Several cameras through the multi-camera engine (``tools.replay_cameras``)."""
+    from signal_light_node.runtime.engine import engine_from_checkpoint
+    from signal_light_node.tools.replay import score_summary
+    from signal_light_node.tools.replay_cameras import camera_sources, replay_cameras
+
+    for option, value in (("--image-topic", args.image_topic),
+                          ("--detections-topic", args.detections_topic),
+                          ("--video", args.video)):
+        if value is not None:
+            raise ConfigError(f"{option} takes a single camera; with several cameras name "
+                              "each camera's topics with --camera NAME=IMAGE,DETECTIONS")
+    sources = camera_sources(args.bag, args.camera, args.all_cameras)
+    engine = engine_from_checkpoint(args.checkpoint, device=args.device, backend=args.backend,
+                                    threads=args.threads, thresholds=thresholds,
+                                    track_timeout_s=args.track_timeout,
+                                    intent_filter=intent_filter_from_args(args))
+    summary = replay_cameras(sources, args.output, engine, with_inputs=args.with_inputs,
+                             overwrite=args.overwrite, progress=not args.no_progress,
+                             pairing=pairing, markers=args.markers)
+    print(summary.text())
+    if summary.has_ground_truth:
+        result = score_summary(summary)
+        if result is None:
+            print("ground truth present, but no judged detection matched it")
+        else:
+            scored = ", ".join(f"{name} ({c.bag})" for name, c in summary.cameras.items()
+                               if c.has_ground_truth)
+            print(render_scores(result, scored,
+                                engine.config.intent_filter.describe()))
+    return 0
+
+
+def render_scores(result: dict, bag: "Path | str", intent_filter: str = "") -> str:
     """The replay's agreement with the ground truth as Markdown.
 
     Args:

@@ -12,12 +12,15 @@ Three kinds of names:
   a tracker, plus the ground truth;
 * the node's topics as seen from outside under its default name
   ``signal_light_detector``. Inside the node they are private (``~/input/image`` ...,
-  see :mod:`signal_light_node.ros.detector_node`) and usually remapped.
+  see :mod:`signal_light_node.ros.detector_node`) and usually remapped. With several
+  cameras each camera's topics sit under its name (:func:`camera_topic`:
+  ``~/front/input/image``, ``/signal_light_detector/front/output/vehicle_lights``).
 """
 
 from __future__ import annotations
 
-from typing import Tuple
+import re
+from typing import Optional, Sequence, Tuple
 
 # ----------------------------------------------------------------------- message types
 
@@ -50,3 +53,54 @@ OUTPUT_TOPIC = "/signal_light_detector/output/vehicle_lights"
 #: The results drawn for RViz (``publish_markers``; ``signal-light replay --markers``).
 MARKERS_TOPIC = "/signal_light_detector/output/markers"
 DIAGNOSTICS_TOPIC = "/diagnostics"
+
+#: The node's namespace of private topics under its default name.
+NODE_TOPIC_PREFIX = "/signal_light_detector/"
+
+_TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
+
+
+def camera_name_problem(names: Sequence[object]) -> Optional[str]:
+    """Why a list of camera names is unusable, in one line, or None when it is fine.
+
+    Each name becomes one token of the node's topic names (``~/<camera>/input/image``), so
+    it must be a ROS name token (as rcl checks it): letters, digits and underscores, not
+    starting with a digit; names must be unique.
+
+    Args:
+        names: The camera names (the node's ``cameras``, replay's ``--camera`` names).
+    """
+    seen = set()
+    for name in names:
+        if not isinstance(name, str):
+            return f"camera names must be strings, got {name!r}"
+        if not _TOKEN.match(name):
+            return (f"camera name {name!r} is not a ROS topic token (letters, digits and "
+                    "underscores, not starting with a digit)")
+        if name in seen:
+            return f"camera name {name!r} is given twice; names must be unique"
+        seen.add(name)
+    return None
+
+
+def camera_topic(topic: str, camera: str) -> str:
+    """A node topic name of one camera: ``camera`` inserted after the node's namespace.
+
+    ``~/output/vehicle_lights`` -> ``~/front/output/vehicle_lights`` (inside the node),
+    ``/signal_light_detector/output/markers`` ->
+    ``/signal_light_detector/front/output/markers`` (seen from outside); an empty
+    ``camera`` (the single-camera node) leaves the name as it is.
+
+    Args:
+        topic: A private (``~/...``) or outside (``/signal_light_detector/...``) name.
+        camera: The camera's name, or "".
+
+    Raises:
+        ValueError: ``topic`` is neither.
+    """
+    if not camera:
+        return topic
+    for prefix in ("~/", NODE_TOPIC_PREFIX):
+        if topic.startswith(prefix):
+            return f"{prefix}{camera}/{topic[len(prefix):]}"
+    raise ValueError(f"{topic!r} is not one of the node's topics (~/... or {NODE_TOPIC_PREFIX}...)")

@@ -11,6 +11,13 @@ A thin adapter over :class:`~signal_light_node.runtime.engine.LightStateEngine`:
   watched ``~/output/debug/image``;
 * a timer publishes the node's figures on ``/diagnostics``.
 
+With ``cameras: [front, rear]`` every camera has all of the above under its name
+(``~/front/input/image``, ``~/front/output/vehicle_lights``...) and its own pairing; the
+paired frames wait per camera (:class:`~signal_light_node.runtime.camera_queue.CameraQueue`)
+and the worker judges one frame of every camera that has one in ONE engine step
+(``engine.process_many``), publishing each camera's results on its own topics with its
+image's header. Per-camera figures go to ``/diagnostics`` as ``<camera>.<figure>``.
+
 Every conversion is the core's (``image_codec``, ``conversions``); nothing here knows a
 message layout beyond the topic types.
 """
@@ -21,7 +28,8 @@ import logging
 import re
 import sys
 import time
-from typing import Any, Dict, List, Optional, Tuple
+from functools import partial
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import rclpy
 from rcl_interfaces.msg import SetParametersResult
@@ -34,6 +42,9 @@ from signal_light_node.outputs import output_adapters
 from signal_light_node.ros.messages import rclpy_make
 from signal_light_node.errors import (ConfigError, ImageConversionError, ImageTooLargeError,
                                       SignalLightError)
+from signal_light_node.ros.cameras import CameraIO, GapsSum, PairerGroup, camera_ios
+from signal_light_node.runtime.camera_batch import unjudged_camera_frame
+from signal_light_node.runtime.camera_queue import CameraQueue
 from signal_light_node.ros.gaps import SequenceGaps
 from signal_light_node.runtime.pairing import StampPairer
 from signal_light_node.ros.params import (NODE_NAME, DetectorParams, foreign_params_file,
@@ -46,7 +57,8 @@ from signal_light_node.io.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, DIAGN
 
 _NS = 1_000_000_000
 
-#: Topic names relative to the node (remap them with ``-r ~/input/image:=/camera/...``).
+#: Topic names relative to the node (remap them with ``-r ~/input/image:=/camera/...``);
+#: with ``cameras`` each camera's sit under its name (``~/front/input/image``).
 IMAGE_TOPIC = "~/input/image"
 COMPRESSED_TOPIC = "~/input/image/compressed"
 DETECTIONS_TOPIC = "~/input/detections"
@@ -82,6 +94,19 @@ class SignalLightDetector(Node):
         self._last_engine: Dict[str, int] = {}
         self._param_callbacks = False
         self._dropped_before = 0  # work-queue drops of queues closed by deactivate
+        # One CameraIO per camera; the single-camera node's one shares the node's gaps.
+        self._cameras: List[CameraIO] = camera_ios(self.params.cameras)
+        if self._several:
+            self._gaps = {kind: GapsSum([c.gaps[kind] for c in self._cameras])  # type: ignore
+                          for kind in ("image", "detections")}
+        else:
+            self._cameras[0].gaps = self._gaps
+        self._publishers_made: List[Any] = []
+
+    @property
+    def _several(self) -> bool:
+        """Whether the node runs named cameras (``cameras`` set)."""
+        return bool(self.params.cameras)
 
     # ------------------------------------------------------------------ start-up
     # The lifecycle variant (ros/lifecycle_node.py) calls the same four steps from its
@@ -113,9 +138,12 @@ class SignalLightDetector(Node):
             intent_filter=p.intent_filter_config,
             max_boxes=p.max_boxes_per_frame)
         self.model_path = self.engine.backend.source
-        self._pairer = StampPairer(int(p.sync_slop_s * _NS), int(p.sync_timeout_s * _NS),
-                                   p.image_queue_size, p.detection_queue_size)
-        self._queue = DropOldestQueue(p.work_queue_size)
+        for camera in self._cameras:
+            camera.pairer = StampPairer(int(p.sync_slop_s * _NS), int(p.sync_timeout_s * _NS),
+                                        p.image_queue_size, p.detection_queue_size)
+        self._pairer = PairerGroup([c.pairer for c in self._cameras]) if self._several \
+            else self._cameras[0].pairer
+        self._queue = self._new_queue()
         self._decode = _decoder(p.image_transport)
         if not self._param_callbacks:
             self.add_on_set_parameters_callback(self._check_new_parameters)
@@ -130,38 +158,91 @@ class SignalLightDetector(Node):
         p = self.params
         if self._queue.closed:  # a worker stopped by deactivate closed it; keep its count
             self._dropped_before += self._queue.dropped
-            self._queue = DropOldestQueue(p.work_queue_size)
-        # One publisher per output adapter; the first is the result array.
-        self._outputs = [(adapter, self.create_publisher(message_class(adapter.msgtype),
-                                                         adapter.node_topic, adapter.depth))
-                         for adapter in output_adapters(markers=p.publish_markers)]
+            for camera in self._cameras:
+                camera.dropped_before += self._camera_queue_drops(camera)
+            self._queue = self._new_queue()
+        for camera in self._cameras:
+            self._create_camera_topics(camera)
+        # The single camera's publishers under the names the rest of the node uses.
+        self._outputs = self._cameras[0].outputs
         self._out = self._outputs[0][1]
-        self._debug = None
-        if p.publish_debug_image:
-            self._debug = self.create_publisher(message_class(IMAGE_TYPE), DEBUG_TOPIC, 2)
-        self._diag = self.create_publisher(message_class(DIAGNOSTICS_TYPE), DIAGNOSTICS_TOPIC,
-                                           10)
-        self._worker = Worker(self._queue, self._process, name="signal_light_inference").start()
+        self._debug = self._cameras[0].debug
+        self._diag = self._create_publisher(message_class(DIAGNOSTICS_TYPE), DIAGNOSTICS_TOPIC,
+                                            10)
+        process = self._process_cameras if self._several else self._process
+        self._worker = Worker(self._queue, process, name="signal_light_inference").start()
 
+        for camera in self._cameras:
+            self._subscribe(camera)
+        self._image_topic = self._cameras[0].image_topic
+        self._last_snapshot = self._snapshot()
+        self._timer = self.create_timer(p.diagnostics_period_s, self._publish_diagnostics)
+        pairing = 'exact' if p.sync_slop_s == 0 else f'within {p.sync_slop_s} s'
+        for camera in self._cameras:
+            self.get_logger().info(
+                f"{f'camera {camera.name}: ' if camera.name else ''}outputs: "
+                f"{', '.join(pub.topic_name for _, pub in camera.outputs)}")
+        if not self._several:
+            self.get_logger().info(
+                f"ready: {self._image_topic} ({p.image_transport}, {p.reliability}) + "
+                f"{self._cameras[0].subscriptions[1].topic_name} "
+                f"-> {self._out.topic_name}; model {self.model_path} ({p.backend}) on "
+                f"{p.device}, pairing {pairing}")
+            return
+        inputs = "; ".join(f"{c.name}: {c.image_topic} + {c.subscriptions[1].topic_name} -> "
+                           f"{c.outputs[0][1].topic_name}" for c in self._cameras)
+        self.get_logger().info(
+            f"ready: {len(self._cameras)} cameras ({p.image_transport}, {p.reliability}), "
+            f"one model step per tick: {inputs}; model {self.model_path} ({p.backend}) on "
+            f"{p.device}, pairing {pairing}")
+
+    def _create_publisher(self, msg_type: Any, topic: str, depth: int) -> Any:
+        publisher = self.create_publisher(msg_type, topic, depth)
+        self._publishers_made.append(publisher)
+        return publisher
+
+    def _create_camera_topics(self, camera: CameraIO) -> None:
+        """One publisher per output adapter (the result array first) and the debug image."""
+        camera.outputs = [(adapter, self._create_publisher(message_class(adapter.msgtype),
+                                                           camera.topic(adapter.node_topic),
+                                                           adapter.depth))
+                          for adapter in output_adapters(markers=self.params.publish_markers)]
+        camera.debug = None
+        if self.params.publish_debug_image:
+            camera.debug = self._create_publisher(message_class(IMAGE_TYPE),
+                                                  camera.topic(DEBUG_TOPIC), 2)
+
+    def _subscribe(self, camera: CameraIO) -> None:
+        """The camera's image and detections subscriptions (image first)."""
+        p = self.params
         if p.image_transport == "compressed":
             image_type, image_topic = COMPRESSED_TYPE, COMPRESSED_TOPIC
         else:
             image_type, image_topic = IMAGE_TYPE, IMAGE_TOPIC
-        self._image_sub = self.create_subscription(
-            message_class(image_type), image_topic, self._on_image,
-            qos(p.reliability, p.image_queue_size))
-        self._det_sub = self.create_subscription(
-            message_class(DETECTIONS_TYPE), DETECTIONS_TOPIC,
-            self._on_detections, qos(p.reliability, p.detection_queue_size))
-        self._image_topic = self._image_sub.topic_name
-        self._last_snapshot = self._snapshot()
-        self._timer = self.create_timer(p.diagnostics_period_s, self._publish_diagnostics)
-        self.get_logger().info(f"outputs: {', '.join(pub.topic_name for _, pub in self._outputs)}")
-        self.get_logger().info(
-            f"ready: {self._image_topic} ({p.image_transport}, {p.reliability}) + "
-            f"{self._det_sub.topic_name} "
-            f"-> {self._out.topic_name}; model {self.model_path} ({p.backend}) on {p.device}, "
-            f"pairing {'exact' if p.sync_slop_s == 0 else f'within {p.sync_slop_s} s'}")
+        if self._several:
+            on_image = partial(self._on_camera_image, camera)
+            on_detections = partial(self._on_camera_detections, camera)
+        else:
+            on_image, on_detections = self._on_image, self._on_detections
+        camera.subscriptions = [
+            self.create_subscription(message_class(image_type), camera.topic(image_topic),
+                                     on_image, qos(p.reliability, p.image_queue_size)),
+            self.create_subscription(message_class(DETECTIONS_TYPE),
+                                     camera.topic(DETECTIONS_TOPIC), on_detections,
+                                     qos(p.reliability, p.detection_queue_size))]
+        camera.image_topic = camera.subscriptions[0].topic_name
+
+    def _new_queue(self) -> Any:
+        """The work queue: drop-oldest for one camera, one per camera for several."""
+        if self._several:
+            return CameraQueue([c.name for c in self._cameras], self.params.work_queue_size)
+        return DropOldestQueue(self.params.work_queue_size)
+
+    def _camera_queue_drops(self, camera: CameraIO) -> int:
+        """The camera's frames dropped from the current work queue."""
+        if isinstance(self._queue, CameraQueue):
+            return self._queue.dropped_by_camera.get(camera.name, 0)
+        return self._queue.dropped
 
     def deactivate(self) -> None:
         """Stop taking and publishing frames; the track states and counters are kept.
@@ -171,19 +252,16 @@ class SignalLightDetector(Node):
         """
         self.stop()
         self._worker = None
-        for name in ("_image_sub", "_det_sub"):
-            sub = getattr(self, name, None)
-            if sub is not None:
+        for camera in self._cameras:
+            for sub in camera.subscriptions:
                 self.destroy_subscription(sub)
-                setattr(self, name, None)
+            camera.subscriptions, camera.outputs, camera.debug = [], [], None
         if getattr(self, "_timer", None) is not None:
             self.destroy_timer(self._timer)
             self._timer = None
-        publishers = [pub for _, pub in getattr(self, "_outputs", [])]
-        publishers += [getattr(self, "_debug", None), getattr(self, "_diag", None)]
-        for pub in publishers:
-            if pub is not None:
-                self.destroy_publisher(pub)
+        for pub in self._publishers_made:
+            self.destroy_publisher(pub)
+        self._publishers_made = []
         self._outputs, self._debug, self._diag = [], None, None
 
     def cleanup(self) -> None:
@@ -210,6 +288,19 @@ class SignalLightDetector(Node):
                                            time.monotonic_ns())
         if pair is not None:
             self._queue.put(pair)
+
+    def _on_camera_image(self, camera: CameraIO, msg: Any, info: Any) -> None:
+        camera.gaps["image"].add(info.get("publication_sequence_number"))
+        pair = camera.pairer.add_image(stamp_to_ns(msg.header.stamp), msg, time.monotonic_ns())
+        if pair is not None:
+            self._queue.put((camera.name, pair))
+
+    def _on_camera_detections(self, camera: CameraIO, msg: Any, info: Any) -> None:
+        camera.gaps["detections"].add(info.get("publication_sequence_number"))
+        pair = camera.pairer.add_detections(stamp_to_ns(msg.header.stamp), msg,
+                                            time.monotonic_ns())
+        if pair is not None:
+            self._queue.put((camera.name, pair))
 
     # ------------------------------------------------------------------- worker
     def _run_engine(self, pair: Any, boxes: List[Any]) -> Tuple[Any, Any]:
@@ -252,7 +343,8 @@ class SignalLightDetector(Node):
         if self._debug is not None and self._debug.get_subscription_count() > 0:
             self._publish_debug(image, pair, boxes, frame.results)
 
-    def _publish_debug(self, image: Any, pair: Any, boxes: List[Any], results: List[Any]) -> None:
+    def _publish_debug(self, image: Any, pair: Any, boxes: List[Any], results: List[Any],
+                       publisher: Any = None) -> None:
         from signal_light_node.io.image_codec import bgr_to_image_fields
         from signal_light_node.tools.visualize import draw_results
 
@@ -261,8 +353,84 @@ class SignalLightDetector(Node):
                              caption=f"{pair.stamp_ns / 1e9:.3f}")
         msg = rclpy_make(IMAGE_TYPE, header=pair.image.header,
                          **bgr_to_image_fields(drawn))
-        if self._publish(self._debug, msg):
+        if self._publish(publisher or self._debug, msg):
             self._counts["debug_images"] += 1
+
+    # ------------------------------------------------------------ several cameras
+    def _process_cameras(self, tick: Sequence[Tuple[str, Any]]) -> None:
+        """One tick of several cameras: at most one paired frame per camera, decoded,
+        judged in ONE engine step, each camera's results published on its own topics."""
+        cameras = {c.name: c for c in self._cameras}
+        frames: List[Tuple[CameraIO, Any, List[Any], Any, Any]] = []
+        for name, pair in tick:
+            camera = cameras[name]
+            boxes = detections_to_boxes(pair.detections)
+            try:
+                image = self._decode(pair.image, camera.image_topic, pair.stamp_ns,
+                                     self.params.max_image_pixels)
+            except ImageConversionError as exc:
+                kind = "oversized_images" if isinstance(exc, ImageTooLargeError) \
+                    else "bad_images"
+                self._counts[kind] += 1
+                camera.counts[kind] += 1
+                self.get_logger().warning(f"camera {name}: frame published unjudged: {exc}",
+                                          throttle_duration_sec=5.0)
+                msg = pair.image
+                frames.append((camera, pair, boxes, None, unjudged_camera_frame(
+                    self.engine, name, pair.stamp_ns, boxes, int(getattr(msg, "width", 0)),
+                    int(getattr(msg, "height", 0)), str(exc))))
+                continue
+            frames.append((camera, pair, boxes, image, None))
+        usable = [(c.name, image, pair.stamp_ns, boxes)
+                  for c, pair, boxes, image, _ in frames if image is not None]
+        judged = iter(self.engine.process_many(usable) if usable else [])
+        engine_s = None
+        for camera, pair, boxes, image, frame in frames:
+            if frame is None:
+                frame = next(judged)
+                engine_s = frame.latency_s
+            self._publish_camera_frame(camera, pair, boxes, image, frame)
+        if engine_s is not None:
+            self._engine_time.add(engine_s)  # the one step of this tick
+
+    def _publish_camera_frame(self, camera: CameraIO, pair: Any, boxes: List[Any], image: Any,
+                              frame: Any) -> None:
+        """Publish one camera's frame on its own outputs, header = its image's."""
+        (result_out, out), *others = camera.outputs
+        if not self._publish(out, result_out.build(pair.image.header, frame.results, rclpy_make)):
+            return
+        done = time.monotonic_ns()
+        self._counts["outputs"] += 1
+        camera.counts["outputs"] += 1
+        self._latency.add((done - pair.image_received_ns) / _NS)
+        self._processing.add(
+            (done - max(pair.image_received_ns, pair.detections_received_ns)) / _NS)
+        for adapter, publisher in others:
+            if not adapter.when_subscribed or publisher.get_subscription_count() > 0:
+                self._publish(publisher, adapter.build(pair.image.header, frame.results,
+                                                       rclpy_make))
+        if image is None:
+            return
+        if frame.warnings:
+            self.get_logger().warning(
+                f"camera {camera.name}, stamp {pair.stamp_ns}: {'; '.join(frame.warnings)}",
+                throttle_duration_sec=5.0)
+        if camera.debug is not None and camera.debug.get_subscription_count() > 0:
+            self._publish_debug(image, pair, boxes, frame.results, camera.debug)
+
+    def _camera_values(self) -> List[Tuple[str, str]]:
+        """Per-camera ``/diagnostics`` key/values; none for the single-camera node."""
+        if not self._several:
+            return []
+        engine = self.engine.camera_counters
+        totals = self.engine.counters
+        values: List[Tuple[str, str]] = [("cameras", ", ".join(c.name for c in self._cameras)),
+                                         ("model_steps", str(totals.get("model_steps", 0))),
+                                         ("frames_judged", str(totals.get("frames", 0)))]
+        for camera in self._cameras:
+            values += camera.values(self._camera_queue_drops(camera),
+                                    engine.get(camera.name, {}))
+        return values
 
     def _publish(self, publisher: Any, msg: Any) -> bool:
         """Publish from the worker; False when the node is shutting down (then the context
@@ -314,6 +482,7 @@ class SignalLightDetector(Node):
                                         self._processing.summary(),
                                         self._engine_time.summary(), extra)
         self._last_snapshot = now
+        values += self._camera_values()
         KeyValue = message_class("diagnostic_msgs/msg/KeyValue")
         status = rclpy_make("diagnostic_msgs/msg/DiagnosticStatus", level=_LEVEL_BYTES[level],
                             name=f"{self.get_name()}: vehicle light state",

@@ -13,11 +13,12 @@ from __future__ import annotations
 import dataclasses
 import logging
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
 from signal_light_node.errors import ConfigError
 from signal_light_node.io.image_codec import DEFAULT_MAX_IMAGE_PIXELS
+from signal_light_node.io.topics import camera_name_problem
 from signal_light_node.runtime.intent_filter import IntentFilterConfig
 from signal_light_node.labels import LIGHT_CODES
 
@@ -40,6 +41,10 @@ class DetectorParams:
         backend: Model backend, ``torch`` or ``onnxruntime`` (``runtime.backend``).
         image_transport: ``raw`` (``~/input/image``) or ``compressed``
             (``~/input/image/compressed``).
+        cameras: Camera names; empty = one camera on the topics above. With names,
+            each camera has its own ``~/<camera>/input/image[/compressed]``,
+            ``~/<camera>/input/detections`` and ``~/<camera>/output/...``, its own pairing
+            and stamp clock, and all cameras' pending frames share one model step.
         reliability: QoS reliability of the input subscriptions.
         sync_slop_s: 0 pairs image and detections only on identical stamps; > 0 pairs the
             nearest stamps at most this far apart.
@@ -74,6 +79,7 @@ class DetectorParams:
     device: str = "cpu"
     backend: str = "torch"
     image_transport: str = "raw"
+    cameras: List[str] = field(default_factory=list)
     reliability: str = "best_effort"
     sync_slop_s: float = 0.0
     sync_timeout_s: float = 1.0
@@ -148,6 +154,12 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
     "image_transport": ParamSpec(
         "raw: subscribe ~/input/image (sensor_msgs/Image); compressed: subscribe "
         "~/input/image/compressed (sensor_msgs/CompressedImage).", choices=("raw", "compressed")),
+    "cameras": ParamSpec(
+        "Camera names (ROS topic tokens, unique); empty = one camera on ~/input/... and "
+        "~/output/.... With names, each camera subscribes ~/<camera>/input/image[/compressed] "
+        "and ~/<camera>/input/detections and publishes ~/<camera>/output/vehicle_lights "
+        "(and markers, debug image); one model step per tick for every camera's pending "
+        "frame."),
     "reliability": ParamSpec("QoS reliability of the input subscriptions (sensor-data profile "
                              "otherwise).", choices=("best_effort", "reliable")),
     "sync_slop_s": ParamSpec("0 = pair image and detections on identical header stamps only; "
@@ -218,7 +230,9 @@ def retired_warning(name: str, value: Any) -> str:
 
 
 def _field_types() -> Dict[str, type]:
-    return {f.name: type(f.default) for f in dataclasses.fields(DetectorParams)}
+    return {f.name: type(f.default if f.default is not dataclasses.MISSING
+                         else f.default_factory())  # type: ignore[misc]
+            for f in dataclasses.fields(DetectorParams)}
 
 
 def _check_one(name: str, value: Any, kind: type, spec: ParamSpec) -> Tuple[Any, Optional[str]]:
@@ -236,6 +250,13 @@ def _check_one(name: str, value: Any, kind: type, spec: ParamSpec) -> Tuple[Any,
         value = float(value)
         if value != value:  # NaN passes every range comparison
             return value, f"{name} must be a number, got NaN"
+    elif kind is list:
+        if isinstance(value, str) or not isinstance(value, (list, tuple)):
+            return value, f"{name} must be a list of names, got {value!r}"
+        value = list(value)
+        problem = camera_name_problem(value)
+        if problem:
+            return value, f"{name}: {problem}"
     elif kind is str:
         if not isinstance(value, str):
             return value, f"{name} must be a string, got {value!r}"
@@ -310,7 +331,8 @@ def _descriptor(name: str, kind: type, spec: ParamSpec) -> Any:
                                     ParameterType)
 
     types = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
-             float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
+             float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING,
+             list: ParameterType.PARAMETER_STRING_ARRAY}
     desc = ParameterDescriptor(name=name, type=types[kind], description=spec.description,
                                read_only=spec.read_only)
     if spec.choices:
@@ -338,6 +360,9 @@ def declare_parameters(node: Any) -> None:
     defaults = DetectorParams()
     kinds = _field_types()
     for name, spec in PARAM_SPECS.items():
+        if kinds[name] is list:
+            _declare_string_array(node, name, _descriptor(name, kinds[name], spec))
+            continue
         try:
             node.declare_parameter(name, getattr(defaults, name),
                                    _descriptor(name, kinds[name], spec))
@@ -349,6 +374,30 @@ def declare_parameters(node: Any) -> None:
             _, problem = _check_one(name, given, kinds[name], spec)
             raise ConfigError("invalid parameters: "
                               + (problem or f"{name}={given!r} is refused")) from None
+
+
+def _declare_string_array(node: Any, name: str, descriptor: Any) -> None:
+    """Declare a string-array parameter whose default is the empty list.
+
+    rclpy infers a byte array from an empty list, and rcl reads ``[]`` in a params file
+    (or ``-p name:=[]``) as a value without a type, so neither can be declared as is:
+    the value (a given string array, else ``[]``) is declared with its type explicitly.
+
+    Raises:
+        ConfigError: The given value is not a list of strings.
+    """
+    from rclpy.parameter import Parameter
+
+    given = getattr(node, "_parameter_overrides", {}).get(name)
+    value: List[str] = []
+    if given is not None and given.type_ != Parameter.Type.NOT_SET:
+        if given.type_ != Parameter.Type.STRING_ARRAY:
+            raise ConfigError(f"invalid parameters: {name} must be a list of names, e.g. "
+                              f"[front, rear], got {given.value!r}")
+        value = list(given.value)
+    # rclpy's own path of declare_parameters (Jazzy), with the type given explicitly.
+    node._declare_parameter_common([Parameter(name, Parameter.Type.STRING_ARRAY, value)],
+                                   {name: descriptor})
 
 
 def _override(node: Any, name: str) -> Any:

@@ -375,8 +375,8 @@ class LightStateEngine:
         if not boxes:
             return heat
         boxes = list(boxes)[:self.config.max_boxes]
-        kept = self._frame_attention.masks if self._frame_attention is not None \
-            and self._frame_attention.image() is image else {}
+        kept = self._frame_attention.masks_for(image) if self._frame_attention is not None \
+            else {}
         masks: Dict[int, np.ndarray] = {}
         missing = []
         for k, box in enumerate(boxes):
@@ -396,6 +396,42 @@ class LightStateEngine:
             _paste_mask(heat, mask, *crop_region(boxes[k], width, height, self.crop))
         return np.clip(heat, 0.0, 1.0)
 
+    # ----------------------------------------------------------- several cameras
+    def process_many(self, frames: Sequence[Any]) -> List[FrameResult]:
+        """Judge several cameras' frames with ONE batched backend step.
+
+        Per frame as ``process`` (unique track IDs, ``max_boxes``, crops, warnings and
+        counters), but the state bank is keyed by (camera, track ID) and each camera has
+        its own stamp clock: a jump on one camera resets only its tracks, and its tracks
+        expire by its own stamps. ``max_tracks`` holds for all cameras together. See
+        :mod:`signal_light_node.runtime.camera_batch`.
+
+        Args:
+            frames: ``camera_batch.CameraFrame(camera, image, stamp_ns, boxes)`` or plain
+                tuples of those four, at most one per camera per step (a camera given
+                again starts another step, in order).
+
+        Returns:
+            One ``FrameResult`` per frame, in order (``latency_s``: the wall time of the
+            step the frame was part of). A frame whose image is not an HxWx3 uint8 array
+            is answered unjudged with a warning instead of raising, so it cannot cost
+            the other cameras their frames.
+
+        Raises:
+            ConfigError: A frame is not ``(camera, image, stamp_ns, boxes)``.
+        """
+        from signal_light_node.runtime.camera_batch import process_many
+
+        return process_many(self, frames)
+
+    @property
+    def camera_counters(self) -> Dict[str, Dict[str, int]]:
+        """Per camera (``""`` for ``process``): the state bank's created, expired,
+        evictions, overflow, resets and the current active_tracks."""
+        from signal_light_node.runtime.camera_batch import camera_counters
+
+        return camera_counters(self)
+
 
 class _FrameAttention:
     """The attention masks of the last step, by box, and (weakly) the image they came from."""
@@ -406,6 +442,10 @@ class _FrameAttention:
         except TypeError:  # not weak-referenceable: never matches, masks are recomputed
             self.image = lambda: None
         self.masks = masks
+
+    def masks_for(self, image: np.ndarray) -> Dict[tuple, np.ndarray]:
+        """The masks, if they were computed for ``image`` (the very array), else none."""
+        return self.masks if self.image() is image else {}
 
 
 def _box_key(box: TrackBox) -> tuple:
