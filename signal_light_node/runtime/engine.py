@@ -29,6 +29,7 @@ from signal_light_node.errors import ConfigError
 from signal_light_node.runtime.intent_filter import IntentFilter, IntentFilterConfig
 from signal_light_node.labels import LIGHT_CODES, LIGHT_TASKS, Intent, LightStatus, View
 from signal_light_node.runtime.backend import ModelBackend, as_backend, check_device, create_backend
+from signal_light_node.runtime.memory import retain_freed_memory
 from signal_light_node.runtime.results import LightEstimate, VehicleResult
 from signal_light_node.runtime.state_bank import StateBank, check_limits
 
@@ -165,7 +166,9 @@ class LightStateEngine:
     """Per-frame light-state inference over tracked vehicles.
 
     Not thread-safe: call ``process`` from one thread, frames in stamp order (a stamp
-    that jumps back resets every track, as when a bag loops).
+    that jumps back resets every track, as when a bag loops). Creating an engine makes
+    the process keep freed heap memory (``runtime.memory.retain_freed_memory``), so the
+    per-frame arrays do not fault fresh pages in every frame.
 
     Args:
         model: A model backend (``runtime.backend.ModelBackend``, e.g. from
@@ -181,6 +184,7 @@ class LightStateEngine:
 
     def __init__(self, model: Any, config: Optional[EngineConfig] = None) -> None:
         config = config or EngineConfig()
+        retain_freed_memory()
         backend: ModelBackend = as_backend(model, config.device)
         model_config = backend.config
         input_size = int(getattr(backend, "input_size", model_config.input_size))
