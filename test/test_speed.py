@@ -144,3 +144,41 @@ def test_replay_times_every_processed_frame_by_stage(tmp_path):
     for k, latency in enumerate(summary.latencies_s):
         engine = sum(summary.stages_s[s][k] for s in ENGINE_STAGES)
         assert engine <= latency + 1e-9 and summary.stages_s["decode"][k] > 0
+
+
+def test_chunk_bounds_cover_the_batch_in_order():
+    from signal_light_node.model.backends.onnx_backend import MIN_CHUNK_TRACKS, chunk_bounds
+
+    for threads in (1, 2, 3, 4):
+        for n in range(0, 70):
+            bounds = chunk_bounds(n, threads)
+            assert bounds[0][0] == 0 and bounds[-1][1] == n
+            assert all(a[1] == b[0] for a, b in zip(bounds, bounds[1:]))
+            assert len(bounds) == 1 or min(b - a for a, b in bounds) >= MIN_CHUNK_TRACKS
+            assert len(bounds) <= max(1, 2 * threads) and (threads > 1 or len(bounds) == 1)
+    assert chunk_bounds(32, 2) == [(0, 8), (8, 16), (16, 24), (24, 32)]
+
+
+def test_onnxruntime_split_batch_is_bit_identical_to_one_run(tmp_path):
+    from signal_light_node.model import save_checkpoint
+    from signal_light_node.model.onnx_export import export_onnx
+    from signal_light_node.runtime.backend import create_backend
+
+    net = _tiny_net(seed=4, input_size=32)  # 32 / 8 = 4: head_grid 2 divides it
+    weights = save_checkpoint(tmp_path / "tiny.pt", net, net.config)
+    path = str(export_onnx(tmp_path / "tiny.onnx", weights).path)
+    one, split = create_backend("onnxruntime", path, threads=1), \
+        create_backend("onnxruntime", path, threads=3)
+    assert (one.threads, split.threads) == (1, 3)
+    frames = synthetic_tracks(32, 13, 4, seed=5)
+    rows_one, rows_split = one.new_rows(13), split.new_rows(13)
+    index = np.arange(13)
+    for crops in frames:
+        a = one.step(crops, one.gather_rows(rows_one, index), attention=True)
+        b = split.step(crops, split.gather_rows(rows_split, index), attention=True)
+        for task in a.probs:
+            np.testing.assert_array_equal(a.probs[task], b.probs[task])
+        np.testing.assert_array_equal(a.attention, b.attention)
+        one.store_rows(rows_one, index, a.state)
+        split.store_rows(rows_split, index, b.state)
+    np.testing.assert_array_equal(rows_one, rows_split)

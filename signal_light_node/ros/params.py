@@ -65,7 +65,9 @@ class DetectorParams:
         publish_markers: Publish the results drawn for RViz on ``~/output/markers``
             (``visualization_msgs/MarkerArray``, see :mod:`signal_light_node.outputs.markers`).
         diagnostics_period_s: Period of the ``/diagnostics`` status.
-        num_threads: Intra-op threads of the backend; 0 keeps its default.
+        num_threads: CPU threads of a step: torch's intra-op threads, onnxruntime's
+            threads splitting the frame's batch; 0 keeps the backend's default (torch's
+            choice; one per CPU for onnxruntime).
         max_image_pixels: Larger images (width x height) are refused before decoding.
         max_boxes_per_frame: Boxes judged per frame; later ones are reported unjudged.
     """
@@ -193,8 +195,9 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
                                  "0.01 m per pixel; built only while subscribed)."),
     "diagnostics_period_s": ParamSpec("Period of the status published on /diagnostics.",
                                       low=0.1, high=60.0),
-    "num_threads": ParamSpec("Intra-op threads of the backend (torch or onnxruntime); 0 keeps "
-                             "its default.", low=0, high=256),
+    "num_threads": ParamSpec("CPU threads of a step: torch's intra-op threads, onnxruntime's "
+                             "threads splitting the frame's batch; 0 keeps the backend's "
+                             "default (one per CPU).", low=0, high=256),
     "max_image_pixels": ParamSpec("Images of more pixels (width x height) are refused before "
                                   "decoding (counted as oversized_images); their boxes are "
                                   "published unjudged.", low=1, high=2**31 - 1),
