@@ -182,3 +182,30 @@ def test_onnxruntime_split_batch_is_bit_identical_to_one_run(tmp_path):
         one.store_rows(rows_one, index, a.state)
         split.store_rows(rows_split, index, b.state)
     np.testing.assert_array_equal(rows_one, rows_split)
+
+
+def test_backend_auto_picks_by_file_and_device(monkeypatch):
+    from signal_light_node.runtime import backend as backend_module
+    from signal_light_node.runtime.backend import resolve_backend
+
+    assert resolve_backend("torch") == "torch" and resolve_backend("onnxruntime") == "onnxruntime"
+    assert resolve_backend("auto", "/m/best.onnx") == "onnxruntime"
+    assert resolve_backend("auto", "/m/BEST.ONNX", "cuda") == "onnxruntime"
+    assert resolve_backend("auto", "/m/best.pt") == "torch"
+    assert resolve_backend("auto", None, "cpu") == "onnxruntime"
+    assert resolve_backend("auto", None, "cuda:1") == "torch"
+    monkeypatch.setattr(backend_module.importlib.util, "find_spec", lambda name: None)
+    assert resolve_backend("auto", None, "cpu") == "torch"  # onnxruntime not installed
+
+
+def test_engine_from_checkpoint_with_backend_auto(tmp_path):
+    from signal_light_node.model import save_checkpoint
+    from signal_light_node.runtime.engine import engine_from_checkpoint
+
+    net = _tiny_net()
+    path = save_checkpoint(tmp_path / "tiny.pt", net, net.config)
+    assert engine_from_checkpoint(path, backend="auto").backend.name == "torch"
+    from signal_light_node.model import onnx_format as fmt
+
+    if fmt.DEFAULT_ONNX.is_file():
+        assert engine_from_checkpoint(backend="auto").backend.name == "onnxruntime"

@@ -145,7 +145,8 @@ class SignalLightDetector(Node):
         self.get_logger().info(
             f"ready: {self._image_topic} ({p.image_transport}, {p.reliability}) + "
             f"{self._det_sub.topic_name} "
-            f"-> {self._out.topic_name}; model {self.model_path} ({p.backend}) on {p.device}, "
+            f"-> {self._out.topic_name}; model {self.model_path} ({self.engine.backend.name}"
+            f"{', chosen by backend auto' if p.backend == 'auto' else ''}) on {p.device}, "
             f"pairing {'exact' if p.sync_slop_s == 0 else f'within {p.sync_slop_s} s'}")
 
     def stop(self) -> None:
@@ -279,7 +280,7 @@ class SignalLightDetector(Node):
             "pending_detections": self._pairer.pending[1],
             "model_path": self.model_path,
             "device": self.params.device,
-            "backend": self.params.backend,
+            "backend": self.engine.backend.name,
         }
         extra.update(self._stages.values())
         level, message, values = health(self._last_snapshot, now, self._latency.summary(),

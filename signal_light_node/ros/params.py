@@ -37,7 +37,9 @@ class DetectorParams:
         model_path: Model file (a ``.pt`` checkpoint for the torch backend, an ``.onnx``
             export for onnxruntime); "" means the one shipped with the package.
         device: ``cpu`` or ``cuda``.
-        backend: Model backend, ``torch`` or ``onnxruntime`` (``runtime.backend``).
+        backend: Model backend, ``torch`` or ``onnxruntime`` (``runtime.backend``), or
+            ``auto``: by ``model_path``'s suffix, and for the shipped model onnxruntime on
+            the CPU (faster there), torch on CUDA.
         image_transport: ``raw`` (``~/input/image``) or ``compressed``
             (``~/input/image/compressed``).
         reliability: QoS reliability of the input subscriptions.
@@ -74,7 +76,7 @@ class DetectorParams:
 
     model_path: str = ""
     device: str = "cpu"
-    backend: str = "torch"
+    backend: str = "auto"
     image_transport: str = "raw"
     reliability: str = "best_effort"
     sync_slop_s: float = 0.0
@@ -145,8 +147,10 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
                             "(.onnx, signal-light export --onnx) for backend onnxruntime; "
                             "empty = the one shipped with the package."),
     "device": ParamSpec("Device for inference.", choices=("cpu", "cuda")),
-    "backend": ParamSpec("Model backend: torch (the .pt checkpoint) or onnxruntime (its ONNX "
-                         "export).", choices=("torch", "onnxruntime")),
+    "backend": ParamSpec("Model backend: torch (the .pt checkpoint), onnxruntime (its ONNX "
+                         "export), or auto: by model_path's suffix; for the shipped model "
+                         "onnxruntime on the CPU, torch on CUDA.",
+                         choices=("torch", "onnxruntime", "auto")),
     "image_transport": ParamSpec(
         "raw: subscribe ~/input/image (sensor_msgs/Image); compressed: subscribe "
         "~/input/image/compressed (sensor_msgs/CompressedImage).", choices=("raw", "compressed")),
@@ -277,8 +281,9 @@ def validate_params(values: Union[DetectorParams, Mapping[str, Any]]) -> Detecto
                 problems.append(problem)
     if not problems:
         params = DetectorParams(**clean)
-        suffix = {"torch": ".pt", "onnxruntime": ".onnx"}[params.backend]
-        if params.model_path and params.model_path.lower().endswith((".pt", ".onnx")) \
+        suffix = {"torch": ".pt", "onnxruntime": ".onnx"}.get(params.backend, "")
+        if suffix and params.model_path \
+                and params.model_path.lower().endswith((".pt", ".onnx")) \
                 and not params.model_path.lower().endswith(suffix):
             problems.append(f"model_path {params.model_path!r} does not fit backend "
                             f"{params.backend}, which loads a {suffix} file (a checkpoint "

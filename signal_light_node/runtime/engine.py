@@ -486,7 +486,9 @@ def engine_from_checkpoint(path: "str | Path | None" = None, device: str = "cpu"
             export (``signal-light export --onnx``) for ``"onnxruntime"``; None for the
             one shipped with the package.
         device: ``cpu``, ``cuda`` or ``cuda:N``.
-        backend: A name of ``runtime.backend.known_backends()``.
+        backend: A name of ``runtime.backend.known_backends()``, or ``auto``
+            (``runtime.backend.resolve_backend``: by the file's suffix; onnxruntime on the
+            CPU for the shipped model).
         threads: Intra-op CPU threads of the backend; None or 0 keeps its default.
         **overrides: Other ``EngineConfig`` fields (thresholds, track_timeout_s,
             intent_filter, ...). The crop (size and margin) is the checkpoint's.
