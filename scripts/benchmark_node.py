@@ -14,6 +14,7 @@ Usage::
     python scripts/benchmark_node.py --untrained              # same network, random weights
     python scripts/benchmark_node.py --transport raw --tracks 64 --seconds 30
     python scripts/benchmark_node.py --busy-cores 1           # idle, then one core kept busy
+    python scripts/benchmark_node.py -p backend:=onnxruntime  # any node parameter
 """
 
 from __future__ import annotations
@@ -61,6 +62,9 @@ def parse_args(argv: List[str]) -> argparse.Namespace:
                    help="use the default network with random weights (same cost as trained)")
     p.add_argument("--num-threads", type=int, default=0, help="the node's num_threads")
     p.add_argument("--work-queue", type=int, default=2, help="the node's work_queue_size")
+    p.add_argument("-p", "--param", dest="params", action="append", default=[],
+                   metavar="NAME:=VALUE", help="one more node parameter (repeatable), e.g. "
+                   "-p backend:=onnxruntime")
     p.add_argument("--busy-cores", type=int, default=0, metavar="N",
                    help="run a second time with N other processes keeping one core busy each, "
                         "and print idle and shared figures side by side")
@@ -160,6 +164,10 @@ def run_node(args: argparse.Namespace, model: str, payloads: List[dict], layout:
                  "-p", f"work_queue_size:={args.work_queue}"]
     if model:
         node_args += ["-p", f"model_path:={model}"]
+    for param in args.params:
+        if ":=" not in param:
+            raise SystemExit(f"benchmark_node: -p needs NAME:=VALUE, got {param!r}")
+        node_args += ["-p", param]
     proc = subprocess.Popen(node_args, cwd=REPO, stdout=open(log, "w"), stderr=subprocess.STDOUT)
     try:
         deadline = time.monotonic() + 120
@@ -296,7 +304,10 @@ def run_client(args: argparse.Namespace, payloads: List[dict], layout: List[dict
             "latency_mean_ms", "latency_p95_ms", "processing_mean_ms", "processing_p95_ms",
             "engine_mean_ms", "engine_p95_ms",
             "dropped_work_queue", "dropped_image_timeout", "dropped_detections_timeout",
-            "active_tracks")},
+            "active_tracks", "backend")},
+        "node_stages_ms": {k[len("stage_"):-len("_mean_ms")]: (diagnostics[k],
+                           diagnostics.get(k[:-len("_mean_ms")] + "_p95_ms"))
+                           for k in diagnostics if k.startswith("stage_") and k.endswith("_mean_ms")},
     }
 
 
@@ -326,7 +337,11 @@ def print_figures(f: Dict[str, object]) -> None:
           f"{d['latency_mean_ms']} ms, p95 {d['latency_p95_ms']} ms; processing mean "
           f"{d['processing_mean_ms']} ms, p95 {d['processing_p95_ms']} ms (engine alone mean "
           f"{d['engine_mean_ms']} ms, p95 {d['engine_p95_ms']} ms); work-queue drops "
-          f"{d['dropped_work_queue']}")
+          f"{d['dropped_work_queue']}; backend {d.get('backend')}")
+    stages = f.get("node_stages_ms") or {}
+    if stages:
+        print("  node's stages, mean / p95 ms: " + ", ".join(
+            f"{name} {mean}/{p95}" for name, (mean, p95) in stages.items()))
 
 
 if __name__ == "__main__":

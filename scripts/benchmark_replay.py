@@ -4,19 +4,27 @@
 For each number of tracks per frame (1, 8, 32, 64 by default) a bag of 1280x720 JPEG
 frames with that many tracked boxes is written to a temporary directory and replayed
 through the engine exactly as ``signal-light replay`` does (decode, crop, one batched
-model step, output message, MCAP write). Printed per row:
+model step, output message, MCAP write), once per backend (``--backend``, torch and
+onnxruntime by default, alternating). Printed per backend and row:
 
 * replay throughput in frames/s and track-steps/s (wall time of the whole replay);
 * the engine's ``process`` latency per frame, mean and p95 (crop + step + results),
-  leaving out the first ``--warmup`` frames.
+  leaving out the first ``--warmup`` frames;
 
-The model is the shipped one when its weights exist, else a freshly initialised model
-of the default ``ModelConfig`` (timing does not depend on the weight values).
+then, at ``--stage-tracks`` (32) tracks, where a frame's time goes: decode, the engine's
+stages (crops, state gather, step, intent filter, state store, results), building the
+output messages and writing them, mean / p95 / share per backend side by side, and the
+ratio of the whole frame to the model step (inside the engine, and timed alone). The
+instruction set each framework uses is printed first.
+
+The model is the shipped one (``weights/default.pt``; ``default.onnx`` for
+onnxruntime) unless ``--weights`` (exported on the fly for onnxruntime) or ``--onnx``.
 
 Usage::
 
-    python scripts/benchmark_replay.py                 # 2 threads, 1/8/32/64 tracks
-    python scripts/benchmark_replay.py --tracks 32 --frames 200 --json out.json
+    python scripts/benchmark_replay.py                 # 2 threads, 1/8/32/64 tracks, both backends
+    python scripts/benchmark_replay.py --tracks 32 --frames 100 --rounds 3 --json out.json
+    python scripts/benchmark_replay.py --backend onnxruntime --threads 1 --tracks 32
 """
 
 from __future__ import annotations
@@ -40,16 +48,15 @@ from pathlib import Path  # noqa: E402
 from typing import Any, Dict, List, Sequence  # noqa: E402
 
 import numpy as np  # noqa: E402
-import torch  # noqa: E402
 
-from signal_light_node.io import bagio  # noqa: E402
 from signal_light_node.boxes import TrackBox  # noqa: E402
+from signal_light_node.errors import SignalLightError  # noqa: E402
+from signal_light_node.io import bagio  # noqa: E402
 from signal_light_node.io.conversions import boxes_to_detections, make_header  # noqa: E402
-from signal_light_node.runtime.engine import EngineConfig, LightStateEngine  # noqa: E402
 from signal_light_node.io.image_codec import bgr_to_compressed_fields  # noqa: E402
-from signal_light_node.model import (DEFAULT_WEIGHTS, ModelConfig, build_model,  # noqa: E402
-                                     load_checkpoint)
-from signal_light_node.tools.replay import replay_bag  # noqa: E402
+from signal_light_node.runtime.engine import EngineConfig, LightStateEngine  # noqa: E402
+from signal_light_node.tools import benchmarking as bench  # noqa: E402
+from signal_light_node.tools.replay import REPLAY_STAGES, replay_bag  # noqa: E402
 from signal_light_node.io.topics import (CAMERA_COMPRESSED_TOPIC, COMPRESSED_TYPE,  # noqa: E402
                                       DETECTIONS_TYPE, TRACKED_OBJECTS_TOPIC)
 
@@ -100,78 +107,129 @@ def write_bench_bag(path: Path, frames: Sequence[Dict[str, Any]], n_tracks: int,
     return path
 
 
-def load_model(weights: Path | None) -> tuple:
-    path = weights if weights is not None else (DEFAULT_WEIGHTS if DEFAULT_WEIGHTS.exists()
-                                                else None)
-    if path is not None:
-        return load_checkpoint(path).model, str(path)
-    torch.manual_seed(0)
-    return build_model(ModelConfig()).eval(), "default ModelConfig, fresh weights"
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--backend", nargs="+", default=["torch", "onnxruntime"],
+                        help="backends to time side by side (default: torch onnxruntime)")
     parser.add_argument("--weights", type=Path, default=None,
-                        help="checkpoint (default: the shipped weights if present)")
+                        help="checkpoint (default: the shipped weights)")
+    parser.add_argument("--onnx", type=Path, default=None,
+                        help="ONNX export for onnxruntime (default: the shipped one, or "
+                             "--weights exported on the fly)")
     parser.add_argument("--tracks", type=int, nargs="+", default=[1, 8, 32, 64])
     parser.add_argument("--frames", type=int, default=60, help="frames per bag")
     parser.add_argument("--warmup", type=int, default=5, help="frames left out of latency")
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--rounds", type=int, default=1,
+                        help="replays per backend and track count, the backends alternating "
+                             "(figures pool every round's frames; the round means show the "
+                             "noise)")
+    parser.add_argument("--threads", type=int, default=2, help="intra-op threads, 0 = the "
+                        "backend's default")
+    parser.add_argument("--stage-tracks", type=int, default=32,
+                        help="track count of the per-stage table")
     parser.add_argument("--width", type=int, default=1280)
     parser.add_argument("--height", type=int, default=720)
-    parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda, cuda:1)")
+    parser.add_argument("--device", default="cpu", help="device (cpu, cuda, cuda:1)")
     parser.add_argument("--json", type=Path, help="also write the results here")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(message)s")
     if args.frames <= args.warmup:
         parser.error("--frames must be larger than --warmup")
+    try:
+        names = bench.require_known(args.backend)
+    except SignalLightError as exc:
+        parser.error(str(exc))
 
-    torch.set_num_threads(args.threads)
-    model, source = load_model(args.weights)
-    config = model.config
-    gpu = f" ({torch.cuda.get_device_name(args.device)})" if args.device.startswith("cuda") \
-        and torch.cuda.is_available() else ""
-    print(f"model: {source}; input {config.input_size}px, ConvLSTM {config.lstm_hidden}; "
-          f"device {args.device}{gpu}")
-    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, OMP_WAIT_POLICY "
-          f"{os.environ.get('OMP_WAIT_POLICY')}, "
-          f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}; frames "
-          f"{args.width}x{args.height} JPEG, {args.frames} per run")
+    print(f"frames {args.width}x{args.height} JPEG, {args.frames} per run ({args.warmup} "
+          f"warm-up), threads {args.threads or 'default'}, OMP_WAIT_POLICY "
+          f"{os.environ.get('OMP_WAIT_POLICY')}, load average {os.getloadavg()[0]:.2f}")
+    for line in bench.isa_lines(names):
+        print(line)
     frames = make_frames(args.frames, args.width, args.height)
-    print(f"{'tracks':>6} {'frames/s':>9} {'steps/s':>9} {'lat mean':>9} {'lat p95':>9} "
-          f"{'lat max':>9}  (latency in ms)")
-    rows = []
+    rows: List[Dict[str, Any]] = []
+    stages: Dict[str, Dict[str, List[float]]] = {name: {} for name in names}
+    step_only: Dict[str, List[float]] = {}
     with tempfile.TemporaryDirectory() as tmp:
+        backends = {name: bench.bench_backend(name, args.weights, args.onnx, args.threads,
+                                              args.device, Path(tmp)) for name in names}
+        for name, backend in backends.items():
+            print(f"{name}: {bench.describe(backend)}")
+        bags = {n: write_bench_bag(Path(tmp) / f"bench{n}", frames, n, args.width, args.height)
+                for n in args.tracks}
+        print(f"{'backend':>12} {'tracks':>6} {'frames/s':>9} {'steps/s':>9} {'lat mean':>9} "
+              f"{'lat p95':>9} {'lat max':>9}  (engine latency in ms){'  round means' if args.rounds > 1 else ''}")
+        runs = 0
         for n in args.tracks:
-            bag = write_bench_bag(Path(tmp) / f"bench{n}", frames, n, args.width, args.height)
-            engine = LightStateEngine(model, EngineConfig(device=args.device))
-            start = time.perf_counter()
-            summary = replay_bag(bag, Path(tmp) / f"out{n}", engine, progress=False)
-            wall = time.perf_counter() - start
-            lat = np.asarray(summary.latencies_s[args.warmup:]) * 1e3
-            row = {"tracks": n, "frames": summary.images, "wall_s": wall,
-                   "frames_per_s": summary.frames_per_s,
-                   "track_steps_per_s": summary.track_steps_per_s,
-                   "latency_mean_ms": float(lat.mean()),
-                   "latency_p95_ms": float(np.percentile(lat, 95)),
-                   "latency_max_ms": float(lat.max())}
-            rows.append(row)
-            print(f"{n:>6} {row['frames_per_s']:>9.1f} {row['track_steps_per_s']:>9.1f} "
-                  f"{row['latency_mean_ms']:>9.1f} {row['latency_p95_ms']:>9.1f} "
-                  f"{row['latency_max_ms']:>9.1f}")
+            pooled: Dict[str, Dict[str, Any]] = {name: {"lat": [], "wall": 0.0, "images": 0,
+                                                        "judged": 0, "means": []}
+                                                 for name in names}
+            for _ in range(max(args.rounds, 1)):
+                for name in names:
+                    engine = LightStateEngine(backends[name], EngineConfig(device=args.device))
+                    start = time.perf_counter()
+                    summary = replay_bag(bags[n], Path(tmp) / f"out{runs}", engine,
+                                         progress=False)
+                    runs += 1
+                    acc = pooled[name]
+                    acc["wall"] += time.perf_counter() - start
+                    acc["images"] += summary.images
+                    acc["judged"] += summary.counters.get("judged", 0)
+                    lat = summary.latencies_s[args.warmup:]
+                    acc["lat"] += lat
+                    acc["means"].append(float(np.mean(lat)) * 1e3)
+                    if n == args.stage_tracks:
+                        for stage, values in summary.stages_s.items():
+                            stages[name].setdefault(stage, []).extend(values[args.warmup:])
+                        # The model-only step right after, so both see the same load.
+                        step_only.setdefault(name, []).extend(
+                            bench.time_backend_steps(backends[name], n, 20, 3))
+            for name in names:
+                acc = pooled[name]
+                lat = np.asarray(acc["lat"]) * 1e3
+                row = {"backend": name, "tracks": n, "frames": acc["images"],
+                       "wall_s": acc["wall"], "frames_per_s": acc["images"] / acc["wall"],
+                       "track_steps_per_s": acc["judged"] / acc["wall"],
+                       "latency_mean_ms": float(lat.mean()),
+                       "latency_p95_ms": float(np.percentile(lat, 95)),
+                       "latency_max_ms": float(lat.max()), "round_means_ms": acc["means"]}
+                rows.append(row)
+                means = " ".join(f"{m:.1f}" for m in acc["means"]) if args.rounds > 1 else ""
+                print(f"{name:>12} {n:>6} {row['frames_per_s']:>9.1f} "
+                      f"{row['track_steps_per_s']:>9.1f} {row['latency_mean_ms']:>9.1f} "
+                      f"{row['latency_p95_ms']:>9.1f} {row['latency_max_ms']:>9.1f}  {means}")
     print(f"load average after: {os.getloadavg()[0]:.2f}")
+    ratios: Dict[str, Dict[str, float]] = {}
+    if args.stage_tracks in args.tracks:
+        print(f"\nper stage at {args.stage_tracks} tracks, ms per frame (decode + engine + "
+              f"outputs + write = frame; 'share' of the mean frame):")
+        print(bench.stage_table(stages, REPLAY_STAGES))
+        for name in names:
+            per = stages[name]
+            frame = float(np.mean(np.sum([per[s] for s in REPLAY_STAGES], axis=0)))
+            step = float(np.mean(per["step"]))
+            alone = float(np.mean(step_only[name]))
+            ratios[name] = {"frame_ms": frame * 1e3, "step_in_engine_ms": step * 1e3,
+                            "step_alone_ms": alone * 1e3}
+            print(f"{name}: frame {frame * 1e3:.1f} ms = {frame / step:.2f} x the step inside "
+                  f"the engine ({step * 1e3:.1f} ms) = {frame / alone:.2f} x the model-only "
+                  f"step ({alone * 1e3:.1f} ms, {args.stage_tracks} tracks, timed alone after each "
+                  f"replay)")
     for row in rows:
         if row["tracks"] == 32:
             ok = row["frames_per_s"] >= 10.0 and row["latency_p95_ms"] < 100.0
-            print(f"32 tracks: {row['frames_per_s']:.1f} frames/s, engine p95 "
+            print(f"{row['backend']}, 32 tracks: {row['frames_per_s']:.1f} frames/s, engine p95 "
                   f"{row['latency_p95_ms']:.1f} ms -> {'meets' if ok else 'MISSES'} the 10 Hz / "
                   f"100 ms target (engine only; end-to-end node latency is measured separately)")
     if args.json:
-        args.json.write_text(json.dumps({"model": source, "threads": args.threads,
-                                         "device": args.device + gpu,
-                                         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
-                                         "width": args.width, "height": args.height,
-                                         "runs": rows}, indent=2))
+        args.json.write_text(json.dumps({
+            "backends": names, "threads": args.threads, "device": args.device,
+            "isa": bench.isa_lines(names),
+            "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+            "width": args.width, "height": args.height, "runs": rows,
+            "stages_ms": {name: {s: {"mean": float(np.mean(v)) * 1e3,
+                                     "p95": bench.percentile(v, 95) * 1e3}
+                                 for s, v in per.items()} for name, per in stages.items()},
+            "ratios": ratios}, indent=2))
     return 0
 
 

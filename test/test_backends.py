@@ -305,14 +305,17 @@ def test_export_command_writes_a_file_the_replay_backend_runs(tiny_export, tmp_p
 def test_node_parameter_backend_is_validated_with_a_reason():
     from signal_light_node.ros.params import DetectorParams, validate_params
 
-    assert DetectorParams().backend == "torch"
+    assert DetectorParams().backend == "auto"
     assert validate_params({"backend": "onnxruntime"}).backend == "onnxruntime"
     with pytest.raises(ConfigError, match="backend must be one of torch, onnxruntime"):
         validate_params({"backend": "tensorrt"})
     with pytest.raises(ConfigError, match="does not fit backend onnxruntime.*export --onnx"):
         validate_params({"backend": "onnxruntime", "model_path": "/m/best.pt"})
     with pytest.raises(ConfigError, match="does not fit backend torch"):
-        validate_params({"model_path": "/m/best.onnx"})
+        validate_params({"backend": "torch", "model_path": "/m/best.onnx"})
+    # auto takes either file.
+    for path in ("/m/best.onnx", "/m/best.pt", ""):
+        assert validate_params({"model_path": path}).backend == "auto"
 
 
 # ------------------------------------------------------------------ the shipped model

@@ -176,7 +176,10 @@ def _run_live(tmp_path: Path, env: dict, raw: bool, extra_args, expect_params=No
             assert int(values["outputs"]) == warm + len(frames) + 2
             assert int(values["images"]) == warm + len(frames) + 2
             assert float(values["latency_p95_ms"]) > 0
-            assert values["model_path"].endswith(".pt")
+            # backend auto: the shipped model runs in onnxruntime (its .onnx export) on the
+            # CPU, a .pt checkpoint in torch.
+            assert values["backend"] == ("onnxruntime" if shipped else "torch")
+            assert values["model_path"].endswith(".onnx" if shipped else ".pt")
             assert node.proc.poll() is None
         assert node.stop() == 0, node.text()
         assert "Traceback" not in node.text()

@@ -36,7 +36,7 @@ def _threshold(text: str) -> tuple:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``signal-light replay``."""
-    from signal_light_node.runtime.backend import known_backends
+    from signal_light_node.runtime.backend import AUTO_BACKEND, known_backends
 
     parser.add_argument("bag", type=Path, nargs="+",
                         help="input bag (rosbag2 directory or .mcap); several bags = one "
@@ -46,9 +46,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint", type=Path, default=None,
                         help="model file: a .pt checkpoint (--backend torch) or its .onnx export "
                              "(--backend onnxruntime); default: the shipped one")
-    parser.add_argument("--backend", choices=known_backends(), default="torch",
+    parser.add_argument("--backend", choices=known_backends() + (AUTO_BACKEND,),
+                        default="torch",
                         help="model backend (default torch); onnxruntime runs the file "
-                             "`signal-light export --onnx` writes")
+                             "`signal-light export --onnx` writes; auto picks as the node's "
+                             "default does (by the file's suffix; onnxruntime on the CPU for "
+                             "the shipped model)")
     parser.add_argument("--image-topic", default=None,
                         help="image topic (default: the first CompressedImage, else Image topic)")
     parser.add_argument("--detections-topic", default=None,

@@ -50,7 +50,8 @@ from signal_light_node.runtime.pairing import StampPairer
 from signal_light_node.ros.params import (NODE_NAME, DetectorParams, foreign_params_file,
                                            params_file_paths, read_parameters, updated)
 from signal_light_node.ros.ros_io import message_class, qos
-from signal_light_node.runtime.stats import ERROR, OK, WARN, LatencyWindow, Snapshot, health
+from signal_light_node.runtime.stats import (ERROR, OK, WARN, LatencyWindow, Snapshot,
+                                             StageWindows, health)
 from signal_light_node.runtime.worker import DropOldestQueue, Worker
 from signal_light_node.io.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, DIAGNOSTICS_TOPIC,
                                       DIAGNOSTICS_TYPE, IMAGE_TYPE)
@@ -66,6 +67,12 @@ OUTPUT_TOPIC = "~/output/vehicle_lights"
 DEBUG_TOPIC = "~/output/debug/image"
 
 _LEVEL_BYTES = {OK: b"\x00", WARN: b"\x01", ERROR: b"\x02"}
+
+#: Stages of the worker's frame timed for ``/diagnostics`` (``stage_<name>_mean_ms`` /
+#: ``_p95_ms``): the wait in the work queue, decoding, the engine's own stages
+#: (``engine.ENGINE_STAGES``), building the output messages and publishing them.
+NODE_STAGES = ("queue", "decode", "crops", "state_gather", "step", "intent_filter",
+               "state_store", "results", "outputs", "publish")
 
 
 class SignalLightDetector(Node):
@@ -90,6 +97,7 @@ class SignalLightDetector(Node):
         self._latency = LatencyWindow()
         self._processing = LatencyWindow()
         self._engine_time = LatencyWindow()
+        self._stages = StageWindows(NODE_STAGES)
         self._last_snapshot: Optional[Snapshot] = None
         self._last_engine: Dict[str, int] = {}
         self._param_callbacks = False
@@ -150,7 +158,7 @@ class SignalLightDetector(Node):
             self.add_post_set_parameters_callback(self._apply_new_parameters)
             self._param_callbacks = True
         self.get_logger().info(
-            f"model {self.model_path} ({p.backend}) on {p.device}; crop margin "
+            f"model {self.model_path} ({self._backend_text()}) on {p.device}; crop margin "
             f"{self.engine.crop.margin:g} (the model checkpoint's)")
 
     def activate(self) -> None:
@@ -186,15 +194,20 @@ class SignalLightDetector(Node):
             self.get_logger().info(
                 f"ready: {self._image_topic} ({p.image_transport}, {p.reliability}) + "
                 f"{self._cameras[0].subscriptions[1].topic_name} "
-                f"-> {self._out.topic_name}; model {self.model_path} ({p.backend}) on "
-                f"{p.device}, pairing {pairing}")
+                f"-> {self._out.topic_name}; model {self.model_path} "
+                f"({self._backend_text()}) on {p.device}, pairing {pairing}")
             return
         inputs = "; ".join(f"{c.name}: {c.image_topic} + {c.subscriptions[1].topic_name} -> "
                            f"{c.outputs[0][1].topic_name}" for c in self._cameras)
         self.get_logger().info(
             f"ready: {len(self._cameras)} cameras ({p.image_transport}, {p.reliability}), "
-            f"one model step per tick: {inputs}; model {self.model_path} ({p.backend}) on "
-            f"{p.device}, pairing {pairing}")
+            f"one model step per tick: {inputs}; model {self.model_path} "
+            f"({self._backend_text()}) on {p.device}, pairing {pairing}")
+
+    def _backend_text(self) -> str:
+        """The backend in use, and whether ``backend: auto`` chose it."""
+        auto = ", chosen by backend auto" if self.params.backend == "auto" else ""
+        return f"{self.engine.backend.name}{auto}"
 
     def _create_publisher(self, msg_type: Any, topic: str, depth: int) -> Any:
         publisher = self.create_publisher(msg_type, topic, depth)
@@ -303,8 +316,10 @@ class SignalLightDetector(Node):
             self._queue.put((camera.name, pair))
 
     # ------------------------------------------------------------------- worker
-    def _run_engine(self, pair: Any, boxes: List[Any]) -> Tuple[Any, Any]:
-        """``(image or None, frame)``: an image that cannot be used gives every box unjudged."""
+    def _run_engine(self, pair: Any, boxes: List[Any]) -> Tuple[Any, Any, float]:
+        """``(image or None, frame, decode seconds)``: an image that cannot be used gives
+        every box unjudged."""
+        start = time.perf_counter()
         try:
             image = self._decode(pair.image, self._image_topic, pair.stamp_ns,
                                  self.params.max_image_pixels)
@@ -316,20 +331,30 @@ class SignalLightDetector(Node):
             msg = pair.image
             return None, self.engine.unjudged_frame(
                 pair.stamp_ns, boxes, int(getattr(msg, "width", 0)),
-                int(getattr(msg, "height", 0)), str(exc))
-        return image, self.engine.process(image, pair.stamp_ns, boxes)
+                int(getattr(msg, "height", 0)), str(exc)), 0.0
+        decoded = time.perf_counter()
+        return image, self.engine.process(image, pair.stamp_ns, boxes), decoded - start
 
     def _process(self, pair: Any) -> None:
+        taken = time.monotonic_ns()
         boxes = detections_to_boxes(pair.detections)
-        image, frame = self._run_engine(pair, boxes)
+        image, frame, decode_s = self._run_engine(pair, boxes)
         (result_out, out), *others = self._outputs
-        if not self._publish(out, result_out.build(pair.image.header, frame.results, rclpy_make)):
+        t_build = time.perf_counter()
+        message = result_out.build(pair.image.header, frame.results, rclpy_make)
+        t_publish = time.perf_counter()
+        if not self._publish(out, message):
             return
         done = time.monotonic_ns()
         self._counts["outputs"] += 1
         self._latency.add((done - pair.image_received_ns) / _NS)
         self._processing.add(
             (done - max(pair.image_received_ns, pair.detections_received_ns)) / _NS)
+        if image is not None:
+            self._stages.add({
+                "queue": (taken - max(pair.image_received_ns, pair.detections_received_ns)) / _NS,
+                "decode": decode_s, **frame.stages_s, "outputs": t_publish - t_build,
+                "publish": time.perf_counter() - t_publish})
         for adapter, publisher in others:
             if not adapter.when_subscribed or publisher.get_subscription_count() > 0:
                 self._publish(publisher, adapter.build(pair.image.header, frame.results,
@@ -477,7 +502,9 @@ class SignalLightDetector(Node):
             "pending_detections": self._pairer.pending[1],
             "model_path": self.model_path,
             "device": self.params.device,
+            "backend": self.engine.backend.name,
         }
+        extra.update(self._stages.values())
         level, message, values = health(self._last_snapshot, now, self._latency.summary(),
                                         self._processing.summary(),
                                         self._engine_time.summary(), extra)

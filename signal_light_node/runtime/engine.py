@@ -29,6 +29,7 @@ from signal_light_node.errors import ConfigError
 from signal_light_node.runtime.intent_filter import IntentFilter, IntentFilterConfig
 from signal_light_node.labels import LIGHT_CODES, LIGHT_TASKS, Intent, LightStatus, View
 from signal_light_node.runtime.backend import ModelBackend, as_backend, check_device, create_backend
+from signal_light_node.runtime.memory import retain_freed_memory
 from signal_light_node.runtime.results import LightEstimate, VehicleResult
 from signal_light_node.runtime.state_bank import StateBank, check_limits
 
@@ -36,6 +37,13 @@ LOG = logging.getLogger(__name__)
 
 #: ON-probability threshold per ``LightClassification`` code (brake, left, right).
 DEFAULT_THRESHOLDS: Dict[int, float] = {code: 0.5 for code in LIGHT_CODES.values()}
+
+#: Stages of :meth:`LightStateEngine.process`, in order, as keyed in ``FrameResult.stages_s``:
+#: cropping every box, gathering the tracks' states (and intent-filter rows) from the
+#: state bank, the backend's batched step, the intent filter, storing the new states,
+#: and turning the probabilities into results.
+ENGINE_STAGES: Tuple[str, ...] = ("crops", "state_gather", "step", "intent_filter",
+                                  "state_store", "results")
 
 _CODE_OF_NAME = dict(LIGHT_CODES)
 _NAME_OF_CODE = {code: name for name, code in LIGHT_CODES.items()}
@@ -130,6 +138,9 @@ class FrameResult:
         warnings: Why boxes were not judged, duplicates, state resets (also counted).
         latency_s: Wall time of ``process``.
         n_judged: Boxes that went through the model.
+        stages_s: Wall time of each stage of ``process`` (:data:`ENGINE_STAGES`), in
+            seconds; they add up to ``latency_s`` but for the bookkeeping between them.
+            Empty for a frame that was not processed (``unjudged_frame``).
     """
 
     stamp_ns: int
@@ -137,6 +148,7 @@ class FrameResult:
     warnings: List[str]
     latency_s: float
     n_judged: int
+    stages_s: Dict[str, float] = field(default_factory=dict)
 
 
 def unjudged_result(box: TrackBox, width: int, height: int,
@@ -154,7 +166,9 @@ class LightStateEngine:
     """Per-frame light-state inference over tracked vehicles.
 
     Not thread-safe: call ``process`` from one thread, frames in stamp order (a stamp
-    that jumps back resets every track, as when a bag loops).
+    that jumps back resets every track, as when a bag loops). Creating an engine makes
+    the process keep freed heap memory (``runtime.memory.retain_freed_memory``), so the
+    per-frame arrays do not fault fresh pages in every frame.
 
     Args:
         model: A model backend (``runtime.backend.ModelBackend``, e.g. from
@@ -170,6 +184,7 @@ class LightStateEngine:
 
     def __init__(self, model: Any, config: Optional[EngineConfig] = None) -> None:
         config = config or EngineConfig()
+        retain_freed_memory()
         backend: ModelBackend = as_backend(model, config.device)
         model_config = backend.config
         input_size = int(getattr(backend, "input_size", model_config.input_size))
@@ -246,7 +261,8 @@ class LightStateEngine:
         Raises:
             CropError: The image itself is not an HxWx3 uint8 array.
         """
-        start = time.perf_counter()
+        clock = time.perf_counter
+        start = clock()
         stamp_ns = int(stamp_ns)
         height, width = image.shape[:2] if isinstance(image, np.ndarray) and image.ndim == 3 \
             else (0, 0)
@@ -264,6 +280,7 @@ class LightStateEngine:
         crops, reasons = crop_vehicles(image, [boxes[i] for i in unique], self.crop)
         valid = [k for k, reason in enumerate(reasons) if reason is None]
         ids = [boxes[unique[k]].track_id for k in valid]
+        t_crops = clock()
 
         reset_reason = self.bank.check_stamp(stamp_ns)
         if reset_reason is not None:
@@ -272,10 +289,14 @@ class LightStateEngine:
         state = self.bank.gather(ids, stamp_ns)
         self._frame_attention = None
         if ids:
+            filter_rows = self.bank.gather_filter_rows(ids)
+            t_gather = clock()
             batch = crops if len(valid) == len(crops) else crops[valid]
             step = self.backend.step(batch, state, attention=self.keep_attention)
             self._counts["model_steps"] += 1
-            out = self.filter.step(step.probs, stamp_ns, self.bank.gather_filter_rows(ids))
+            t_step = clock()
+            out = self.filter.step(step.probs, stamp_ns, filter_rows)
+            t_filter = clock()
             frames = self.bank.store(ids, step.state, stamp_ns, out.rows)
             table = _ProbTable(out.probs, out.states)
             if step.attention is not None:
@@ -283,8 +304,10 @@ class LightStateEngine:
                     image, {_box_key(boxes[unique[k]]): mask
                             for k, mask in zip(valid, step.attention)})
         else:
+            t_gather = t_step = t_filter = clock()
             frames = self.bank.store(ids, state, stamp_ns)
             table = None
+        t_store = clock()
         row_of = {unique[k]: j for j, k in enumerate(valid)}
         reason_of = {i: reasons[k] for k, i in enumerate(unique)}
         reason_of.update(over)
@@ -316,7 +339,10 @@ class LightStateEngine:
         self._counts["over_limit"] += len(over)
         for text in warnings:
             LOG.debug("%s", text)
-        return FrameResult(stamp_ns, results, warnings, time.perf_counter() - start, len(ids))
+        end = clock()
+        stages = dict(zip(ENGINE_STAGES, (t_crops - start, t_gather - t_crops, t_step - t_gather,
+                                          t_filter - t_step, t_store - t_filter, end - t_store)))
+        return FrameResult(stamp_ns, results, warnings, end - start, len(ids), stages)
 
     def unjudged_frame(self, stamp_ns: int, boxes: Sequence[TrackBox], width: int, height: int,
                        reason: str) -> FrameResult:
@@ -500,7 +526,9 @@ def engine_from_checkpoint(path: "str | Path | None" = None, device: str = "cpu"
             export (``signal-light export --onnx``) for ``"onnxruntime"``; None for the
             one shipped with the package.
         device: ``cpu``, ``cuda`` or ``cuda:N``.
-        backend: A name of ``runtime.backend.known_backends()``.
+        backend: A name of ``runtime.backend.known_backends()``, or ``auto``
+            (``runtime.backend.resolve_backend``: by the file's suffix; onnxruntime on the
+            CPU for the shipped model).
         threads: Intra-op CPU threads of the backend; None or 0 keeps its default.
         **overrides: Other ``EngineConfig`` fields (thresholds, track_timeout_s,
             intent_filter, ...). The crop (size and margin) is the checkpoint's.

@@ -12,7 +12,7 @@ import math
 import threading
 from collections import deque
 from dataclasses import dataclass
-from typing import Deque, List, Mapping, Optional, Tuple
+from typing import Deque, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -55,6 +55,37 @@ class LatencyWindow:
             return 0, math.nan, math.nan, math.nan
         return (int(values.size), float(values.mean()), float(np.percentile(values, 95)),
                 float(values.max()))
+
+
+class StageWindows:
+    """A :class:`LatencyWindow` per stage of a frame's processing (decode, crops, step...).
+
+    Args:
+        stages: The stage names, in the order they are reported.
+        size: How many of the latest frames each window covers.
+    """
+
+    def __init__(self, stages: Sequence[str], size: int = 1000) -> None:
+        self.stages: Tuple[str, ...] = tuple(stages)
+        self._windows = {stage: LatencyWindow(size) for stage in self.stages}
+
+    def add(self, times_s: Mapping[str, float]) -> None:
+        """Record one frame's stage times (seconds); stages not named are left alone."""
+        for stage, seconds in times_s.items():
+            window = self._windows.get(stage)
+            if window is not None:
+                window.add(seconds)
+
+    def summary(self) -> Dict[str, Tuple[int, float, float, float]]:
+        """Per stage ``LatencyWindow.summary()``: ``(n, mean, p95, max)`` in seconds."""
+        return {stage: self._windows[stage].summary() for stage in self.stages}
+
+    def values(self) -> List[Tuple[str, str]]:
+        """``stage_<name>_mean_ms`` and ``stage_<name>_p95_ms`` key/values for diagnostics."""
+        out: List[Tuple[str, str]] = []
+        for stage, (_, mean, p95, _) in self.summary().items():
+            out += [(f"stage_{stage}_mean_ms", _ms(mean)), (f"stage_{stage}_p95_ms", _ms(p95))]
+        return out
 
 
 @dataclass(frozen=True)

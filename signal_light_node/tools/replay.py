@@ -32,7 +32,7 @@ from signal_light_node.io.bagio import BagWriter, find_topic, make, open_bag
 from signal_light_node.boxes import TrackBox
 from signal_light_node.io.conversions import (detections_to_boxes, result_row, stamp_to_ns,
                                            truth_row)
-from signal_light_node.runtime.engine import FrameResult, LightStateEngine
+from signal_light_node.runtime.engine import ENGINE_STAGES, FrameResult, LightStateEngine
 from signal_light_node.errors import ImageConversionError
 from signal_light_node.io.image_codec import DEFAULT_MAX_IMAGE_PIXELS, msg_to_bgr
 from signal_light_node.runtime.results import VehicleResult
@@ -43,6 +43,11 @@ from signal_light_node.runtime.pairing import (DETECTIONS, IMAGE, OrderedPairing
                                                PairingConfig, pair_in_order)
 
 LOG = logging.getLogger(__name__)
+
+#: Per-frame stages a replay times (``ReplaySummary.stages_s``), in order: decoding the
+#: image, the engine's own stages (``engine.ENGINE_STAGES``), building the output
+#: messages (every output adapter) and writing them to the bag.
+REPLAY_STAGES: Tuple[str, ...] = ("decode",) + ENGINE_STAGES + ("outputs", "write")
 
 
 @dataclass
@@ -85,6 +90,8 @@ class ReplaySummary:
         elapsed_s: Wall time of the second pass (decode, engine, write).
         engine_s: Time spent in ``engine.process``.
         latencies_s: ``latency_s`` of every processed frame.
+        stages_s: Per stage of :data:`REPLAY_STAGES`, its wall time in every processed
+            frame (same frames and order as ``latencies_s``).
         counters: The engine's counters at the end.
         tracks: Per track (by ID), the frames with ground truth; empty without it.
         has_ground_truth: Whether the bag has the ground-truth topic.
@@ -109,6 +116,8 @@ class ReplaySummary:
     elapsed_s: float = 0.0
     engine_s: float = 0.0
     latencies_s: List[float] = field(default_factory=list)
+    stages_s: Dict[str, List[float]] = field(
+        default_factory=lambda: {stage: [] for stage in REPLAY_STAGES})
     counters: Dict[str, int] = field(default_factory=dict)
     tracks: Dict[str, TrackRecord] = field(default_factory=dict)
     has_ground_truth: bool = False
@@ -304,12 +313,14 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
                 boxes = paired.detections if paired.paired else []
                 if not paired.paired:
                     summary.images_without_detections += 1
+                t_decode = time.perf_counter()
                 try:
                     image = msg_to_bgr(m.msg, img_t, stamp, max_pixels)
                 except ImageConversionError as exc:
                     LOG.warning("%s", exc)
                     summary.bad_images += 1
                     image = None
+                t_decode = time.perf_counter() - t_decode
                 if image is None:
                     frame = engine.unjudged_frame(stamp, boxes, int(getattr(m.msg, "width", 0)),
                                                   int(getattr(m.msg, "height", 0)),
@@ -318,9 +329,15 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
                     frame = engine.process(image, stamp, boxes)
                     summary.engine_s += frame.latency_s
                     summary.latencies_s.append(frame.latency_s)
-                for adapter in adapters:
-                    writer.write(adapter.topic, m.log_time_ns,
-                                 adapter.build(m.msg.header, frame.results, make))
+                t_build = time.perf_counter()
+                messages = [adapter.build(m.msg.header, frame.results, make)
+                            for adapter in adapters]
+                t_write = time.perf_counter()
+                for adapter, message in zip(adapters, messages):
+                    writer.write(adapter.topic, m.log_time_ns, message)
+                if image is not None:
+                    _add_stages(summary.stages_s, t_decode, frame.stages_s, t_write - t_build,
+                                time.perf_counter() - t_write)
                 summary.images += 1
                 summary.outputs += 1
                 summary.detections += len(boxes)
@@ -348,6 +365,16 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
     summary.pairing_counters = ordered.counters
     summary.counters = engine.counters
     return summary
+
+
+def _add_stages(stages: Dict[str, List[float]], decode_s: float, engine_s: Mapping[str, float],
+                outputs_s: float, write_s: float) -> None:
+    """Append one processed frame's stage times to ``ReplaySummary.stages_s``."""
+    stages["decode"].append(decode_s)
+    for stage in ENGINE_STAGES:
+        stages[stage].append(float(engine_s.get(stage, 0.0)))
+    stages["outputs"].append(outputs_s)
+    stages["write"].append(write_s)
 
 
 def _record(tracks: Dict[str, TrackRecord], stamp: int, truth: Mapping[str, np.ndarray],
