@@ -228,3 +228,11 @@ def test_channel_sum_conv_is_the_single_output_conv(kwargs):
     x = torch.randn(3, 8, 17, 17)
     with torch.no_grad():
         np.testing.assert_allclose(ChannelSumConv(conv)(x).numpy(), conv(x).numpy(), atol=1e-5)
+
+
+def test_node_stages_wrap_the_engine_stages():
+    pytest.importorskip("rclpy")
+    from signal_light_node.ros.detector_node import NODE_STAGES
+
+    assert NODE_STAGES[:2] == ("queue", "decode") and NODE_STAGES[-2:] == ("outputs", "publish")
+    assert NODE_STAGES[2:-2] == ENGINE_STAGES
