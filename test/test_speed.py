@@ -42,6 +42,11 @@ def test_inference_copy_folds_batch_norms_and_leaves_the_model_alone():
     assert folded is not net
     assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in folded.modules())
     assert sum(isinstance(m, torch.nn.BatchNorm2d) for m in net.modules()) == 6
+    # The attention's last conv (C -> 1) is a depthwise conv and a channel sum.
+    from signal_light_node.model.inference import ChannelSumConv
+
+    assert isinstance(folded.attention_net.body[-1], ChannelSumConv)
+    assert type(net.attention_net.body[-1]) is torch.nn.Conv2d
     assert all(torch.equal(before[k], v) for k, v in net.state_dict().items())
     frames = synthetic_tracks(24, 3, 4, seed=2)
     ref, fast = TorchBackend(net), TorchBackend(net)
@@ -57,9 +62,11 @@ def test_inference_copy_folds_batch_norms_and_leaves_the_model_alone():
                 np.testing.assert_allclose(out.probs[task], probs.numpy(), atol=1e-5)
 
 
-def test_inference_copy_keeps_models_it_cannot_fold():
-    group = _tiny_net(norm="group")
-    assert inference_copy(group) is group
+def test_inference_copy_keeps_models_it_cannot_rewrite():
+    plain = _tiny_net(norm="group", use_attention=False)
+    assert inference_copy(plain) is plain
+    group = _tiny_net(norm="group")  # no batch norm, but the attention's last conv
+    assert inference_copy(group) is not group
     training = _tiny_net().train()
     assert inference_copy(training) is training
     bare = object()
@@ -209,3 +216,23 @@ def test_engine_from_checkpoint_with_backend_auto(tmp_path):
 
     if fmt.DEFAULT_ONNX.is_file():
         assert engine_from_checkpoint(backend="auto").backend.name == "onnxruntime"
+
+
+@pytest.mark.parametrize("kwargs", [dict(padding=1), dict(padding=2, dilation=2),
+                                    dict(padding=0, stride=2), dict(padding=1, bias=False)])
+def test_channel_sum_conv_is_the_single_output_conv(kwargs):
+    from signal_light_node.model.inference import ChannelSumConv
+
+    torch.manual_seed(1)
+    conv = torch.nn.Conv2d(8, 1, 3, **kwargs).eval()
+    x = torch.randn(3, 8, 17, 17)
+    with torch.no_grad():
+        np.testing.assert_allclose(ChannelSumConv(conv)(x).numpy(), conv(x).numpy(), atol=1e-5)
+
+
+def test_node_stages_wrap_the_engine_stages():
+    pytest.importorskip("rclpy")
+    from signal_light_node.ros.detector_node import NODE_STAGES
+
+    assert NODE_STAGES[:2] == ("queue", "decode") and NODE_STAGES[-2:] == ("outputs", "publish")
+    assert NODE_STAGES[2:-2] == ENGINE_STAGES

@@ -3,7 +3,10 @@
 The graph is the network's ``step_with_attention`` wrapped so that it takes what the
 engine has (uint8 crops, flattened state rows) and gives what the engine wants
 (probabilities, flattened new states, the attention masks); its interface and metadata
-are described in :mod:`signal_light_node.model.onnx_format`. The export is traced with
+are described in :mod:`signal_light_node.model.onnx_format`. What is traced is the
+network's inference copy (:func:`signal_light_node.model.inference.inference_copy`, as the
+torch backend runs it): batch norms folded, the attention's single-output conv as a
+depthwise conv and a channel sum. The export is traced with
 torch's TorchScript-based exporter (no extra packages) with a dynamic batch axis, then
 checked: a few steps of synthetic tracks through onnxruntime must match torch.
 """
@@ -156,8 +159,11 @@ def export_onnx(output: "str | Path", weights: "str | Path | None" = None,
                           "(pip install -r requirements.txt)") from None
     weights = Path(DEFAULT_WEIGHTS if weights is None else weights)
     output = Path(output)
+    from signal_light_node.model.inference import inference_copy
+
     loaded = load_checkpoint(weights)
-    net = loaded.model.float().eval()
+    reference = loaded.model.float().eval()
+    net = inference_copy(reference)
     shapes = state_shapes(net)
     size = loaded.config.input_size
     n = 2  # not 1: a batch of one invites the tracer to bake the batch size in
@@ -190,7 +196,7 @@ def export_onnx(output: "str | Path", weights: "str | Path | None" = None,
                             "see signal_light_node/model/onnx_format.py")
         onnx.checker.check_model(proto)
         onnx.save(proto, tmp)
-        diff = verify_export(tmp, net) if verify else None
+        diff = verify_export(tmp, reference) if verify else None
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 would make a shipped file private

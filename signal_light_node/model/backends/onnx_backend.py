@@ -14,8 +14,8 @@ outputs are bit-identical to one batched run) that the calling thread and
 another process just takes fewer chunks, where onnxruntime's own intra-op threads
 would wait for it at every operator; and no operator pays the intra-op
 synchronisation. Measured at 32 tracks on the 2-core AVX2 machine, interleaved, median
-of the per-step ratio: 0.83-0.91 x the time of 2 intra-op threads, on an idle and on a
-loaded machine alike.
+of the per-step ratio: 0.96 x the time of 2 intra-op threads on a quiet machine, 0.85-0.90 x
+while other processes load it (where 2 intra-op threads are slower than 1).
 """
 
 from __future__ import annotations

@@ -6,27 +6,28 @@ every layer's ``h`` and ``c`` (and, with ``temporal_input``, the history) flatte
 into one float row of a ``[M, W]`` tensor on the model's device, so a frame's states
 are gathered with one ``index_select`` and stored with one ``index_copy_``.
 
-Inference-only speed-ups live here, never in the network class that training shares:
-the step runs an inference copy of the model whose batch norms are folded into the
-convolutions before them (:func:`inference_copy`; the same arithmetic up to float
-rounding, as the ONNX export does), and on the CPU the process keeps freed heap memory
+Inference-only speed-ups live here and in :mod:`signal_light_node.model.inference`, never
+in the network class that training shares: the step runs an inference copy of the model
+(:func:`~signal_light_node.model.inference.inference_copy`: batch norms folded into the
+convolutions before them, the attention's single-output conv as a depthwise conv and a
+channel sum; the same function up to float rounding, as the ONNX export runs it), and on
+the CPU the process keeps freed heap memory
 (:func:`signal_light_node.runtime.memory.retain_freed_memory`) instead of faulting a
 frame's tens of megabytes of activations in again every step.
 """
 
 from __future__ import annotations
 
-import copy
 import logging
 from dataclasses import dataclass
 from typing import Any, Optional, Tuple
 
 import numpy as np
 import torch
-from torch import nn
 
 from signal_light_node.errors import CheckpointError, ConfigError
 from signal_light_node.labels import TASKS
+from signal_light_node.model.inference import inference_copy
 from signal_light_node.model.interface import State, to_input
 from signal_light_node.runtime.backend import StepOutput, check_device
 from signal_light_node.runtime.memory import retain_freed_memory
@@ -61,53 +62,6 @@ class _Layout:
     widths: Tuple[int, ...]
 
 
-def _foldable_pairs(model: nn.Module) -> list:
-    """``(container, conv index, norm index)`` of every ``Conv2d`` directly followed by an
-    eval-mode ``BatchNorm2d`` with running statistics, inside an ``nn.Sequential``."""
-    pairs = []
-    for container in model.modules():
-        if not isinstance(container, nn.Sequential):
-            continue
-        children = list(container.children())
-        for i in range(len(children) - 1):
-            conv, norm = children[i], children[i + 1]
-            if type(conv) is nn.Conv2d and type(norm) is nn.BatchNorm2d \
-                    and norm.track_running_stats and norm.running_mean is not None \
-                    and conv.out_channels == norm.num_features:
-                pairs.append((container, i, i + 1))
-    return pairs
-
-
-def inference_copy(model: Any) -> Any:
-    """``model`` with every ``Conv2d`` -> ``BatchNorm2d`` pair folded into one conv.
-
-    The fold is the batch norm's eval-mode affine map moved into the conv's weight and
-    bias (``torch.nn.utils.fusion.fuse_conv_bn_eval``), so outputs equal the unfolded
-    model's up to float rounding (~1e-6). The model itself is left alone (training
-    shares its class): the fold is made on a deep copy, in eval mode. A model without
-    such pairs, or not an ``nn.Module``, is returned as it is.
-
-    Args:
-        model: The model, in eval mode.
-
-    Returns:
-        The folded copy, or ``model``.
-    """
-    if not isinstance(model, nn.Module) or model.training or not _foldable_pairs(model):
-        return model
-    folded = copy.deepcopy(model)
-    for container, i, j in _foldable_pairs(folded):
-        conv, norm = container[i], container[j]
-        with torch.no_grad():
-            fused = torch.nn.utils.fusion.fuse_conv_bn_eval(conv, norm)
-        if conv.weight.is_contiguous(memory_format=torch.channels_last) \
-                and not conv.weight.is_contiguous():
-            fused = fused.to(memory_format=torch.channels_last)
-        container[i] = fused
-        container[j] = nn.Identity()
-    return folded.eval()
-
-
 def flatten_state(state: State, n: int) -> torch.Tensor:
     """``[n, W]`` rows holding every layer's tensors of each track, in state order."""
     parts = [t.reshape(n, -1) for pair in state for t in pair]
@@ -120,8 +74,8 @@ class TorchBackend:
     Args:
         model: The model (``config``, ``initial_state``, ``step``; optionally
             ``step_with_attention``, ``attention``, ``to``, ``eval``); moved to
-            ``device`` and put in eval mode. Steps run an :func:`inference_copy` of it
-            (batch norms folded), so later changes to its weights are not seen.
+            ``device`` and put in eval mode. Steps run an ``inference_copy`` of it
+            (``model.inference``), so later changes to its weights are not seen.
         device: ``cpu``, ``cuda`` or ``cuda:N``.
         threads: torch intra-op threads (``torch.set_num_threads``, which is
             process-wide); None keeps torch's choice.
@@ -151,7 +105,7 @@ class TorchBackend:
         self.device = str(torch_device)
         self.source = str(source)
         self._device = torch_device
-        #: What the steps run: the model with its batch norms folded.
+        #: What the steps run: the model's inference copy (``model.inference``).
         self._net = inference_copy(model)
         self._step_with_attention = getattr(self._net, "step_with_attention", None)
         self._attention = getattr(self._net, "attention", None)
