@@ -29,7 +29,7 @@ import re
 import sys
 import time
 from functools import partial
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import rclpy
 from rcl_interfaces.msg import SetParametersResult
@@ -573,21 +573,31 @@ def _warn_foreign_params_files(node: Node, args: Optional[List[str]]) -> None:
             node.get_logger().warning(problem)
 
 
-def main(args: Optional[List[str]] = None) -> int:
-    """Run the node until Ctrl-C or a shutdown request; returns the exit code.
+def run_detector(make_node: Callable[[], "SignalLightDetector"],
+                 start: Callable[["SignalLightDetector"], None],
+                 args: Optional[List[str]] = None) -> int:
+    """Init ROS, build the node, ``start`` it and spin until Ctrl-C or a shutdown request.
 
-    Any start-up problem (bad ROS arguments, parameters, model, device) is reported in
-    ONE log line and gives exit code 1; a params file without a section for this node
-    is warned about.
+    The one run loop of ``detector`` and ``detector_lifecycle``: any start-up problem (bad
+    ROS arguments, parameters, model, device) is reported in ONE log line and gives exit
+    code 1; a params file without a section for this node is warned about.
+
+    Args:
+        make_node: Builds the node (after ``rclpy.init``).
+        start: What to do before spinning (load and activate, or wait for transitions).
+        args: ROS arguments; None reads ``sys.argv``.
+
+    Returns:
+        The exit code.
     """
     logging.basicConfig(level=logging.INFO, format="[%(levelname)s] [%(name)s]: %(message)s")
     node: Optional[SignalLightDetector] = None
     code = 0
     try:
         _init_ros(args)
-        node = SignalLightDetector()
+        node = make_node()
         _warn_foreign_params_files(node, args)
-        node.setup()
+        start(node)
         rclpy.spin(node)
     except SignalLightError as exc:
         logger = node.get_logger() if node is not None else rclpy.logging.get_logger(NODE_NAME)
@@ -601,6 +611,11 @@ def main(args: Optional[List[str]] = None) -> int:
             node.destroy_node()
         rclpy.try_shutdown()
     return code
+
+
+def main(args: Optional[List[str]] = None) -> int:
+    """Run the node (loaded and active at once); returns the exit code."""
+    return run_detector(SignalLightDetector, SignalLightDetector.setup, args)
 
 
 if __name__ == "__main__":

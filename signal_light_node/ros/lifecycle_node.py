@@ -16,18 +16,13 @@ one line and answered FAILURE, leaving the node where it was.
 
 from __future__ import annotations
 
-import logging
 import sys
 from typing import Any, Callable, List, Optional
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
 
 from signal_light_node.errors import SignalLightError
-from signal_light_node.ros.detector_node import (SignalLightDetector, _init_ros,
-                                                  _warn_foreign_params_files)
-from signal_light_node.ros.params import NODE_NAME
+from signal_light_node.ros.detector_node import SignalLightDetector, run_detector
 
 
 class LifecycleSignalLightDetector(SignalLightDetector, LifecycleNode):
@@ -89,27 +84,11 @@ def main(args: Optional[List[str]] = None) -> int:
     Bad ROS arguments or parameters stop it at once with one log line and exit code 1;
     everything after that (the model included) is reported by the transitions.
     """
-    logging.basicConfig(level=logging.INFO, format="[%(levelname)s] [%(name)s]: %(message)s")
-    node: Optional[LifecycleSignalLightDetector] = None
-    code = 0
-    try:
-        _init_ros(args)
-        node = LifecycleSignalLightDetector()
-        _warn_foreign_params_files(node, args)
-        node.get_logger().info("unconfigured; waiting for the configure transition")
-        rclpy.spin(node)
-    except SignalLightError as exc:
-        logger = node.get_logger() if node is not None else rclpy.logging.get_logger(NODE_NAME)
-        logger.fatal(f"cannot start: {exc}")
-        code = 1
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.stop()
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+    return run_detector(LifecycleSignalLightDetector, _wait_unconfigured, args)
+
+
+def _wait_unconfigured(node: SignalLightDetector) -> None:
+    node.get_logger().info("unconfigured; waiting for the configure transition")
 
 
 if __name__ == "__main__":
