@@ -11,20 +11,19 @@ cameras' order, for one batched engine step.
 
 from __future__ import annotations
 
-import threading
-import time
 from collections import deque
 from typing import Any, Deque, Dict, List, Optional, Sequence, Tuple
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.runtime.worker import QueueClosed
+from signal_light_node.runtime.worker import BoundedFifos
 
 
-class CameraQueue:
+class CameraQueue(BoundedFifos):
     """Per-camera drop-oldest FIFOs, drained one frame per camera per :meth:`get`.
 
     Thread-safe; the interface :class:`~signal_light_node.runtime.worker.Worker` needs
-    (``get``, ``close``, ``clear``) plus the counters of ``DropOldestQueue``.
+    (``get``, ``close``, ``clear``) plus the counters of ``DropOldestQueue`` (the same
+    drop-oldest rule and blocking wait, from their shared base).
 
     Args:
         cameras: The camera names, in the order a tick lists them.
@@ -40,18 +39,15 @@ class CameraQueue:
     """
 
     def __init__(self, cameras: Sequence[str], maxsize: int) -> None:
-        if maxsize < 1:
-            raise ConfigError(f"work queue size must be at least 1, got {maxsize}")
+        super().__init__(maxsize)
         if not cameras:
             raise ConfigError("a camera queue needs at least one camera")
-        self.maxsize = int(maxsize)
         self.cameras: Tuple[str, ...] = tuple(cameras)
         self._items: Dict[str, Deque[Any]] = {camera: deque() for camera in self.cameras}
-        self._cond = threading.Condition()
-        self._closed = False
-        self.put_count = 0
-        self.dropped = 0
         self.dropped_by_camera: Dict[str, int] = {camera: 0 for camera in self.cameras}
+
+    def _has_items(self) -> bool:
+        return any(self._items.values())
 
     def put(self, entry: Tuple[str, Any]) -> Optional[Tuple[str, Any]]:
         """Append ``(camera, item)`` to its camera's FIFO.
@@ -65,18 +61,11 @@ class CameraQueue:
         """
         camera, item = entry
         with self._cond:
-            waiting = self._items[camera]
-            self.put_count += 1
-            if self._closed:
-                self._drop(camera, 1)
-                return entry
-            dropped = None
-            if len(waiting) >= self.maxsize:
-                dropped = (camera, waiting.popleft())
-                self._drop(camera, 1)
-            waiting.append(item)
-            self._cond.notify()
-            return dropped
+            was_dropped, dropped = self._offer(self._items[camera], item)
+            if not was_dropped:
+                return None
+            self.dropped_by_camera[camera] += 1
+            return camera, dropped
 
     def get(self, timeout: Optional[float] = None) -> List[Tuple[str, Any]]:
         """One tick: ``[(camera, oldest item), ...]`` for every camera with a waiting item.
@@ -85,35 +74,17 @@ class CameraQueue:
             QueueClosed: The queue is closed and empty.
             TimeoutError: Nothing arrived within ``timeout`` seconds.
         """
-        deadline = None if timeout is None else time.monotonic() + timeout
-        with self._cond:
-            while not any(self._items.values()):
-                if self._closed:
-                    raise QueueClosed()
-                remaining = None if deadline is None else deadline - time.monotonic()
-                if remaining is not None and remaining <= 0:
-                    raise TimeoutError("no work item within the timeout")
-                self._cond.wait(remaining)
-            return [(camera, self._items[camera].popleft()) for camera in self.cameras
-                    if self._items[camera]]
-
-    def close(self) -> None:
-        """Refuse new items and wake every waiting :meth:`get`; waiting items are still served."""
-        with self._cond:
-            self._closed = True
-            self._cond.notify_all()
-
-    @property
-    def closed(self) -> bool:
-        """Whether :meth:`close` was called."""
-        return self._closed
+        return self._wait_and_take(timeout, lambda: [
+            (camera, self._items[camera].popleft()) for camera in self.cameras
+            if self._items[camera]])
 
     def clear(self) -> int:
         """Discard every waiting item (counted as dropped); returns how many."""
         with self._cond:
             n = 0
             for camera, waiting in self._items.items():
-                self._drop(camera, len(waiting))
+                self.dropped += len(waiting)
+                self.dropped_by_camera[camera] += len(waiting)
                 n += len(waiting)
                 waiting.clear()
             return n
@@ -126,7 +97,3 @@ class CameraQueue:
         """Items of one camera waiting."""
         with self._cond:
             return len(self._items[camera])
-
-    def _drop(self, camera: str, n: int) -> None:
-        self.dropped += n
-        self.dropped_by_camera[camera] += n

@@ -13,7 +13,7 @@ import logging
 import threading
 import time
 from collections import deque
-from typing import Any, Callable, Deque, Optional
+from typing import Any, Callable, Deque, Optional, Tuple
 
 from signal_light_node.errors import ConfigError
 
@@ -24,7 +24,79 @@ class QueueClosed(Exception):
     """Raised by :meth:`DropOldestQueue.get` once the queue is closed and empty."""
 
 
-class DropOldestQueue:
+class BoundedFifos:
+    """What every drop-oldest work queue shares: the lock, closing, counting, waiting.
+
+    Subclasses keep their items in one or more deques of at most ``maxsize`` items and say
+    whether anything waits (:meth:`_has_items`); :meth:`_offer` appends under the same
+    drop-oldest rule for all of them and :meth:`_wait_and_take` is the one blocking wait.
+
+    Args:
+        maxsize: Capacity of each FIFO, at least 1.
+
+    Attributes:
+        put_count: Items offered.
+        dropped: Items discarded (full FIFO, closed queue or ``clear``).
+    """
+
+    def __init__(self, maxsize: int) -> None:
+        if maxsize < 1:
+            raise ConfigError(f"work queue size must be at least 1, got {maxsize}")
+        self.maxsize = int(maxsize)
+        self._cond = threading.Condition()
+        self._closed = False
+        self.put_count = 0
+        self.dropped = 0
+
+    def _has_items(self) -> bool:
+        raise NotImplementedError
+
+    def _offer(self, fifo: Deque[Any], item: Any) -> Tuple[bool, Any]:
+        """Append ``item`` to ``fifo`` (lock held); ``(True, what was dropped)`` or
+        ``(False, None)``. After :meth:`close` the item itself is dropped."""
+        self.put_count += 1
+        if self._closed:
+            self.dropped += 1
+            return True, item
+        dropped: Tuple[bool, Any] = (False, None)
+        if len(fifo) >= self.maxsize:
+            dropped = (True, fifo.popleft())
+            self.dropped += 1
+        fifo.append(item)
+        self._cond.notify()
+        return dropped
+
+    def _wait_and_take(self, timeout: Optional[float], take: Callable[[], Any]) -> Any:
+        """``take()`` (lock held) once something waits.
+
+        Raises:
+            QueueClosed: If the queue is closed and empty.
+            TimeoutError: If nothing arrived within ``timeout`` seconds.
+        """
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._cond:
+            while not self._has_items():
+                if self._closed:
+                    raise QueueClosed()
+                remaining = None if deadline is None else deadline - time.monotonic()
+                if remaining is not None and remaining <= 0:
+                    raise TimeoutError("no work item within the timeout")
+                self._cond.wait(remaining)
+            return take()
+
+    def close(self) -> None:
+        """Refuse new items and wake every waiting ``get``; waiting items are still served."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+    @property
+    def closed(self) -> bool:
+        """Whether :meth:`close` was called."""
+        return self._closed
+
+
+class DropOldestQueue(BoundedFifos):
     """A thread-safe FIFO of bounded size that drops its oldest item when full.
 
     Args:
@@ -36,14 +108,11 @@ class DropOldestQueue:
     """
 
     def __init__(self, maxsize: int) -> None:
-        if maxsize < 1:
-            raise ConfigError(f"work queue size must be at least 1, got {maxsize}")
-        self.maxsize = int(maxsize)
+        super().__init__(maxsize)
         self._items: Deque[Any] = deque()
-        self._cond = threading.Condition()
-        self._closed = False
-        self.put_count = 0
-        self.dropped = 0
+
+    def _has_items(self) -> bool:
+        return bool(self._items)
 
     def put(self, item: Any) -> Optional[Any]:
         """Append an item; returns the item dropped to make room, else None.
@@ -51,17 +120,8 @@ class DropOldestQueue:
         Items put after :meth:`close` are dropped (and returned) at once.
         """
         with self._cond:
-            self.put_count += 1
-            if self._closed:
-                self.dropped += 1
-                return item
-            dropped = None
-            if len(self._items) >= self.maxsize:
-                dropped = self._items.popleft()
-                self.dropped += 1
-            self._items.append(item)
-            self._cond.notify()
-            return dropped
+            was_dropped, dropped = self._offer(self._items, item)
+            return dropped if was_dropped else None
 
     def get(self, timeout: Optional[float] = None) -> Any:
         """Take the oldest item, waiting for one.
@@ -70,27 +130,7 @@ class DropOldestQueue:
             QueueClosed: If the queue is closed and empty.
             TimeoutError: If nothing arrived within ``timeout`` seconds.
         """
-        deadline = None if timeout is None else time.monotonic() + timeout
-        with self._cond:
-            while not self._items:
-                if self._closed:
-                    raise QueueClosed()
-                remaining = None if deadline is None else deadline - time.monotonic()
-                if remaining is not None and remaining <= 0:
-                    raise TimeoutError("no work item within the timeout")
-                self._cond.wait(remaining)
-            return self._items.popleft()
-
-    def close(self) -> None:
-        """Refuse new items and wake every waiting :meth:`get`; waiting items are still served."""
-        with self._cond:
-            self._closed = True
-            self._cond.notify_all()
-
-    @property
-    def closed(self) -> bool:
-        """Whether :meth:`close` was called."""
-        return self._closed
+        return self._wait_and_take(timeout, self._items.popleft)
 
     def clear(self) -> int:
         """Discard every waiting item (counted as dropped); returns how many."""
