@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import logging
 from pathlib import Path
-from typing import Dict
+from typing import Any, Dict
 
 from signal_light_node.commands.options import (add_intent_filter_options, add_torch_options,
                                                 intent_filter_from_args)
@@ -107,8 +107,7 @@ def _pairing(args: argparse.Namespace) -> PairingConfig:
 
 def run(args: argparse.Namespace) -> int:
     """Replay the bag, print the summary and, with ground truth, the metrics."""
-    from signal_light_node.runtime.engine import engine_from_checkpoint
-    from signal_light_node.tools.replay import replay_bag, score_summary
+    from signal_light_node.tools.replay import replay_bag
 
     if args.video is not None and args.video.suffix.lower() not in (".mp4", ".gif"):
         raise ConfigError(f"--video must end in .mp4 or .gif, got {args.video.name!r}")
@@ -119,30 +118,19 @@ def run(args: argparse.Namespace) -> int:
     if len(args.bag) > 1 or args.camera or args.all_cameras:
         return _run_cameras(args, thresholds, pairing)
     bag = args.bag[0]
-    engine = engine_from_checkpoint(args.checkpoint, device=args.device, backend=args.backend,
-                                    threads=args.threads, thresholds=thresholds,
-                                    track_timeout_s=args.track_timeout,
-                                    intent_filter=intent_filter_from_args(args))
+    engine = _engine(args, thresholds)
     summary = replay_bag(bag, args.output, engine, image_topic=args.image_topic,
                          detections_topic=args.detections_topic, with_inputs=args.with_inputs,
                          video=args.video, video_attention=args.attention,
                          overwrite=args.overwrite, progress=not args.no_progress,
                          pairing=pairing, markers=args.markers)
-    print(summary.text())
-    if summary.has_ground_truth:
-        result = score_summary(summary)
-        if result is None:
-            print("ground truth present, but no judged detection matched it")
-        else:
-            print(render_scores(result, bag, engine.config.intent_filter.describe()))
+    _print_summary(summary, engine, bag)
     return 0
 
 
 def _run_cameras(args: argparse.Namespace, thresholds: Dict[str, float],
                  pairing: PairingConfig) -> int:
     """Several cameras through the multi-camera engine (``tools.replay_cameras``)."""
-    from signal_light_node.runtime.engine import engine_from_checkpoint
-    from signal_light_node.tools.replay import score_summary
     from signal_light_node.tools.replay_cameras import camera_sources, replay_cameras
 
     for option, value in (("--image-topic", args.image_topic),
@@ -152,24 +140,38 @@ def _run_cameras(args: argparse.Namespace, thresholds: Dict[str, float],
             raise ConfigError(f"{option} takes a single camera; with several cameras name "
                               "each camera's topics with --camera NAME=IMAGE,DETECTIONS")
     sources = camera_sources(args.bag, args.camera, args.all_cameras)
-    engine = engine_from_checkpoint(args.checkpoint, device=args.device, backend=args.backend,
-                                    threads=args.threads, thresholds=thresholds,
-                                    track_timeout_s=args.track_timeout,
-                                    intent_filter=intent_filter_from_args(args))
+    engine = _engine(args, thresholds)
     summary = replay_cameras(sources, args.output, engine, with_inputs=args.with_inputs,
                              overwrite=args.overwrite, progress=not args.no_progress,
                              pairing=pairing, markers=args.markers)
-    print(summary.text())
-    if summary.has_ground_truth:
-        result = score_summary(summary)
-        if result is None:
-            print("ground truth present, but no judged detection matched it")
-        else:
-            scored = ", ".join(f"{name} ({c.bag})" for name, c in summary.cameras.items()
-                               if c.has_ground_truth)
-            print(render_scores(result, scored,
-                                engine.config.intent_filter.describe()))
+    _print_summary(summary, engine, ", ".join(
+        f"{name} ({c.bag})" for name, c in summary.cameras.items() if c.has_ground_truth))
     return 0
+
+
+def _engine(args: argparse.Namespace, thresholds: Dict[str, float]) -> Any:
+    """The engine of the replay options (model file, backend, device, filter, limits)."""
+    from signal_light_node.runtime.engine import engine_from_checkpoint
+
+    return engine_from_checkpoint(args.checkpoint, device=args.device, backend=args.backend,
+                                  threads=args.threads, thresholds=thresholds,
+                                  track_timeout_s=args.track_timeout,
+                                  intent_filter=intent_filter_from_args(args))
+
+
+def _print_summary(summary: Any, engine: Any, scored: "Path | str") -> None:
+    """The replay summary and, with ground truth, its scores (``scored`` names what was
+    scored: the bag, or the cameras with ground truth)."""
+    from signal_light_node.tools.replay import score_summary
+
+    print(summary.text())
+    if not summary.has_ground_truth:
+        return
+    result = score_summary(summary)
+    if result is None:
+        print("ground truth present, but no judged detection matched it")
+        return
+    print(render_scores(result, scored, engine.config.intent_filter.describe()))
 
 
 def render_scores(result: dict, bag: "Path | str", intent_filter: str = "") -> str:
