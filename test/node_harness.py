@@ -179,8 +179,41 @@ def run_until_exit(args: Sequence[str], env: Dict[str, str], tmp_path: Path,
     return code, [line for line in node.text().splitlines() if line.strip()]
 
 
+class _GraphClient:
+    """A test's own rclpy context, node and executor on the node's domain (``domain_id``);
+    the clients below build on it and are used as context managers."""
+
+    domain_id: int
+
+    def _start_client(self, name: str) -> None:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+
+        self._rclpy = rclpy
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=self.domain_id,
+                   signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+        self.node = rclpy.create_node(f"{name}_{os.getpid()}", context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def __exit__(self, *exc: object) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self._rclpy.try_shutdown(context=self.context)
+
+    def spin_until(self, condition, timeout: float) -> bool:
+        """Process callbacks until ``condition()`` holds or the timeout passes."""
+        deadline = time.monotonic() + timeout
+        while not condition():
+            if time.monotonic() > deadline:
+                return False
+            self.executor.spin_once(timeout_sec=0.05)
+        return True
+
+
 @dataclass
-class LiveClient:
+class LiveClient(_GraphClient):
     """Publishes frames to the node and collects what it publishes.
 
     Use as a context manager; ``domain_id`` must be the node's.
@@ -194,19 +227,10 @@ class LiveClient:
     markers: Dict[int, List[object]] = field(default_factory=lambda: defaultdict(list))
 
     def __enter__(self) -> "LiveClient":
-        import rclpy
-        from rclpy.executors import SingleThreadedExecutor
-
         from signal_light_node.io.conversions import stamp_to_ns
         from signal_light_node.ros.ros_io import message_class, qos
 
-        self._rclpy = rclpy
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context, domain_id=self.domain_id,
-                   signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
-        self.node = rclpy.create_node(f"live_test_client_{os.getpid()}", context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
+        self._start_client("live_test_client")
         image_topic = ("/signal_light_detector/input/image/compressed"
                        if self.image_type == COMPRESSED_TYPE else
                        "/signal_light_detector/input/image")
@@ -234,20 +258,6 @@ class LiveClient:
                                       "/diagnostics", self.diagnostics.append,
                                       qos("reliable", 100))
         return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.executor.shutdown()
-        self.node.destroy_node()
-        self._rclpy.try_shutdown(context=self.context)
-
-    def spin_until(self, condition, timeout: float) -> bool:
-        """Process callbacks until ``condition()`` holds or the timeout passes."""
-        deadline = time.monotonic() + timeout
-        while not condition():
-            if time.monotonic() > deadline:
-                return False
-            self.executor.spin_once(timeout_sec=0.05)
-        return True
 
     def wait_connected(self, timeout: float = 30.0) -> None:
         """Wait until the node subscribes our inputs and we subscribe its output."""
@@ -338,7 +348,7 @@ def camera_frame(stamp_ns: int, frame_id: str, image, boxes, image_type: str = R
 
 
 @dataclass
-class CamerasClient:
+class CamerasClient(_GraphClient):
     """Publishes frames to a several-camera node and collects each camera's outputs.
 
     Use as a context manager; ``domain_id`` must be the node's. ``outputs[camera][stamp]``
@@ -353,19 +363,10 @@ class CamerasClient:
     diagnostics: List[object] = field(default_factory=list)
 
     def __enter__(self) -> "CamerasClient":
-        import rclpy
-        from rclpy.executors import SingleThreadedExecutor
-
         from signal_light_node.io.conversions import stamp_to_ns
         from signal_light_node.ros.ros_io import message_class, qos
 
-        self._rclpy = rclpy
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context, domain_id=self.domain_id,
-                   signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
-        self.node = rclpy.create_node(f"cameras_test_client_{os.getpid()}", context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
+        self._start_client("cameras_test_client")
         image = "image/compressed" if self.image_type == COMPRESSED_TYPE else "image"
         self.publishers: Dict[str, Tuple[object, object]] = {}
         for camera in self.cameras:
@@ -392,24 +393,10 @@ class CamerasClient:
                                       qos("reliable", 100))
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.executor.shutdown()
-        self.node.destroy_node()
-        self._rclpy.try_shutdown(context=self.context)
-
     @staticmethod
     def output_topic(camera: str) -> str:
         """Where the node publishes the camera's results."""
         return f"/signal_light_detector/{camera}/output/vehicle_lights"
-
-    def spin_until(self, condition, timeout: float) -> bool:
-        """Process callbacks until ``condition()`` holds or the timeout passes."""
-        deadline = time.monotonic() + timeout
-        while not condition():
-            if time.monotonic() > deadline:
-                return False
-            self.executor.spin_once(timeout_sec=0.05)
-        return True
 
     def wait_connected(self, timeout: float = 30.0) -> None:
         """Wait until the node subscribes every input and publishes every output."""
