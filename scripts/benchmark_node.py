@@ -178,14 +178,21 @@ def run_node(args: argparse.Namespace, model: str, payloads: List[dict], layout:
             time.sleep(0.1)
         figures = run_client(args, payloads, layout, image_type)
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+        stop_node(proc)
     figures["load_avg_1m"] = os.getloadavg()[0]
     return figures
+
+
+def stop_node(proc: subprocess.Popen) -> Optional[int]:
+    """SIGINT the detector, wait, SIGKILL it if it does not end; its exit code."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(10)
+    return proc.returncode
 
 
 @contextlib.contextmanager

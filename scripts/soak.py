@@ -21,19 +21,18 @@ import argparse
 import json
 import os
 import random
-import signal
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List
 
 import numpy as np
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 
-from benchmark_node import model_path, subscribe_outputs
+from benchmark_node import model_path, stop_node, subscribe_outputs
 from signal_light_node.boxes import TrackBox
 from signal_light_node.io.conversions import boxes_to_detections, make_header
 from signal_light_node.ros.messages import rclpy_make
@@ -133,17 +132,6 @@ def start_node(args: argparse.Namespace, model: str, log: Path) -> subprocess.Po
             raise SystemExit(f"soak: the detector did not start:\n{log.read_text()}")
         time.sleep(0.1)
     return proc
-
-
-def stop_node(proc: subprocess.Popen) -> Optional[int]:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(10)
-    return proc.returncode
 
 
 def main(argv: List[str]) -> int:
