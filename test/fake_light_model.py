@@ -67,3 +67,22 @@ class FakeLightModel:
 
     def attention(self, crops: torch.Tensor) -> torch.Tensor:
         return crops.mean(dim=1, keepdim=True)
+
+
+def state_of(values, model: "FakeLightModel | None" = None):
+    """A batched state of ``model`` (a FakeLightModel by default) whose every element of
+    row i equals values[i]."""
+    template = (model or FakeLightModel()).initial_state(len(values))
+    v = torch.tensor(values, dtype=torch.float32)
+    return tuple(tuple(torch.ones_like(t) * v.view(-1, *([1] * (t.dim() - 1))) for t in pair)
+                 for pair in template)
+
+
+def row_values(state) -> List[float]:
+    """Per row, the single value all its elements hold (asserts they agree)."""
+    out = []
+    for i in range(state[0][0].shape[0]):
+        vals = torch.cat([t[i].flatten() for pair in state for t in pair])
+        assert torch.all(vals == vals[0]), vals
+        out.append(float(vals[0]))
+    return out

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from fake_light_model import FakeLightModel
+from fake_light_model import FakeLightModel, row_values, state_of
 from signal_light_node.boxes import TrackBox
 from signal_light_node.errors import ConfigError
 from signal_light_node.io.topics import OUTPUT_TOPIC, camera_name_problem, camera_topic
@@ -24,20 +24,9 @@ MS = 1_000_000
 W, H = 320, 180
 
 
-def _state_of(values, model=FakeLightModel()):
-    template = model.initial_state(len(values))
-    v = torch.tensor(values, dtype=torch.float32)
-    return tuple(tuple(torch.ones_like(t) * v.view(-1, *([1] * (t.dim() - 1))) for t in pair)
-                 for pair in template)
-
-
-def _row_values(state):
-    return [float(state[0][0][i].flatten()[0]) for i in range(state[0][0].shape[0])]
-
-
 def _step(bank, camera, ids, stamp_ns, values):
     bank.gather(ids, stamp_ns, camera=camera)
-    return bank.store(ids, _state_of(values), stamp_ns, camera=camera)
+    return bank.store(ids, state_of(values), stamp_ns, camera=camera)
 
 
 # ------------------------------------------------------------------ state bank
@@ -49,7 +38,7 @@ def test_the_same_track_id_on_two_cameras_is_two_tracks():
     assert sorted(bank.keys) == [("front", "1"), ("rear", "1")]
     assert bank.frames_observed("1", "front") == 2 and bank.frames_observed("1", "rear") == 1
     assert bank.frames_observed("1") == 0 and "1" not in bank and ("rear", "1") in bank
-    assert _row_values(bank.gather(["1"], 20 * MS, camera="rear")) == [2.0]
+    assert row_values(bank.gather(["1"], 20 * MS, camera="rear")) == [2.0]
     assert bank.tracks("front") == ["1"] and bank.track_ids == []
 
 
@@ -63,8 +52,8 @@ def test_a_stamp_jump_on_one_camera_resets_only_its_tracks():
     assert bank.camera_counters["rear"]["resets"] == 1
     assert bank.camera_counters["front"]["resets"] == 0
     assert bank.camera_stamp_ns("front") == 500 * MS
-    assert _row_values(bank.gather(["a"], 600 * MS, camera="front")) == [1.0]
-    bank.store(["a"], _state_of([4.0]), 600 * MS, camera="front")
+    assert row_values(bank.gather(["a"], 600 * MS, camera="front")) == [1.0]
+    bank.store(["a"], state_of([4.0]), 600 * MS, camera="front")
     # front jumps forward by more than the gap: rear untouched
     _step(bank, "rear", ["a"], 200 * MS, [5.0])
     assert bank.check_stamp(5000 * MS, "front") == RESET_GAP
@@ -102,19 +91,19 @@ def test_gather_cameras_one_batch_for_all_cameras_and_store_by_row():
     batch = bank.gather_cameras([("front", ["1", "2"], 10 * MS), ("rear", ["1"], 7 * MS)])
     assert batch.keys == (("front", "1"), ("front", "2"), ("rear", "1"))
     assert batch.stamps_ns.tolist() == [10 * MS, 10 * MS, 7 * MS]
-    assert _row_values(batch.state) == [1.0, 0.0, 0.0] and batch.filter_rows.shape == (3, 2)
-    frames = bank.store_cameras(batch, _state_of([5.0, 6.0, 7.0]),
+    assert row_values(batch.state) == [1.0, 0.0, 0.0] and batch.filter_rows.shape == (3, 2)
+    frames = bank.store_cameras(batch, state_of([5.0, 6.0, 7.0]),
                                 np.array([[1.0, 1.0], [2.0, 2.0], [3.0, 3.0]]))
     assert frames.tolist() == [2, 1, 1]
     assert bank.last_seen_ns("1", "rear") == 7 * MS and bank.last_seen_ns("2", "front") == 10 * MS
     again = bank.gather_cameras([("rear", ["1"], 20 * MS), ("front", ["2", "1"], 20 * MS)])
-    assert _row_values(again.state) == [7.0, 6.0, 5.0]
+    assert row_values(again.state) == [7.0, 6.0, 5.0]
     assert again.filter_rows[:, 0].tolist() == [3.0, 2.0, 1.0]
     with pytest.raises(ValueError, match="one frame per camera"):
         bank.gather_cameras([("front", ["1"], 0), ("front", ["2"], 0)])
     bank.gather(["x"], 30 * MS, camera="front")  # a later gather: `again` is stale
     with pytest.raises(ValueError, match="must follow gather_cameras"):
-        bank.store_cameras(again, _state_of([0.0, 0.0, 0.0]))
+        bank.store_cameras(again, state_of([0.0, 0.0, 0.0]))
 
 
 def test_a_full_reset_clears_every_camera():
