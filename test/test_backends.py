@@ -23,6 +23,7 @@ from signal_light_node.runtime.backend import (StepOutput, as_backend, check_dev
 from signal_light_node.runtime.engine import EngineConfig, LightStateEngine
 from signal_light_node.runtime.intent_filter import IntentFilterConfig
 from signal_light_node.runtime.state_bank import StateBank
+from signal_light_node.tools.calibration import RecordingBackend
 
 PACKAGE = Path(__file__).resolve().parents[1] / "signal_light_node"
 BAG = Path(__file__).resolve().parents[1] / "bags" / "day_street"
@@ -319,22 +320,6 @@ def test_node_parameter_backend_is_validated_with_a_reason():
 
 
 # ------------------------------------------------------------------ the shipped model
-class _Recorder:
-    """A backend that records the probabilities of every step of the backend it wraps."""
-
-    def __init__(self, backend: Any) -> None:
-        self._backend = backend
-        self.probs: List[Dict[str, np.ndarray]] = []
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._backend, name)
-
-    def step(self, crops: np.ndarray, state: Any, *, attention: bool = False) -> StepOutput:
-        out = self._backend.step(crops, state, attention=attention)
-        self.probs.append({t: p.copy() for t, p in out.probs.items()})
-        return out
-
-
 def _codes(frame) -> List[tuple]:
     return [(r.track_id, r.judged, tuple(code for code, _ in r.classification), int(r.intent),
              int(r.view), int(r.brake.state), int(r.left.state), int(r.right.state))
@@ -366,7 +351,9 @@ def test_replay_with_torch_and_onnxruntime_gives_the_same_probabilities_and_code
     runs = {}
     for name in ("torch", "onnxruntime"):
         # One onnxruntime thread; torch's setting would be process-wide, so it is left alone.
-        backend = _Recorder(create_backend(name, threads=1 if name == "onnxruntime" else None))
+        threads = 1 if name == "onnxruntime" else None
+        backend = RecordingBackend(create_backend(name, threads=threads, precision="fp32"),
+                                   inputs=False)
         frames: list = []
         engine = LightStateEngine(backend)
         summary = replay_bag(BAG, tmp_path / name, engine, progress=False,
@@ -405,7 +392,7 @@ def test_live_node_runs_the_onnxruntime_backend_with_debug_images(tiny_export, t
                            env, tmp_path / "detector.log")
     try:
         node.wait_ready()
-        assert "(onnxruntime)" in node.text()
+        assert "(onnxruntime fp32)" in node.text()
         with LiveClient(int(env["ROS_DOMAIN_ID"]), image_type) as client:
             client.wait_connected()
             assert client.spin_until(lambda: client.node.count_publishers(DEBUG_TOPIC) > 0,

@@ -29,6 +29,8 @@ TINY = {"input_size": 16, "attention_channels": [4, 4, 4], "backbone_channels": 
 class CountingModel:
     """Fake model: its state counts the steps of each track; intent turns LEFT at 16."""
 
+    config = ModelConfig(**TINY)
+
     def __init__(self):
         self.stepped = 0
 

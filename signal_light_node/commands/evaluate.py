@@ -30,8 +30,8 @@ from pathlib import Path
 from typing import Any, Dict, Iterable, Iterator, Optional, Tuple
 
 from signal_light_node.commands.options import (add_intent_filter_options,
-                                                add_labelled_data_options, add_torch_options,
-                                                intent_filter_from_args)
+                                                add_labelled_data_options, add_model_options,
+                                                add_torch_options, intent_filter_from_args)
 from signal_light_node.errors import ConfigError
 
 logger = logging.getLogger(__name__)
@@ -43,8 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from signal_light_node.training.evaluation import EvalSettings
 
     parser.formatter_class = argparse.ArgumentDefaultsHelpFormatter
-    parser.add_argument("--checkpoint", type=Path, default=None,
-                        help="checkpoint to score (default: the shipped weights)")
+    add_model_options(parser)
     parser.add_argument("--out", type=Path, required=True, help="directory for the reports")
     data = parser.add_argument_group("data (choose one)")
     data.add_argument("--split", type=Path, default=None, help="materialised split directory")
@@ -174,45 +173,55 @@ def render_markdown(result: Dict[str, Any]) -> str:
     return "\n".join(parts)
 
 
+def _model_meta(backend: Any) -> Dict[str, Any]:
+    """Where the scored model came from: a checkpoint's training metadata, an export's
+    source and hash."""
+    from signal_light_node.model import DEFAULT_WEIGHTS, load_checkpoint
+
+    metadata = getattr(backend, "metadata", None)
+    if metadata is not None:  # an ONNX export
+        return {k.split(".", 1)[-1]: v for k, v in metadata.items()
+                if k.startswith("signal_light.source") or k.endswith("package_version")}
+    meta = load_checkpoint(backend.source or DEFAULT_WEIGHTS).meta
+    return {k: meta.get(k) for k in ("training_data", "created", "package_version")}
+
+
 def run(args: argparse.Namespace) -> int:
     """Evaluate and write the reports; prints the Markdown."""
     import numpy as np
-    import torch
 
     from signal_light_node.labels import CLASS_NAMES
+    from signal_light_node.runtime.backend import create_backend
     from signal_light_node.tools.metrics import render_confusion_png
-    from signal_light_node.model import DEFAULT_WEIGHTS, load_checkpoint
     from signal_light_node.training.evaluation import EvalSettings, evaluate_tracks
     from signal_light_node.training.ideal_observer import score_ideal_observer
 
-    if args.threads:
-        torch.set_num_threads(int(args.threads))
-    checkpoint = args.checkpoint or DEFAULT_WEIGHTS
-    loaded = load_checkpoint(checkpoint, map_location=args.device)
+    backend = create_backend(args.backend, None if args.checkpoint is None
+                             else str(args.checkpoint), device=args.device,
+                             threads=args.threads, precision=args.precision)
+    checkpoint = backend.source or "the shipped model"
     settings = EvalSettings(warmup_frames=args.warmup_frames,
                             warmup_seconds=args.warmup_seconds, grace_seconds=args.grace,
                             batch_tracks=args.batch_tracks)
     started = time.monotonic()
     if args.ideal_observer:
         _check_one_source(args)
-        # The checkpoint only gives the crop settings the split must have been made with.
-        items, _, data = _items(args, loaded.config.crop_config())
+        # The model only gives the crop settings the split must have been made with.
+        items, _, data = _items(args, backend.config.crop_config())
         result = score_ideal_observer(items, settings)
         checkpoint = "the ideal observer"
     else:
         intent_filter = intent_filter_from_args(args)
-        tracks, total, data = _tracks(args, loaded.config.crop_config())
-        result = evaluate_tracks(loaded.model.to(args.device), tracks, settings, args.device,
-                                 progress=not args.no_progress, total=total,
-                                 intent_filter=intent_filter)
+        tracks, total, data = _tracks(args, backend.config.crop_config())
+        result = evaluate_tracks(backend, tracks, settings, progress=not args.no_progress,
+                                 total=total, intent_filter=intent_filter)
         result["intent_filter_text"] = intent_filter.describe()
     result = {"checkpoint": str(checkpoint), "ideal_observer": bool(args.ideal_observer),
               "data": data,
               "data_brief": {k: v for k, v in data.items()
                              if k not in ("label_histogram", "lighting")},
               "seconds": round(time.monotonic() - started, 1),
-              "checkpoint_meta": {k: loaded.meta.get(k) for k in
-                                  ("training_data", "created", "package_version")}, **result}
+              "backend": backend.name, "checkpoint_meta": _model_meta(backend), **result}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")

@@ -22,6 +22,25 @@ def add_labelled_data_options(group: ArgumentContainer) -> None:
                        help="UC Merced Vehicle Rear Signal dataset roots")
 
 
+def add_model_options(group: ArgumentContainer) -> None:
+    """``--checkpoint``, ``--backend`` and ``--precision`` of the commands that run a model."""
+    from signal_light_node.runtime.backend import AUTO_BACKEND, PRECISIONS, known_backends
+
+    group.add_argument("--checkpoint", type=Path, default=None,
+                       help="model file: a .pt checkpoint (--backend torch) or its .onnx export "
+                            "(--backend onnxruntime); default: the shipped one")
+    group.add_argument("--backend", choices=known_backends() + (AUTO_BACKEND,),
+                       default="torch",
+                       help="model backend (default torch); onnxruntime runs the file "
+                            "`signal-light export --onnx` writes; auto picks as the node's "
+                            "default does (by the file's suffix; onnxruntime on the CPU for "
+                            "the shipped model)")
+    group.add_argument("--precision", choices=PRECISIONS, default="auto",
+                       help="weights: fp32, int8 (an int8 export, onnxruntime on the CPU) or "
+                            "auto: a --checkpoint as it is; of the shipped model int8 with "
+                            "onnxruntime on the CPU, else fp32")
+
+
 def add_torch_options(group: ArgumentContainer) -> None:
     """``--device``, ``--threads`` and ``--no-progress`` of the commands that run the model."""
     group.add_argument("--device", default="cpu", help="torch device: cpu, cuda or cuda:N")

@@ -14,7 +14,8 @@ import logging
 from pathlib import Path
 from typing import Any, Dict
 
-from signal_light_node.commands.options import (add_intent_filter_options, add_torch_options,
+from signal_light_node.commands.options import (add_intent_filter_options, add_model_options,
+                                                add_torch_options,
                                                 intent_filter_from_args)
 from signal_light_node.errors import ConfigError
 from signal_light_node.runtime.pairing import PairingConfig
@@ -36,22 +37,12 @@ def _threshold(text: str) -> tuple:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``signal-light replay``."""
-    from signal_light_node.runtime.backend import AUTO_BACKEND, known_backends
-
     parser.add_argument("bag", type=Path, nargs="+",
                         help="input bag (rosbag2 directory or .mcap); several bags = one "
                              "camera each, replayed together as a node with cameras")
     parser.add_argument("-o", "--output", type=Path, required=True,
                         help="output MCAP rosbag2 directory")
-    parser.add_argument("--checkpoint", type=Path, default=None,
-                        help="model file: a .pt checkpoint (--backend torch) or its .onnx export "
-                             "(--backend onnxruntime); default: the shipped one")
-    parser.add_argument("--backend", choices=known_backends() + (AUTO_BACKEND,),
-                        default="torch",
-                        help="model backend (default torch); onnxruntime runs the file "
-                             "`signal-light export --onnx` writes; auto picks as the node's "
-                             "default does (by the file's suffix; onnxruntime on the CPU for "
-                             "the shipped model)")
+    add_model_options(parser)
     parser.add_argument("--image-topic", default=None,
                         help="image topic (default: the first CompressedImage, else Image topic)")
     parser.add_argument("--detections-topic", default=None,
@@ -154,6 +145,7 @@ def _engine(args: argparse.Namespace, thresholds: Dict[str, float]) -> Any:
     from signal_light_node.runtime.engine import engine_from_checkpoint
 
     return engine_from_checkpoint(args.checkpoint, device=args.device, backend=args.backend,
+                                  precision=args.precision,
                                   threads=args.threads, thresholds=thresholds,
                                   track_timeout_s=args.track_timeout,
                                   intent_filter=intent_filter_from_args(args))

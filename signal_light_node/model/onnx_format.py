@@ -34,6 +34,8 @@ ONNX_FORMAT_VERSION = 1
 
 #: The export of ``weights/default.pt`` shipped with the package.
 DEFAULT_ONNX = Path(__file__).resolve().parent.parent / "weights" / "default.onnx"
+#: The same export with int8 convolutions (``signal-light export --onnx OUT --int8``).
+DEFAULT_ONNX_INT8 = DEFAULT_ONNX.with_name("default_int8.onnx")
 
 CROPS_INPUT = "crops"
 STATE_INPUT = "state"
@@ -48,6 +50,8 @@ KEY_STATE_SHAPES = "signal_light.state_shapes"
 KEY_SOURCE = "signal_light.source"
 KEY_SOURCE_SHA256 = "signal_light.source_sha256"
 KEY_PACKAGE_VERSION = "signal_light.package_version"
+#: JSON of how the file was quantised (absent: float32 weights throughout).
+KEY_QUANTIZATION = "signal_light.quantization"
 
 #: Opset of the export (onnxruntime 1.17+ runs it).
 DEFAULT_OPSET = 17
@@ -97,6 +101,11 @@ def parse_metadata(meta: Mapping[str, str], path: "str | Path"
     if not shapes or len(shapes) % 2:
         raise CheckpointError(f"ONNX model {path}: state shapes {shapes} are not (h, c) pairs")
     return config, shapes
+
+
+def precision_of(meta: Mapping[str, str]) -> str:
+    """``int8`` for a quantised export, else ``fp32`` (from its metadata)."""
+    return "int8" if KEY_QUANTIZATION in meta else "fp32"
 
 
 def metadata(config: ModelConfig, shapes: List[Tuple[int, ...]],

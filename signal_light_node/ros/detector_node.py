@@ -141,6 +141,7 @@ class SignalLightDetector(Node):
         p = self.params
         self.engine = engine_from_checkpoint(
             p.model_path or None, device=p.device, backend=p.backend, threads=p.num_threads,
+            precision=p.precision,
             thresholds=p.thresholds,
             track_timeout_s=p.track_timeout_s, max_tracks=p.max_tracks, max_gap_s=p.max_gap_s,
             intent_filter=p.intent_filter_config,
@@ -205,9 +206,12 @@ class SignalLightDetector(Node):
             f"({self._backend_text()}) on {p.device}, pairing {pairing}")
 
     def _backend_text(self) -> str:
-        """The backend in use, and whether ``backend: auto`` chose it."""
+        """The backend and weight precision in use, and whether ``auto`` chose them."""
         auto = ", chosen by backend auto" if self.params.backend == "auto" else ""
-        return f"{self.engine.backend.name}{auto}"
+        return f"{self.engine.backend.name} {self._precision()}{auto}"
+
+    def _precision(self) -> str:
+        return str(getattr(self.engine.backend, "precision", "fp32"))
 
     def _create_publisher(self, msg_type: Any, topic: str, depth: int) -> Any:
         publisher = self.create_publisher(msg_type, topic, depth)
@@ -502,7 +506,7 @@ class SignalLightDetector(Node):
             "pending_detections": self._pairer.pending[1],
             "model_path": self.model_path,
             "device": self.params.device,
-            "backend": self.engine.backend.name,
+            "backend": self.engine.backend.name, "precision": self._precision(),
         }
         extra.update(self._stages.values())
         level, message, values = health(self._last_snapshot, now, self._latency.summary(),

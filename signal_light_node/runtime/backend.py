@@ -46,6 +46,11 @@ BackendState = Any
 #: The name that picks a backend from the model file and device (:func:`resolve_backend`).
 AUTO_BACKEND = "auto"
 
+#: Weight precisions :func:`create_backend` takes (``model.onnx_format`` has the same
+#: words for a file; ``auto`` picks).
+AUTO_PRECISION = "auto"
+PRECISIONS = (AUTO_PRECISION, "fp32", "int8")
+
 #: Devices a backend may be asked for: ``cpu``, ``cuda`` or ``cuda:N``.
 _DEVICE = re.compile(r"(cpu|cuda(:\d+)?)\Z")
 
@@ -74,6 +79,8 @@ class ModelBackend(Protocol):
         config: The model's ``ModelConfig`` (input size, crop margin, class names).
         device: Where it runs (``cpu``, ``cuda``, ``cuda:N``).
         source: The file it was loaded from ("" when built in memory).
+
+    A backend may also say its weights' ``precision`` (``fp32`` when it does not).
     """
 
     name: str
@@ -203,7 +210,8 @@ def _factory(name: str) -> Factory:
 
 
 def create_backend(name: str, path: Optional[str] = None, *, device: str = "cpu",
-                   threads: Optional[int] = None) -> ModelBackend:
+                   threads: Optional[int] = None, precision: str = AUTO_PRECISION
+                   ) -> ModelBackend:
     """Load a model file into the backend called ``name``.
 
     Args:
@@ -212,20 +220,46 @@ def create_backend(name: str, path: Optional[str] = None, *, device: str = "cpu"
             ``onnxruntime``); None takes the one shipped with the package.
         device: ``cpu``, ``cuda`` or ``cuda:N``.
         threads: Intra-op CPU threads; None or 0 keeps the framework's default.
+        precision: Weights, one of :data:`PRECISIONS`: ``fp32``, ``int8`` (an export
+            with int8 convolutions, onnxruntime on the CPU) or ``auto``: a given file as
+            it is; of the shipped files int8 where it runs (onnxruntime on the CPU), else
+            fp32. A file of another precision than asked for is refused.
 
     Raises:
-        ConfigError: Unknown backend, bad device or thread count, or the backend's
-            framework is missing or cannot use the device.
+        ConfigError: Unknown backend, bad device, thread count or precision, a model of
+            another precision, or the backend's framework is missing or cannot use the
+            device.
         CheckpointError: The model file is missing, unreadable or incompatible.
     """
     device = check_device(device)
     if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int)
                                 or threads < 0):
         raise ConfigError(f"threads must be a non-negative integer, got {threads!r}")
+    if precision not in PRECISIONS:
+        raise ConfigError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
     name = resolve_backend(name, path, device)
     factory = _factory(name)
+    if path is None:
+        path = _shipped_int8(name, device, precision)
     LOG.debug("creating model backend %s on %s from %s", name, device, path or "the default")
-    return factory(path, device=device, threads=threads or None)
+    backend = factory(path, device=device, threads=threads or None)
+    held = getattr(backend, "precision", "fp32")
+    if precision != AUTO_PRECISION and held != precision:
+        raise ConfigError(
+            f"precision {precision} asked for, but {backend.source or 'the model'} holds {held} "
+            f"weights (backend {name} on {device}); int8 runs as an int8 export with "
+            "onnxruntime on the CPU: the shipped one, or signal-light export --onnx OUT --int8")
+    return backend
+
+
+def _shipped_int8(name: str, device: str, precision: str) -> Optional[str]:
+    """The shipped int8 export where precision and backend take it, else None (the
+    backend's own default file)."""
+    if name == "onnxruntime" and device == "cpu" and precision in ("int8", AUTO_PRECISION):
+        from signal_light_node.model.onnx_format import DEFAULT_ONNX_INT8
+
+        return str(DEFAULT_ONNX_INT8)
+    return None
 
 
 def as_backend(model: Any, device: str = "cpu") -> ModelBackend:

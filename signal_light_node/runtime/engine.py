@@ -518,7 +518,7 @@ _RESET_TEXT = {"stamp_backwards": "the stamp jumped backwards (bag looped?)",
 
 def engine_from_checkpoint(path: "str | Path | None" = None, device: str = "cpu",
                            backend: str = "torch", threads: Optional[int] = None,
-                           **overrides: Any) -> LightStateEngine:
+                           precision: str = "auto", **overrides: Any) -> LightStateEngine:
     """Load a model file (the shipped one when ``path`` is None) into an engine.
 
     Args:
@@ -530,6 +530,7 @@ def engine_from_checkpoint(path: "str | Path | None" = None, device: str = "cpu"
             (``runtime.backend.resolve_backend``: by the file's suffix; onnxruntime on the
             CPU for the shipped model).
         threads: Intra-op CPU threads of the backend; None or 0 keeps its default.
+        precision: ``fp32``, ``int8`` or ``auto`` (``runtime.backend.create_backend``).
         **overrides: Other ``EngineConfig`` fields (thresholds, track_timeout_s,
             intent_filter, ...). The crop (size and margin) is the checkpoint's.
 
@@ -541,7 +542,7 @@ def engine_from_checkpoint(path: "str | Path | None" = None, device: str = "cpu"
         ConfigError: An override, the backend or the device is invalid.
     """
     model = create_backend(backend, None if path is None else str(path), device=device,
-                           threads=threads)
+                           threads=threads, precision=precision)
     try:
         config = EngineConfig(device=device, **overrides)
     except TypeError as exc:

@@ -1,6 +1,6 @@
 """Streaming evaluation: every track stepped frame by frame, as the engine steps it.
 
-Each track starts from ``model.initial_state`` and is advanced one ``model.step`` per
+Each track starts from the model backend's initial state and is advanced one ``step`` per
 observed frame (frames with ``mask`` False, e.g. a box that could not be cropped, are
 neither stepped nor scored, as the engine never judges them). Tracks are batched only
 for speed: at frame index ``t`` every track of the batch that has a frame ``t`` is
@@ -44,7 +44,7 @@ from signal_light_node.runtime.intent_filter import IntentFilter, IntentFilterCo
 from signal_light_node.labels import CLASS_NAMES, TASKS
 from signal_light_node.tools.metrics import (MetricAccumulator, SwitchCounter, box_size_band,
                                        occlusion_band)
-from signal_light_node.model import select_state, to_input
+from signal_light_node.runtime.backend import as_backend
 from signal_light_node.training.sources import TrackSequence
 
 logger = logging.getLogger(__name__)
@@ -110,15 +110,16 @@ def grace_mask(track: TrackSequence, task_index: int, settings: EvalSettings) ->
     return keep
 
 
-@torch.no_grad()
-def predict_track_batch(model: Any, tracks: Sequence[TrackSequence], device: torch.device,
+def predict_track_batch(model: Any, tracks: Sequence[TrackSequence],
+                        device: "str | torch.device" = "cpu",
                         intent_filter: Optional[IntentFilterConfig] = None) -> List[np.ndarray]:
     """Step a batch of tracks frame by frame; returns int64 ``[T_i, len(TASKS)]`` each.
 
     Args:
-        model: A ``LightStateModel``.
+        model: A model backend (``runtime.backend.ModelBackend``: torch, onnxruntime), or
+            a bare ``LightStateModel``, run through the torch backend on ``device``.
         tracks: The tracks (crops, mask, stamps).
-        device: Where to run the model.
+        device: Where a bare model runs (a backend keeps its own).
         intent_filter: The filter over the model's outputs, as in the engine (default:
             its defaults; ``enabled=False`` gives the raw model's argmax).
 
@@ -126,33 +127,29 @@ def predict_track_batch(model: Any, tracks: Sequence[TrackSequence], device: tor
         Published classes per frame; rows of frames that are not stepped (mask False)
         are -1.
     """
+    backend = as_backend(model, str(device))
     n = len(tracks)
     length = max(len(t) for t in tracks)
     preds = [np.full((len(t), len(TASKS)), -1, np.int64) for t in tracks]
-    state = model.initial_state(n)
+    # Each track's state is a row of the backend's row store, as in the state bank.
+    states = backend.new_rows(n)
     light_filter = IntentFilter(intent_filter)
     rows = light_filter.initial_rows(n)
     for i in range(length):
-        active = [k for k, t in enumerate(tracks) if i < len(t) and bool(t.mask[i])]
-        if not active:
+        active = np.array([k for k, t in enumerate(tracks) if i < len(t) and bool(t.mask[i])],
+                          np.int64)
+        if not len(active):
             continue
         crops = np.stack([tracks[k].crop_window(i, i + 1)[0] for k in active])
-        index = torch.as_tensor(active, dtype=torch.long, device=device)
-        sub = select_state(state, index) if len(active) < n else state
-        probs, new_sub = model.step(to_input(crops).to(device), sub)
-        out = light_filter.step({t: probs[t].detach().float().cpu().numpy() for t in TASKS},
-                                np.array([tracks[k].stamps_ns[i] for k in active], np.int64),
-                                rows[active])
-        rows[active] = out.rows
-        labels = np.stack([out.states[t] for t in TASKS], axis=1)
+        out = backend.step(crops, backend.gather_rows(states, active))
+        backend.store_rows(states, active, out.state)
+        filtered = light_filter.step(out.probs,
+                                     np.array([tracks[k].stamps_ns[i] for k in active], np.int64),
+                                     rows[active])
+        rows[active] = filtered.rows
+        labels = np.stack([filtered.states[t] for t in TASKS], axis=1)
         for row, k in enumerate(active):
             preds[k][i] = labels[row]
-        if len(active) == n:
-            state = new_sub
-        else:
-            # Scatter the stepped rows back; untouched rows keep their state.
-            state = tuple((h.index_copy(0, index, nh), c.index_copy(0, index, nc))
-                          for (h, c), (nh, nc) in zip(state, new_sub))
     return preds
 
 
@@ -255,10 +252,11 @@ def evaluate_tracks(model: Any, tracks: Iterable[TrackSequence],
     never has to sit in memory at once.
 
     Args:
-        model: A ``LightStateModel`` (eval mode is set here).
+        model: A model backend, or a bare ``LightStateModel`` (run through the torch
+            backend on ``device``, in eval mode).
         tracks: Tracks with ground truth (any iterable).
         settings: Scoring rules.
-        device: Where to run the model.
+        device: Where a bare model runs.
         progress: Show a progress bar.
         total: Number of tracks, for the progress bar.
         intent_filter: The filter over the model's outputs (default: its defaults, as
@@ -273,13 +271,12 @@ def evaluate_tracks(model: Any, tracks: Iterable[TrackSequence],
     Raises:
         ConfigError: There were no tracks.
     """
-    device = torch.device(device)
+    backend = as_backend(model, str(device))
     intent_filter = intent_filter or IntentFilterConfig()
-    model.eval()
     scorer = TrackScorer(settings)
     bar = tqdm(total=total, desc="evaluate", unit="track", disable=not progress)
     for batch in _chunks(tracks, settings.batch_tracks):
-        preds = predict_track_batch(model, batch, device, intent_filter)
+        preds = predict_track_batch(backend, batch, intent_filter=intent_filter)
         for track, pred in zip(batch, preds):
             scorer.add(track, pred)
         bar.update(len(batch))

@@ -86,6 +86,8 @@ class TorchBackend:
     """
 
     name = "torch"
+    #: Weight precision (checkpoints are float32).
+    precision = "fp32"
 
     def __init__(self, model: Any, device: str = "cpu", threads: Optional[int] = None,
                  source: str = "") -> None:
