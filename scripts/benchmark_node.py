@@ -311,7 +311,7 @@ def run_client(args: argparse.Namespace, payloads: List[dict], layout: List[dict
             "latency_mean_ms", "latency_p95_ms", "processing_mean_ms", "processing_p95_ms",
             "engine_mean_ms", "engine_p95_ms",
             "dropped_work_queue", "dropped_image_timeout", "dropped_detections_timeout",
-            "active_tracks", "backend")},
+            "active_tracks", "backend", "precision", "model_threads")},
         "node_stages_ms": {k[len("stage_"):-len("_mean_ms")]: (diagnostics[k],
                            diagnostics.get(k[:-len("_mean_ms")] + "_p95_ms"))
                            for k in diagnostics if k.startswith("stage_") and k.endswith("_mean_ms")},
@@ -344,7 +344,8 @@ def print_figures(f: Dict[str, object]) -> None:
           f"{d['latency_mean_ms']} ms, p95 {d['latency_p95_ms']} ms; processing mean "
           f"{d['processing_mean_ms']} ms, p95 {d['processing_p95_ms']} ms (engine alone mean "
           f"{d['engine_mean_ms']} ms, p95 {d['engine_p95_ms']} ms); work-queue drops "
-          f"{d['dropped_work_queue']}; backend {d.get('backend')}")
+          f"{d['dropped_work_queue']}; backend {d.get('backend')} {d.get('precision')}, "
+          f"last step on {d.get('model_threads')} thread(s)")
     stages = f.get("node_stages_ms") or {}
     if stages:
         print("  node's stages, mean / p95 ms: " + ", ".join(

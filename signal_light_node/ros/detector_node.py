@@ -507,6 +507,8 @@ class SignalLightDetector(Node):
             "model_path": self.model_path,
             "device": self.params.device,
             "backend": self.engine.backend.name, "precision": self._precision(),
+            # Threads of the last step (onnxruntime picks 1 or all by the load).
+            "model_threads": getattr(self.engine.backend, "threads_in_use", ""),
         }
         extra.update(self._stages.values())
         level, message, values = health(self._last_snapshot, now, self._latency.summary(),

@@ -16,6 +16,11 @@ would wait for it at every operator; and no operator pays the intra-op
 synchronisation. Measured at 32 tracks on the 2-core AVX2 machine, interleaved, median
 of the per-step ratio: 0.96 x the time of 2 intra-op threads on a quiet machine, 0.85-0.90 x
 while other processes load it (where 2 intra-op threads are slower than 1).
+
+Unless a thread count is given, the count follows the load
+(:class:`~signal_light_node.model.backends.thread_choice.ThreadChoice`): every thread
+while that makes the steps faster, one thread while another process holds the cores
+and a second thread would only take CPU from the node's other work.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from __future__ import annotations
 import logging
 import os
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
@@ -32,6 +38,7 @@ import numpy as np
 from signal_light_node.errors import CheckpointError, ConfigError, CropError
 from signal_light_node.labels import TASKS
 from signal_light_node.model import onnx_format as fmt
+from signal_light_node.model.backends.thread_choice import ThreadChoice
 from signal_light_node.runtime.backend import StepOutput, check_device
 
 LOG = logging.getLogger(__name__)
@@ -107,9 +114,10 @@ class OnnxRuntimeBackend:
     Args:
         path: The ``.onnx`` file (``signal-light export --onnx``).
         device: ``cpu``, ``cuda`` or ``cuda:N``.
-        threads: CPU threads a step uses; None: one per CPU this process may run on.
-            On the CPU they run chunks of the batch in parallel (see the module doc);
-            on CUDA it is the session's intra-op thread count (None: onnxruntime's).
+        threads: CPU threads a step uses; None: up to one per CPU this process may run
+            on, as many as pay under the current load (see the module doc). On the CPU
+            they run chunks of the batch in parallel; on CUDA it is the session's
+            intra-op thread count (None: onnxruntime's).
 
     Raises:
         ConfigError: onnxruntime is missing or cannot use the device.
@@ -126,8 +134,13 @@ class OnnxRuntimeBackend:
         if not source.is_file():
             raise CheckpointError(f"ONNX model {source} does not exist or is not a file")
         providers = execution_providers(device, list(ort.get_available_providers()))
-        #: Threads splitting a batch (1: every step runs in the calling thread).
+        #: Most threads splitting a batch (1: every step runs in the calling thread).
         self.threads = int(threads or default_threads()) if device == "cpu" else 1
+        #: Picks 1 or ``threads`` per step when no count was given.
+        self.thread_choice: Optional[ThreadChoice] = (
+            ThreadChoice(self.threads) if threads is None and self.threads > 1 else None)
+        #: Threads of the last step.
+        self.threads_in_use = self.threads
         options = ort.SessionOptions()
         options.intra_op_num_threads = 1 if device == "cpu" else int(threads or 0)
         options.inter_op_num_threads = 1
@@ -221,17 +234,29 @@ class OnnxRuntimeBackend:
             return StepOutput(probs, state, np.zeros((0, size, size), np.float32)
                               if attention else None)
         names = list(fmt.OUTPUTS) if attention else self._no_attention
-        bounds = chunk_bounds(n, self.threads)
-        if len(bounds) == 1:
-            values = self._session.run(names, {fmt.CROPS_INPUT: crops, fmt.STATE_INPUT: state})
-        else:
-            values = self._run_chunks(names, crops, state, bounds)
+        values = self._run(names, crops, state)
         out = dict(zip(names, values))
         return StepOutput({t: out[t] for t in TASKS}, out[fmt.STATE_OUTPUT],
                           out.get(fmt.ATTENTION_OUTPUT))
 
+    def _run(self, names: List[str], crops: np.ndarray, state: np.ndarray) -> List[np.ndarray]:
+        """The session's outputs for the batch, on as many threads as pay (module doc)."""
+        n = crops.shape[0]
+        splits = len(chunk_bounds(n, self.threads)) > 1
+        threads = self.thread_choice.next() if splits and self.thread_choice else self.threads
+        bounds = chunk_bounds(n, threads)
+        start = time.perf_counter()
+        if len(bounds) == 1:
+            values = self._session.run(names, {fmt.CROPS_INPUT: crops, fmt.STATE_INPUT: state})
+        else:
+            values = self._run_chunks(names, crops, state, bounds, threads)
+        if splits and self.thread_choice:
+            self.thread_choice.record(threads, n, time.perf_counter() - start)
+        self.threads_in_use = threads
+        return values
+
     def _run_chunks(self, names: List[str], crops: np.ndarray, state: np.ndarray,
-                    bounds: Sequence[Tuple[int, int]]) -> List[np.ndarray]:
+                    bounds: Sequence[Tuple[int, int]], threads: int) -> List[np.ndarray]:
         """The outputs of one batch run as chunks by this thread and the helpers.
 
         Each thread takes the next chunk not yet taken until none is left, so a thread
@@ -252,8 +277,7 @@ class OnnxRuntimeBackend:
                                                        fmt.STATE_INPUT: state[a:b]})
 
         assert self._helpers is not None
-        helpers = [self._helpers.submit(work) for _ in range(min(self.threads - 1,
-                                                                 len(bounds) - 1))]
+        helpers = [self._helpers.submit(work) for _ in range(min(threads - 1, len(bounds) - 1))]
         work()
         for future in helpers:
             future.result()  # re-raises a helper's exception here
