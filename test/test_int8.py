@@ -121,3 +121,22 @@ def test_export_int8_needs_calibration_bags(tmp_path, capsys):
     assert main(["export", "--onnx", str(tmp_path / "x.onnx"), "--int8"]) == 2
     assert "--int8 and --calibration BAG ... go together" in capsys.readouterr().err
     assert not (tmp_path / "x.onnx").exists()
+
+
+def test_node_parameter_precision_is_validated_with_a_reason():
+    from signal_light_node.ros.params import DetectorParams, validate_params
+
+    assert DetectorParams().precision == "auto"
+    assert validate_params({"precision": "int8"}).precision == "int8"
+    with pytest.raises(ConfigError, match="precision must be one of auto, fp32, int8"):
+        validate_params({"precision": "fp16"})
+
+
+def test_node_asked_for_int8_with_torch_stops_with_one_clear_line(shipped_int8, tmp_path,
+                                                                 rclpy_isolated_env):
+    from node_harness import run_until_exit
+
+    code, lines = run_until_exit(["-p", "backend:=torch", "-p", "precision:=int8"],
+                                 rclpy_isolated_env(), tmp_path)
+    assert code != 0 and len(lines) == 1, lines
+    assert "precision int8 asked for" in lines[0] and "FATAL" in lines[0]

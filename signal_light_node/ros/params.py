@@ -77,7 +77,8 @@ class DetectorParams:
         diagnostics_period_s: Period of the ``/diagnostics`` status.
         num_threads: CPU threads of a step: torch's intra-op threads, onnxruntime's
             threads splitting the frame's batch; 0 keeps the backend's default (torch's
-            choice; one per CPU for onnxruntime).
+            choice; for onnxruntime one per CPU while they pay, one while other processes
+            hold the cores: ``model.backends.thread_choice``).
         max_image_pixels: Larger images (width x height) are refused before decoding.
         max_boxes_per_frame: Boxes judged per frame; later ones are reported unjudged.
     """
@@ -223,7 +224,8 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
                                       low=0.1, high=60.0),
     "num_threads": ParamSpec("CPU threads of a step: torch's intra-op threads, onnxruntime's "
                              "threads splitting the frame's batch; 0 keeps the backend's "
-                             "default (one per CPU).", low=0, high=256),
+                             "default (onnxruntime: all CPUs while they make the step faster, "
+                             "one while other processes hold the cores).", low=0, high=256),
     "max_image_pixels": ParamSpec("Images of more pixels (width x height) are refused before "
                                   "decoding (counted as oversized_images); their boxes are "
                                   "published unjudged.", low=1, high=2**31 - 1),
