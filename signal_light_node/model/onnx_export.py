@@ -108,6 +108,17 @@ def _static_head_pool(config: Any, opset: int) -> Iterator[None]:
         torch.onnx.unregister_custom_op_symbolic("aten::adaptive_avg_pool2d", opset)
 
 
+def publish_file(tmp: "str | Path", output: "str | Path") -> None:
+    """Give a finished temporary file the usual permissions and rename it to ``output``.
+
+    mkstemp's 0600 would make a shipped file private; the process's umask decides.
+    """
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
+    os.replace(tmp, output)
+
+
 def _sha256(path: Path) -> str:
     digest = hashlib.sha256()
     with open(path, "rb") as stream:
@@ -197,10 +208,7 @@ def export_onnx(output: "str | Path", weights: "str | Path | None" = None,
         onnx.checker.check_model(proto)
         onnx.save(proto, tmp)
         diff = verify_export(tmp, reference) if verify else None
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 would make a shipped file private
-        os.replace(tmp, output)
+        publish_file(tmp, output)
     except (RuntimeError, ValueError, TypeError, onnx.checker.ValidationError) as exc:
         raise CheckpointError(f"cannot export {weights} to ONNX: {exc}") from exc
     finally:

@@ -32,6 +32,7 @@ import numpy as np
 
 from signal_light_node.errors import CheckpointError, ConfigError
 from signal_light_node.model import onnx_format as fmt
+from signal_light_node.model.onnx_export import publish_file
 
 LOG = logging.getLogger(__name__)
 
@@ -113,8 +114,7 @@ def quantize_export(source: "str | Path", output: "str | Path", crops: np.ndarra
             "nodes": nodes, "calibration": calibration})
         onnx.checker.check_model(quantized)
         onnx.save(quantized, tmp)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, output)
+        publish_file(tmp, output)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)

@@ -252,7 +252,7 @@ class OnnxRuntimeBackend:
             values = self._run_chunks(names, crops, state, bounds, threads)
         if splits and self.thread_choice:
             self.thread_choice.record(threads, n, time.perf_counter() - start)
-        self.threads_in_use = threads
+        self.threads_in_use = min(threads, len(bounds))
         return values
 
     def _run_chunks(self, names: List[str], crops: np.ndarray, state: np.ndarray,
