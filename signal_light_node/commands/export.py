@@ -93,7 +93,8 @@ def _quantize(fp32: Path, args: argparse.Namespace) -> None:
     candidate = args.onnx.with_name(f".{args.onnx.name}.{os.getpid()}.int8")
     try:
         quantize_export(fp32, candidate, crops, states, calibration)
-        agreement = step_agreement(reference, record_steps(candidate, args.calibration))
+        agreement = step_agreement(reference, record_steps(candidate, args.calibration,
+                                                           inputs=False))
         text = ", ".join(f"{task} {share:.3f}" for task, share in agreement.items())
         if min(agreement.values()) < MIN_AGREEMENT:
             raise CheckpointError(f"the int8 file picks the float export's class too rarely on "

@@ -55,8 +55,10 @@ class RecordingBackend:
         return out
 
 
-def record_steps(model_path: "str | Path", bags: Sequence["str | Path"]) -> RecordingBackend:
-    """Replay each bag (a fresh engine each) through an export; what its steps saw.
+def record_steps(model_path: "str | Path", bags: Sequence["str | Path"],
+                 inputs: bool = True) -> RecordingBackend:
+    """Replay each bag (a fresh engine each) through an export; what its steps saw (with
+    ``inputs``: ~150 kB of state per track step) and gave.
 
     Raises:
         ConfigError: No bags, or a bag cannot be replayed.
@@ -64,11 +66,11 @@ def record_steps(model_path: "str | Path", bags: Sequence["str | Path"]) -> Reco
     """
     if not bags:
         raise ConfigError("calibration needs at least one bag (--calibration BAG ...)")
-    recorder = RecordingBackend(create_backend("onnxruntime", str(model_path)))
+    recorder = RecordingBackend(create_backend("onnxruntime", str(model_path)), inputs=inputs)
     with tempfile.TemporaryDirectory(prefix="signal_light_calibration_") as tmp:
         for i, bag in enumerate(bags):
             replay_bag(bag, Path(tmp) / f"out_{i}", LightStateEngine(recorder), progress=False)
-    if not recorder.crops:
+    if not recorder.probs:
         raise ConfigError(f"the calibration bags {[str(b) for b in bags]} gave no tracked "
                           "vehicle to record")
     return recorder
