@@ -158,9 +158,15 @@ def sample_rows(crops: Sequence[np.ndarray], states: Sequence[np.ndarray], rows:
         rows: How many rows to keep.
         seed: The draw's seed (the same inputs and seed give the same rows).
     """
-    all_crops = np.concatenate(list(crops))
-    all_states = np.concatenate(list(states))
-    if len(all_crops) > rows:
-        keep = np.sort(np.random.default_rng(seed).choice(len(all_crops), rows, replace=False))
-        all_crops, all_states = all_crops[keep], all_states[keep]
-    return all_crops, all_states
+    sizes = [len(c) for c in crops]
+    total = sum(sizes)
+    if total <= rows:
+        return np.concatenate(list(crops)), np.concatenate(list(states))
+    keep = np.sort(np.random.default_rng(seed).choice(total, rows, replace=False))
+    # Gather the drawn rows step by step: concatenating every state first would copy
+    # ~150 kB per recorded track step only to keep a few of them.
+    starts = np.cumsum([0] + sizes[:-1])
+    step = np.searchsorted(starts, keep, side="right") - 1
+    row = keep - starts[step]
+    return (np.stack([crops[s][r] for s, r in zip(step, row)]),
+            np.stack([states[s][r] for s, r in zip(step, row)]))
