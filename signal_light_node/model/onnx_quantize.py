@@ -38,7 +38,7 @@ LOG = logging.getLogger(__name__)
 
 #: Convolutions whose node names start with these are quantised (the exporter names
 #: nodes after the torch modules: ``/backbone/...``, ``/cells.0/gates/Conv``).
-QUANTIZED_MODULES = ("/backbone/", "/cells.")
+QUANTIZED_MODULES = ("/backbone/", "/cells.", "/trunk/")
 
 #: Calibration inputs run through the float model per batch.
 CALIBRATION_BATCH = 32

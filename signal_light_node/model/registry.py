@@ -9,7 +9,10 @@ from torch import nn
 from signal_light_node.errors import ConfigError
 from signal_light_node.model.config import ModelConfig
 
-Builder = Callable[[ModelConfig], nn.Module]
+#: ``builder(config, pretrained)``: ``pretrained`` True loads what a fresh training run
+#: starts from (the trunk's ImageNet weights); False leaves the initialisation to the
+#: seed, as for a checkpoint whose weights are loaded next.
+Builder = Callable[[ModelConfig, bool], nn.Module]
 _REGISTRY: Dict[str, Builder] = {}
 
 
@@ -23,7 +26,11 @@ def known_archs() -> Tuple[str, ...]:
     return tuple(sorted(_REGISTRY))
 
 
-def _build_convlstm_attention(config: ModelConfig) -> nn.Module:
+def _build_convlstm_attention(config: ModelConfig, pretrained: bool) -> nn.Module:
+    if config.encoder == "efficientnet_lite0":
+        from signal_light_node.model.trunk_network import TrunkLightNet
+
+        return TrunkLightNet(config, pretrained=pretrained and config.trunk_init == "imagenet")
     from signal_light_node.model.network import LightStateNet
 
     return LightStateNet(config)
@@ -32,8 +39,13 @@ def _build_convlstm_attention(config: ModelConfig) -> nn.Module:
 register_arch("convlstm_attention", _build_convlstm_attention)
 
 
-def build_model(config: ModelConfig) -> nn.Module:
+def build_model(config: ModelConfig, pretrained: bool = False) -> nn.Module:
     """Build a freshly initialised model for ``config``.
+
+    Args:
+        config: The model configuration.
+        pretrained: Start from pretrained parts where the config has them (a fresh
+            training run); False for a model whose weights are loaded next.
 
     Raises:
         ConfigError: ``config.arch`` is not a registered architecture.
@@ -41,4 +53,4 @@ def build_model(config: ModelConfig) -> nn.Module:
     builder = _REGISTRY.get(config.arch)
     if builder is None:
         raise ConfigError(f"unknown model architecture {config.arch!r}; known: {list(known_archs())}")
-    return builder(config)
+    return builder(config, pretrained)

@@ -21,6 +21,7 @@ from torch import nn
 
 from signal_light_node.errors import ConfigError
 from signal_light_node.model import DEFAULT_WEIGHTS, ModelConfig, build_model, load_checkpoint
+from signal_light_node.model.config import trunk_config
 from signal_light_node.model.warm_start import warm_start
 from signal_light_node.training.options import TrainOptions
 
@@ -62,7 +63,9 @@ def load_run_model(opts: TrainOptions) -> RunModel:
     if init is not None:
         return _warm_started(init, opts.model, opts.grown_init_scale)
     config = ModelConfig().replace(**opts.model) if opts.model else ModelConfig()
-    return RunModel(config, build_model(config))
+    if config.encoder != "cnn" and "mean" not in opts.model:
+        config = trunk_config(**dict(opts.model))  # the trunk's own input statistics
+    return RunModel(config, build_model(config, pretrained=True))
 
 
 def _warm_started(init: Path, changes: Mapping[str, Any], grown_init_scale: float) -> RunModel:

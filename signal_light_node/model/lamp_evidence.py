@@ -1,0 +1,139 @@
+"""Evidence relative to the vehicle itself: lamp maps, track history and blink frequency.
+
+A brake lamp is a lamp brighter than the same vehicle's own tail lamps, switched on at a
+moment; a blinker is a lamp that flashes 1-2 times a second, all lamps of one side in
+phase (hazard: both sides); a tail lamp, a running lamp or a reflection is bright but
+steady. None of this depends on how a scene is drawn, and all of it is relative to the
+track's own past. The functions here turn crops into such evidence, batched over tracks,
+with the per-track memory passed in and returned (it lives in the model's state):
+
+* :func:`lamp_maps`: per cell of a ``grid x grid`` map of the crop, the mean and the peak
+  brightness and the peak red and warm (red or amber) excess of its pixels, each also
+  relative to the crop's mean brightness (the vehicle body's level).
+* :func:`relative_step`: a map against the track's previous frame and its running mean.
+* :func:`resonator_step`: a bank of damped complex resonators per signal (the left and
+  right halves of the lamp maps), one per blink period in frames; their amplitude is the
+  periodic energy near that period over the last few periods, and the phase agreement of
+  the left and right resonators tells a hazard (in phase) from noise. A steady lamp,
+  however bright, drives none of them after its onset.
+
+The frame rate is not known to a step, so the periods are in frames (``PERIODS`` covers
+0.8-2.2 Hz blinks from 10 to 30 frames per second); the heads learn which ones matter.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence, Tuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+#: Channels of :func:`lamp_maps`.
+LAMP_CHANNELS = 6
+#: Resonator periods in frames.
+PERIODS: Tuple[float, ...] = (4.5, 6.5, 9.0, 13.0, 19.0, 27.0, 38.0)
+#: Signals fed to the resonators: the left and right halves of lamp-map channels 1-3.
+SIGNAL_CHANNELS = (1, 2, 3)
+#: Decay of each resonator: its memory spans about this many periods.
+MEMORY_PERIODS = 2.0
+
+
+def lamp_maps(crops: Tensor, grid: int) -> Tensor:
+    """Lamp evidence ``[N, 6, grid, grid]`` of ``[N, 3, S, S]`` BGR crops in [0, 1].
+
+    Channels: mean brightness, peak brightness, peak red excess (red over the larger of
+    green and blue), peak warm excess (red over blue: red and amber lamps), and the peak
+    brightness and peak red excess minus the crop's mean brightness.
+    """
+    b, g, r = crops[:, 0:1], crops[:, 1:2], crops[:, 2:3]
+    value = torch.maximum(torch.maximum(b, g), r)
+    red = F.relu(r - torch.maximum(g, b))
+    warm = F.relu(r - b)
+    # Fixed pools (the config makes the crop side a multiple of the grid): the ONNX
+    # export keeps their shapes, which adaptive pools lose behind a dynamic batch.
+    cell = crops.shape[-1] // grid
+    peaks = F.max_pool2d(torch.cat((value, red, warm), 1), cell)
+    mean = F.avg_pool2d(value, cell)
+    body = value.mean(dim=(2, 3), keepdim=True)
+    return torch.cat((mean, peaks, peaks[:, 0:1] - body, peaks[:, 1:2] - body), 1)
+
+
+def relative_step(current: Tensor, previous: Tensor, mean: Tensor, seen: Tensor,
+                  rate: float) -> Tuple[Tensor, Tensor]:
+    """A map against the track's previous frame and running mean.
+
+    Args:
+        current: ``[N, C, H, W]`` this frame's map.
+        previous: ``[N, C, H, W]`` the previous frame's map.
+        mean: ``[N, C, H, W]`` the running mean of the track's maps.
+        seen: ``[N, 1, 1, 1]`` 1 where the track has a previous frame.
+        rate: Weight of a new frame in the running mean.
+
+    Returns:
+        ``[N, 2C, H, W]`` (current - previous, current - mean; zero for a new track) and
+        the new running mean.
+    """
+    evidence = torch.cat((current - previous, current - mean), 1) * seen
+    new_mean = mean + (current - mean) * (seen * rate + (1.0 - seen))
+    return evidence, new_mean
+
+
+def half_signals(maps: Tensor) -> Tensor:
+    """``[N, 2K]`` signals: the left then the right half's mean of ``SIGNAL_CHANNELS``."""
+    chosen = maps[:, list(SIGNAL_CHANNELS)]
+    half = chosen.shape[3] // 2
+    left = chosen[..., :half].mean(dim=(2, 3))
+    right = chosen[..., chosen.shape[3] - half:].mean(dim=(2, 3))
+    return torch.cat((left, right), 1)
+
+
+def resonator_coefficients(periods: Sequence[float], like: Tensor) -> Tuple[Tensor, Tensor]:
+    """``(rho * cos w, rho * sin w)`` per period, each ``[P]`` (``w = 2 pi / period``)."""
+    p = torch.tensor([float(x) for x in periods], dtype=like.dtype, device=like.device)
+    rho = torch.exp(-1.0 / (MEMORY_PERIODS * p))
+    w = 2.0 * math.pi / p
+    return rho * torch.cos(w), rho * torch.sin(w)
+
+
+def resonator_step(signals: Tensor, resonators: Tensor, level: Tensor, seen: Tensor,
+                   periods: Sequence[float]) -> Tuple[Tensor, Tensor, Tensor]:
+    """One frame of the resonator bank.
+
+    Args:
+        signals: ``[N, 2K]`` this frame's signals (left K, then right K).
+        resonators: ``[N, 2, 2K, P]`` real and imaginary parts per signal and period.
+        level: ``[N, 2K]`` running level of each signal (removes its steady part).
+        seen: ``[N, 1]`` 1 where the track has a previous frame.
+        periods: The ``P`` periods in frames.
+
+    Returns:
+        ``[N, 3K * P]`` features (log amplitude of the left and the right resonators,
+        their phase agreement in [-1, 1]), the new resonators and the new level.
+    """
+    cos_w, sin_w = resonator_coefficients(periods, signals)
+    # A new track starts its level at its first signal, so its onset drives nothing.
+    level = level * seen + signals * (1.0 - seen)
+    drive = (signals - level).unsqueeze(-1) * (1.0 - torch.exp(-1.0 / (MEMORY_PERIODS *
+                                                                        _as(periods, signals))))
+    re, im = resonators[:, 0] * seen.unsqueeze(-1), resonators[:, 1] * seen.unsqueeze(-1)
+    new_re = cos_w * re - sin_w * im + drive
+    new_im = sin_w * re + cos_w * im
+    level = level + (signals - level) * 0.1
+    k = signals.shape[1] // 2
+    power = new_re * new_re + new_im * new_im
+    cross = new_re[:, :k] * new_re[:, k:] + new_im[:, :k] * new_im[:, k:]
+    agreement = cross / torch.sqrt(power[:, :k] * power[:, k:] + 1e-10)
+    amplitude = torch.log(torch.sqrt(power + 1e-8) + 1e-3)
+    features = torch.cat((amplitude.flatten(1), agreement.flatten(1)), 1)
+    return features, torch.stack((new_re, new_im), 1), level
+
+
+def _as(periods: Sequence[float], like: Tensor) -> Tensor:
+    return torch.tensor([float(x) for x in periods], dtype=like.dtype, device=like.device)
+
+
+def resonator_features(n_signals: int, n_periods: int) -> int:
+    """Length of :func:`resonator_step`'s features for ``n_signals`` (= 2K) signals."""
+    return (n_signals + n_signals // 2) * n_periods

@@ -1,0 +1,272 @@
+"""The light-state network on a pretrained trunk, with evidence relative to the vehicle.
+
+One step for ``N`` tracks::
+
+    crop [N,3,S,S] in [0,1] BGR
+      per frame (no state; cacheable for a frozen trunk):
+      -> normalise (ImageNet statistics) -> EfficientNet-Lite0 trunk (``model.trunk``)
+         features f [N,C,G,G] (C 112, G = S/16; or C 40, G = S/8)
+      -> lamp maps m [N,6,G,G] of the raw crop (``model.lamp_evidence.lamp_maps``)
+      per track (state):
+      -> z = 1x1 projection of f
+      -> with ``relative_evidence``: z and m against the track's previous frame and
+         running mean (four more maps)
+      -> with ``frequency_evidence``: resonator bank over the left/right halves of m
+         (periodic energy per blink period, left/right phase agreement)
+      -> 1x1 fusion + ReLU -> ConvLSTM layers (explicit (h, c) per layer)
+      -> heads: 1x1 conv pooled to a grid (keeps left/right) + global max of h + the
+         frequency features -> dense layer with dropout -> one linear layer per task.
+
+The state is a tuple of pairs like :class:`~signal_light_node.model.network.LightStateNet`'s,
+so the state bank, the backends and the ONNX export carry it unchanged: the ConvLSTM
+``(h, c)`` pairs, then ``(previous z, running mean of z)``, ``(previous and mean lamp
+maps, seen)`` and ``(resonators, signal level)`` as the options ask for.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Dict, List, Optional, Tuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from signal_light_node.errors import ConfigError, CropError
+from signal_light_node.labels import TASKS
+from signal_light_node.model import lamp_evidence as lamps
+from signal_light_node.model.interface import State, state_batch_size
+from signal_light_node.model.network import ConvLSTMCell
+from signal_light_node.model.trunk import EfficientLiteTrunk, load_imagenet_weights
+
+if TYPE_CHECKING:  # pragma: no cover - typing only
+    from signal_light_node.model.config import ModelConfig
+
+#: Width of the frequency features after their linear layer, broadcast into the ConvLSTM.
+FREQ_CHANNELS = 16
+
+
+class TrunkLightNet(nn.Module):
+    """Pretrained trunk + relative and frequency evidence + ConvLSTM + heads (module doc).
+
+    Implements :class:`signal_light_node.model.interface.LightStateModel`.
+    """
+
+    def __init__(self, config: "ModelConfig", pretrained: bool = False) -> None:
+        super().__init__()
+        self.config = config
+        self.input_size = config.input_size
+        mean = torch.tensor(config.mean, dtype=torch.float32).view(1, 3, 1, 1)
+        std = torch.tensor(config.std, dtype=torch.float32).view(1, 3, 1, 1)
+        self.register_buffer("_mean", mean, persistent=False)
+        self.register_buffer("_inv_std", 1.0 / std, persistent=False)
+        self.trunk = EfficientLiteTrunk(config.input_size, config.trunk_stride)
+        if pretrained:
+            load_imagenet_weights(self.trunk)
+        self.grid = self.trunk.out_size
+        width = config.feature_channels
+        self.project = nn.Conv2d(self.trunk.out_channels, width, 1, bias=False)
+        c_in = width + lamps.LAMP_CHANNELS
+        if config.relative_evidence:
+            c_in += 2 * width + 2 * lamps.LAMP_CHANNELS
+        self.n_signals = 2 * len(lamps.SIGNAL_CHANNELS)
+        self.n_freq = lamps.resonator_features(self.n_signals, len(lamps.PERIODS))
+        self.freq: Optional[nn.Sequential] = None
+        if config.frequency_evidence:
+            self.freq = nn.Sequential(nn.Linear(self.n_freq, FREQ_CHANNELS), nn.ReLU(inplace=True))
+            c_in += FREQ_CHANNELS
+        self.fuse = nn.Sequential(nn.Conv2d(c_in, width, 1), nn.ReLU(inplace=True))
+        cells = []
+        c_in = width
+        for hidden in config.lstm_hidden:
+            cells.append(ConvLSTMCell(c_in, hidden, config.lstm_kernel))
+            c_in = hidden
+        self.cells = nn.ModuleList(cells)
+        self.lstm_dropout = nn.Dropout(config.lstm_dropout)
+        last = config.lstm_hidden[-1]
+        self.head_conv = nn.Conv2d(last, config.head_channels, 1)
+        extra = self.n_freq if config.frequency_evidence else 0
+        self.fc = nn.Sequential(
+            nn.Linear(config.head_channels * config.head_grid ** 2 + last + extra, config.fc_hidden),
+            nn.ReLU(inplace=True), nn.Dropout(config.dropout))
+        self.heads = nn.ModuleDict({t: nn.Linear(config.fc_hidden, config.num_classes[t])
+                                    for t in TASKS})
+        self._trunk_frozen = False
+        self._norms_frozen = False
+
+    # ------------------------------------------------------------------ per-frame part
+
+    def _check_crops(self, crops: Tensor, ndim: int) -> None:
+        size = self.input_size
+        if crops.dim() != ndim or crops.shape[-3] != 3 or crops.shape[-1] != size \
+                or crops.shape[-2] != size:
+            want = "[N, 3, S, S]" if ndim == 4 else "[N, T, 3, S, S]"
+            raise CropError(f"model input must be {want} with S={size}, got {tuple(crops.shape)}")
+
+    def frame_features(self, crops: Tensor) -> Tuple[Tensor, Tensor]:
+        """Per-frame ``(trunk features [N,C,G,G], lamp maps [N,6,G,G])`` of crops in [0, 1].
+
+        They hold no track state, so a frozen trunk's can be computed once and cached.
+        """
+        x = crops.float()
+        return self.trunk((x - self._mean) * self._inv_std), lamps.lamp_maps(x, self.grid)
+
+    def attention(self, crops: Tensor) -> Tensor:
+        """All ones: this network has no attention mask (kept for the debug overlay)."""
+        self._check_crops(crops, 4)
+        return crops.new_ones((crops.shape[0], 1) + tuple(crops.shape[2:]))
+
+    def freeze_encoder(self) -> None:
+        """Fix the trunk: no gradients, batch norms in eval mode."""
+        self.trunk.requires_grad_(False)
+        self._trunk_frozen = True
+        self.train(self.training)
+
+    def freeze_norms(self) -> None:
+        """Keep every batch norm's running statistics (the trunk's ImageNet ones)."""
+        self._norms_frozen = True
+        self.train(self.training)
+
+    def train(self, mode: bool = True) -> "TrunkLightNet":
+        """``nn.Module.train``, except that a frozen trunk or frozen norms stay in eval mode."""
+        super().train(mode)
+        if self._trunk_frozen:
+            self.trunk.eval()
+        if self._norms_frozen:
+            for module in self.modules():
+                if isinstance(module, nn.modules.batchnorm._BatchNorm):
+                    module.eval()
+        return self
+
+    # ------------------------------------------------------------------ state
+
+    def _history_shapes(self) -> List[Tuple[Tuple[int, ...], Tuple[int, ...]]]:
+        g, width = self.grid, self.config.feature_channels
+        shapes = []
+        if self.config.relative_evidence:
+            shapes.append(((width, g, g), (width, g, g)))
+        shapes.append(((2 * lamps.LAMP_CHANNELS, g, g), (1, 1, 1)))
+        if self.config.frequency_evidence:
+            shapes.append(((2 * self.n_signals * len(lamps.PERIODS), 1, 1), (self.n_signals, 1, 1)))
+        return shapes
+
+    def initial_state(self, n: int) -> State:
+        """Zero state for ``n`` new tracks, on the model's device."""
+        ref = self._mean
+        g = self.grid
+        state = tuple((ref.new_zeros((n, cell.hidden, g, g)), ref.new_zeros((n, cell.hidden, g, g)))
+                      for cell in self.cells)
+        return state + tuple((ref.new_zeros((n,) + a), ref.new_zeros((n,) + b))
+                             for a, b in self._history_shapes())
+
+    def _check_state(self, state: State, n: int) -> None:
+        want = len(self.cells) + len(self._history_shapes())
+        if len(state) != want:
+            raise ConfigError(f"state has {len(state)} layers but the model has {want}")
+        if state_batch_size(state) != n:
+            raise ConfigError(f"state holds {state_batch_size(state)} tracks but {n} crops were given")
+
+    # ------------------------------------------------------------------ recurrent part
+
+    def _evidence(self, features: Tensor, maps: Tensor, history: Tuple
+                  ) -> Tuple[Tensor, Optional[Tensor], Tuple]:
+        """ConvLSTM input, frequency features and the new history for one frame."""
+        cfg = self.config
+        z = self.project(features)
+        parts = [z, maps]
+        rest = list(history)
+        new_history = []
+        z_pair = rest.pop(0) if cfg.relative_evidence else None
+        lamp_history, seen = rest.pop(0)
+        prev_maps, mean_maps = lamp_history.chunk(2, 1)
+        if z_pair is not None:
+            ev_z, mean_z = lamps.relative_step(z, z_pair[0], z_pair[1], seen, cfg.mean_rate)
+            ev_m, mean_maps = lamps.relative_step(maps, prev_maps, mean_maps, seen, cfg.mean_rate)
+            parts += [ev_z, ev_m]
+            new_history.append((z, mean_z))
+        else:
+            mean_maps = mean_maps + (maps - mean_maps) * (seen * cfg.mean_rate + (1.0 - seen))
+        new_history.append((torch.cat((maps, mean_maps), 1), torch.ones_like(seen)))
+        freq = None
+        if self.freq is not None:
+            resonators, level = rest.pop(0)
+            n, periods = maps.shape[0], len(lamps.PERIODS)
+            freq, resonators, level = lamps.resonator_step(
+                lamps.half_signals(maps), resonators.reshape(n, 2, self.n_signals, periods),
+                level.reshape(n, -1), seen.reshape(n, 1), lamps.PERIODS)
+            new_history.append((resonators.reshape(n, -1, 1, 1), level.reshape(n, -1, 1, 1)))
+            parts.append(self.freq(freq)[:, :, None, None].expand(-1, -1, self.grid, self.grid))
+        return self.fuse(torch.cat(parts, 1)), freq, tuple(new_history)
+
+    def _recur(self, x: Tensor, state: State) -> Tuple[Tensor, State]:
+        new_state = []
+        for index, cell in enumerate(self.cells):
+            h, c = cell(x, state[index][0], state[index][1])
+            new_state.append((h, c))
+            x = self.lstm_dropout(h)
+        return x, tuple(new_state)
+
+    def _heads(self, hidden: Tensor, freq: Optional[Tensor]) -> Dict[str, Tensor]:
+        grid = F.adaptive_avg_pool2d(F.relu(self.head_conv(hidden)), self.config.head_grid)
+        parts = [grid.flatten(1), hidden.amax(dim=(2, 3))]
+        if freq is not None:
+            parts.append(freq)
+        z = self.fc(torch.cat(parts, 1))
+        return {t: head(z) for t, head in self.heads.items()}
+
+    def step_features(self, features: Tensor, maps: Tensor, state: State
+                      ) -> Tuple[Dict[str, Tensor], State]:
+        """One frame from per-frame features (:meth:`frame_features`): logits and new state."""
+        n_cells = len(self.cells)
+        x, freq, history = self._evidence(features, maps, state[n_cells:])
+        hidden, lstm_state = self._recur(x, state[:n_cells])
+        return self._heads(hidden, freq), lstm_state + history
+
+    def sequence_features(self, features: Tensor, maps: Tensor, state: Optional[State] = None
+                          ) -> Tuple[Dict[str, Tensor], State]:
+        """``T`` frames from per-frame features ``[N, T, ...]``: logits ``[N, T, K]``, state."""
+        n, t = features.shape[:2]
+        if state is None:
+            state = self.initial_state(n)
+        outputs: List[Dict[str, Tensor]] = []
+        for i in range(t):
+            logits, state = self.step_features(features[:, i], maps[:, i], state)
+            outputs.append(logits)
+        return {k: torch.stack([o[k] for o in outputs], 1) for k in outputs[0]}, state
+
+    # ---------------------------------------------------------------------- public API
+
+    def step_logits(self, crops: Tensor, state: State) -> Tuple[Dict[str, Tensor], State]:
+        """One frame for ``N`` tracks: logits ``[N, K]`` per task and the new state."""
+        self._check_crops(crops, 4)
+        self._check_state(state, crops.shape[0])
+        features, maps = self.frame_features(crops)
+        return self.step_features(features, maps, state)
+
+    def step(self, crops: Tensor, state: State) -> Tuple[Dict[str, Tensor], State]:
+        """Like :meth:`step_logits` but with probabilities (softmax over classes)."""
+        logits, state = self.step_logits(crops, state)
+        return {t: torch.softmax(v, dim=1) for t, v in logits.items()}, state
+
+    def step_with_attention(self, crops: Tensor, state: State
+                            ) -> Tuple[Dict[str, Tensor], State, Tensor]:
+        """:meth:`step` plus an all-ones mask (no attention in this network)."""
+        probs, state = self.step(crops, state)
+        return probs, state, self.attention(crops)
+
+    def forward_sequence(self, crops: Tensor, state: Optional[State] = None
+                         ) -> Tuple[Dict[str, Tensor], State]:
+        """Run ``T`` frames of ``N`` tracks ``[N, T, 3, S, S]``; equals ``T`` steps."""
+        self._check_crops(crops, 5)
+        n, t = crops.shape[:2]
+        if t == 0:
+            raise CropError("forward_sequence needs at least one frame, got T=0")
+        if state is not None:
+            self._check_state(state, n)
+        features, maps = self.frame_features(crops.flatten(0, 1))
+        return self.sequence_features(features.reshape((n, t) + tuple(features.shape[1:])),
+                                      maps.reshape((n, t) + tuple(maps.shape[1:])), state)
+
+    def forward(self, crops: Tensor, state: Optional[State] = None
+                ) -> Tuple[Dict[str, Tensor], State]:
+        """Alias of :meth:`forward_sequence`."""
+        return self.forward_sequence(crops, state)

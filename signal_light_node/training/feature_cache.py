@@ -1,0 +1,174 @@
+"""Per-frame features of a frozen trunk, computed once per rendered split and kept on disk.
+
+With the trunk frozen, everything a frame contributes before the track's state comes in
+(trunk features and lamp maps, :meth:`TrunkLightNet.frame_features`) is fixed, so the
+recurrent part can be trained from scratch over long sequences without running the
+trunk again: one pass over a split writes a cache directory
+
+* ``features.npy`` float16 ``[F, C, G, G]`` and ``maps.npy`` float16 ``[F, 6, G, G]``
+  for the split's ``F`` frames, track after track;
+* ``labels.npy`` / ``lit_labels.npy`` int8 ``[F, 5]``, ``lengths.npy``, ``fps.npy``,
+  ``lighting.npy`` per track;
+* ``cache.json``: the split it came from, the trunk's config and a hash of its weights,
+  and the augmentation seed (a cache made for other weights is refused, not reused).
+
+``augment_seed`` applies one random camera response and shape warp per track
+(``data.camera_response``, ``data.shape_warp``) before the trunk sees it, so a pool can be
+cached in several looks.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Dict, Iterator, List, Optional, Tuple
+
+import numpy as np
+import torch
+
+from signal_light_node.data.camera_response import randomise_camera
+from signal_light_node.data.shape_warp import warp_sequence
+from signal_light_node.errors import ConfigError
+from signal_light_node.model.inference import inference_copy
+
+LOG = logging.getLogger(__name__)
+MANIFEST = "cache.json"
+
+
+def trunk_fingerprint(model: torch.nn.Module) -> str:
+    """Hash of the trunk's weights and the config fields the per-frame part depends on."""
+    digest = hashlib.sha256()
+    cfg = model.config
+    digest.update(json.dumps([cfg.input_size, cfg.trunk_stride, list(cfg.mean), list(cfg.std)])
+                  .encode())
+    for name, value in sorted(model.trunk.state_dict().items()):
+        digest.update(name.encode())
+        digest.update(value.detach().cpu().numpy().tobytes())
+    return digest.hexdigest()[:16]
+
+
+def _split_tracks(split_dir: Path) -> Iterator[Dict[str, np.ndarray]]:
+    """The whole tracks of a split directory, shard by shard (only the real frames)."""
+    manifest = json.loads((split_dir / "manifest.json").read_text())
+    shards = manifest.get("shards") or sorted(p.name for p in split_dir.glob("shard_*.npz"))
+    for shard in shards:
+        name = shard["file"] if isinstance(shard, dict) else shard
+        with np.load(split_dir / name, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+        offsets = np.concatenate(([0], np.cumsum(arrays["lengths"])))
+        for i in range(len(arrays["lengths"])):
+            a, b = int(offsets[i]), int(offsets[i + 1])
+            yield {"crops": arrays["crops"][a:b], "labels": arrays["labels"][a:b],
+                   "lit_labels": arrays["lit_labels"][a:b], "fps": float(arrays["fps"][i]),
+                   "lighting": str(arrays["lighting"][i])}
+
+
+@torch.inference_mode()
+def _frame_features(net: torch.nn.Module, crops: np.ndarray, batch: int
+                    ) -> Tuple[np.ndarray, np.ndarray]:
+    feats, maps = [], []
+    for start in range(0, len(crops), batch):
+        x = torch.from_numpy(np.ascontiguousarray(crops[start:start + batch])).permute(0, 3, 1, 2)
+        f, m = net.frame_features(x.float().mul_(1.0 / 255.0).contiguous(
+            memory_format=torch.channels_last))
+        feats.append(f.half().numpy())
+        maps.append(m.half().numpy())
+    return np.concatenate(feats), np.concatenate(maps)
+
+
+def write_cache(split_dir: "str | os.PathLike[str]", model: torch.nn.Module,
+                out_dir: "str | os.PathLike[str]", augment_seed: Optional[int] = None,
+                batch: int = 512) -> Path:
+    """Cache the per-frame features of every track of ``split_dir`` (see the module doc).
+
+    Reuses an existing cache made from the same split, trunk and seed.
+
+    Returns:
+        The cache directory.
+    """
+    split_dir, out = Path(split_dir), Path(out_dir)
+    info = {"split": str(split_dir.resolve()), "trunk": trunk_fingerprint(model),
+            "augment_seed": augment_seed, "config": model.config.to_dict()}
+    if (out / MANIFEST).is_file():
+        old = json.loads((out / MANIFEST).read_text())
+        if all(old.get(k) == info[k] for k in ("split", "trunk", "augment_seed")):
+            LOG.info("%s: cache exists, reused", out)
+            return out
+    net = inference_copy(model.eval())
+    rng = np.random.default_rng(augment_seed) if augment_seed is not None else None
+    tmp = out.with_name(out.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    columns: Dict[str, List[Any]] = {k: [] for k in ("features", "maps", "labels", "lit_labels",
+                                                      "lengths", "fps", "lighting")}
+    for track in _split_tracks(split_dir):
+        crops = track["crops"]
+        if rng is not None:
+            crops = randomise_camera(warp_sequence(crops, rng), rng)
+        f, m = _frame_features(net, crops, batch)
+        columns["features"].append(f)
+        columns["maps"].append(m)
+        columns["labels"].append(track["labels"].astype(np.int8))
+        columns["lit_labels"].append(track["lit_labels"].astype(np.int8))
+        columns["lengths"].append(len(crops))
+        columns["fps"].append(track["fps"])
+        columns["lighting"].append(track["lighting"])
+    for key, values in columns.items():
+        array = np.concatenate(values) if key in ("features", "maps", "labels", "lit_labels") \
+            else np.asarray(values)
+        np.save(tmp / f"{key}.npy", array)
+    info["frames"] = int(sum(columns["lengths"]))
+    info["tracks"] = len(columns["lengths"])
+    (tmp / MANIFEST).write_text(json.dumps(info, indent=1))
+    shutil.rmtree(out, ignore_errors=True)
+    os.replace(tmp, out)
+    LOG.info("%s: %d tracks, %d frames cached", out, info["tracks"], info["frames"])
+    return out
+
+
+@dataclass
+class FeatureCache:
+    """A cache directory in memory: arrays per frame and each track's slice of them."""
+
+    features: np.ndarray
+    maps: np.ndarray
+    labels: np.ndarray
+    lit_labels: np.ndarray
+    lengths: np.ndarray
+    fps: np.ndarray
+    lighting: np.ndarray
+    offsets: np.ndarray
+
+    @classmethod
+    def load(cls, path: "str | os.PathLike[str]", fingerprint: Optional[str] = None) -> "FeatureCache":
+        """Read a cache; ``fingerprint`` (:func:`trunk_fingerprint`) must match if given.
+
+        Raises:
+            ConfigError: The directory is not a cache or was made with another trunk.
+        """
+        path = Path(path)
+        if not (path / MANIFEST).is_file():
+            raise ConfigError(f"{path} is not a feature cache (no {MANIFEST})")
+        info = json.loads((path / MANIFEST).read_text())
+        if fingerprint is not None and info.get("trunk") != fingerprint:
+            raise ConfigError(f"{path} was cached with another trunk ({info.get('trunk')}, "
+                              f"this model's is {fingerprint})")
+        arrays = {k: np.load(path / f"{k}.npy") for k in
+                  ("features", "maps", "labels", "lit_labels", "lengths", "fps", "lighting")}
+        offsets = np.concatenate(([0], np.cumsum(arrays["lengths"]))).astype(np.int64)
+        return cls(offsets=offsets, **arrays)
+
+    def __len__(self) -> int:
+        return len(self.lengths)
+
+    def window(self, track: int, start: int, length: int) -> Dict[str, np.ndarray]:
+        """Frames ``start .. start+length`` of one track (fewer at its end)."""
+        a = int(self.offsets[track]) + start
+        b = min(a + length, int(self.offsets[track + 1]))
+        return {"features": self.features[a:b], "maps": self.maps[a:b],
+                "labels": self.labels[a:b], "lit_labels": self.lit_labels[a:b]}

