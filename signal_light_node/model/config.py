@@ -79,6 +79,8 @@ class ModelConfig:
             previous frame and running mean (features and lamp maps).
         frequency_evidence: Give it the periodic energy of the lamp maps' left and right
             halves per blink period (``model.lamp_evidence``).
+        temperatures: Per-task logit temperature of the trunk network's heads (missing
+            tasks 1.0), fitted on a held-out style family by ``training.calibrate``.
     """
 
     arch: str = "convlstm_attention"
@@ -111,6 +113,7 @@ class ModelConfig:
     feature_channels: int = 64
     relative_evidence: bool = True
     frequency_evidence: bool = True
+    temperatures: Mapping[str, float] = field(default_factory=dict, hash=False)
 
     def __post_init__(self) -> None:
         set_ = lambda name, value: object.__setattr__(self, name, value)  # noqa: E731
@@ -180,8 +183,14 @@ class ModelConfig:
             set_("class_names", {str(t): tuple(str(n) for n in names)
                                  for t, names in dict(self.class_names).items()})
             set_("light_codes", {str(k): int(v) for k, v in dict(self.light_codes).items()})
+            set_("temperatures", {str(k): float(v) for k, v in dict(self.temperatures).items()})
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"model config class_names / light_codes are malformed: {exc}") from None
+        bad = {k: v for k, v in self.temperatures.items()
+               if k not in self.class_names or not (math.isfinite(v) and v > 0)}
+        if bad:
+            raise ConfigError(f"model config temperatures must be positive numbers per task, "
+                              f"got {bad}")
 
     @property
     def num_classes(self) -> Dict[str, int]:
@@ -210,6 +219,7 @@ class ModelConfig:
                 out[key] = list(value)
         out["class_names"] = {t: list(n) for t, n in self.class_names.items()}
         out["light_codes"] = dict(self.light_codes)
+        out["temperatures"] = dict(self.temperatures)
         return out
 
     @classmethod

@@ -211,7 +211,9 @@ class TrunkLightNet(nn.Module):
         if freq is not None:
             parts.append(freq)
         z = self.fc(torch.cat(parts, 1))
-        return {t: head(z) for t, head in self.heads.items()}
+        temps = self.config.temperatures
+        return {t: head(z) if temps.get(t, 1.0) == 1.0 else head(z) * (1.0 / temps[t])
+                for t, head in self.heads.items()}
 
     def step_features(self, features: Tensor, maps: Tensor, state: State
                       ) -> Tuple[Dict[str, Tensor], State]:

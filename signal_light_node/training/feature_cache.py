@@ -26,7 +26,7 @@ import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, Iterator, List, Optional, Tuple
+from typing import Any, Dict, Iterator, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -34,6 +34,7 @@ import torch
 from signal_light_node.data.camera_response import randomise_camera
 from signal_light_node.data.shape_warp import warp_sequence
 from signal_light_node.errors import ConfigError
+from signal_light_node.labels import TASKS
 from signal_light_node.model.inference import inference_copy
 
 LOG = logging.getLogger(__name__)
@@ -172,3 +173,44 @@ class FeatureCache:
         b = min(a + length, int(self.offsets[track + 1]))
         return {"features": self.features[a:b], "maps": self.maps[a:b],
                 "labels": self.labels[a:b], "lit_labels": self.lit_labels[a:b]}
+
+
+def collate_windows(rows: Sequence[Tuple[Dict[str, np.ndarray], float]], seq_len: int
+                    ) -> Dict[str, torch.Tensor]:
+    """Windows ``(arrays, fps)`` as float tensors ``[B, T, ...]`` padded to ``seq_len``,
+    with labels (-1 in the padding), a frame mask and each window's frame rate."""
+    first = rows[0][0]
+    n = len(rows)
+    feats = np.zeros((n, seq_len) + first["features"].shape[1:], np.float32)
+    maps = np.zeros((n, seq_len) + first["maps"].shape[1:], np.float32)
+    labels = np.full((n, seq_len, len(TASKS)), -1, np.int64)
+    mask = np.zeros((n, seq_len), bool)
+    for i, (w, _) in enumerate(rows):
+        t = len(w["labels"])
+        feats[i, :t], maps[i, :t], labels[i, :t] = w["features"], w["maps"], w["labels"]
+        mask[i, :t] = True
+    return {"features": torch.from_numpy(feats), "maps": torch.from_numpy(maps),
+            "labels": torch.from_numpy(labels), "mask": torch.from_numpy(mask),
+            "fps": torch.tensor([fps for _, fps in rows], dtype=torch.float64)}
+
+
+@torch.no_grad()
+def track_logits(model: torch.nn.Module, cache: FeatureCache, batch: int = 64
+                 ) -> Dict[str, Tuple[np.ndarray, np.ndarray]]:
+    """Per task ``(logits [M, K], labels [M])`` of every track stepped from its first
+    frame, over the labelled frames after the evaluation's warm-up (1 s, >= 10 frames)."""
+    model.eval()
+    out: Dict[str, List[Tuple[np.ndarray, np.ndarray]]] = {t: [] for t in TASKS}
+    for start in range(0, len(cache), batch):
+        tracks = range(start, min(start + batch, len(cache)))
+        rows = [(cache.window(i, 0, int(cache.lengths[i])), float(cache.fps[i])) for i in tracks]
+        b = collate_windows(rows, max(int(cache.lengths[i]) for i in tracks))
+        logits, _ = model.sequence_features(b["features"], b["maps"])
+        warm = torch.clamp(torch.ceil(b["fps"]), min=10).to(torch.int64)
+        scored = b["mask"] & (torch.arange(b["mask"].shape[1])[None] >= warm[:, None])
+        for i, task in enumerate(TASKS):
+            y = b["labels"][..., i]
+            keep = scored & (y >= 0)
+            out[task].append((logits[task][keep].numpy(), y[keep].numpy()))
+    return {t: (np.concatenate([a for a, _ in v]), np.concatenate([y for _, y in v]))
+            for t, v in out.items()}

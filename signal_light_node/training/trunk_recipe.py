@@ -39,7 +39,8 @@ from signal_light_node.model.checkpoint import save_checkpoint
 from signal_light_node.model.config import ModelConfig, trunk_config
 from signal_light_node.model.registry import build_model
 from signal_light_node.tools.metrics import confusion_matrix, macro_f1, per_class_scores
-from signal_light_node.training.feature_cache import FeatureCache, trunk_fingerprint, write_cache
+from signal_light_node.training.feature_cache import (FeatureCache, collate_windows, track_logits,
+                                                      trunk_fingerprint, write_cache)
 from signal_light_node.training.loss import multitask_loss, warmup_frames
 
 LOG = logging.getLogger("trunk_recipe")
@@ -56,24 +57,7 @@ def _batch(caches: Sequence[FeatureCache], rng: np.random.Generator, batch: int,
         length = int(cache.lengths[track])
         start = 0 if rng.random() < 0.5 else int(rng.integers(0, max(1, length - seq_len // 2)))
         rows.append((cache.window(track, start, seq_len), float(cache.fps[track])))
-    return _collate(rows, seq_len)
-
-
-def _collate(rows: Sequence[Tuple[Dict[str, np.ndarray], float]], seq_len: int
-             ) -> Dict[str, torch.Tensor]:
-    first = rows[0][0]
-    n = len(rows)
-    feats = np.zeros((n, seq_len) + first["features"].shape[1:], np.float32)
-    maps = np.zeros((n, seq_len) + first["maps"].shape[1:], np.float32)
-    labels = np.full((n, seq_len, len(TASKS)), -1, np.int64)
-    mask = np.zeros((n, seq_len), bool)
-    for i, (w, _) in enumerate(rows):
-        t = len(w["labels"])
-        feats[i, :t], maps[i, :t], labels[i, :t] = w["features"], w["maps"], w["labels"]
-        mask[i, :t] = True
-    return {"features": torch.from_numpy(feats), "maps": torch.from_numpy(maps),
-            "labels": torch.from_numpy(labels), "mask": torch.from_numpy(mask),
-            "fps": torch.tensor([fps for _, fps in rows], dtype=torch.float64)}
+    return collate_windows(rows, seq_len)
 
 
 def class_weights(caches: Sequence[FeatureCache], config: ModelConfig, power: float = 0.5
@@ -91,34 +75,18 @@ def class_weights(caches: Sequence[FeatureCache], config: ModelConfig, power: fl
     return out
 
 
-@torch.no_grad()
-def validate(model: torch.nn.Module, cache: FeatureCache, batch: int = 64) -> Dict[str, float]:
-    """Intent macro-F1, brake ON-F1, view accuracy after a 1 s / 10-frame warm-up."""
-    model.eval()
-    preds: Dict[str, List[np.ndarray]] = {t: [] for t in TASKS}
-    truth: Dict[str, List[np.ndarray]] = {t: [] for t in TASKS}
-    for start in range(0, len(cache), batch):
-        tracks = range(start, min(start + batch, len(cache)))
-        rows = [(cache.window(i, 0, int(cache.lengths[i])), float(cache.fps[i])) for i in tracks]
-        b = _collate(rows, max(int(cache.lengths[i]) for i in tracks))
-        logits, _ = model.sequence_features(b["features"], b["maps"])
-        warm = torch.clamp(torch.ceil(b["fps"]), min=10).to(torch.int64)
-        scored = b["mask"] & (torch.arange(b["mask"].shape[1])[None] >= warm[:, None])
-        for i, task in enumerate(TASKS):
-            preds[task].append(logits[task].argmax(-1)[scored].numpy())
-            truth[task].append(b["labels"][..., i][scored].numpy())
-    model.train()
+def validate(model: torch.nn.Module, cache: FeatureCache) -> Dict[str, float]:
+    """Intent macro-F1, brake / left / right ON-F1 and view accuracy after the warm-up."""
     out: Dict[str, float] = {}
-    for task in TASKS:
-        y, p = np.concatenate(truth[task]), np.concatenate(preds[task])
-        keep = y >= 0
-        matrix = confusion_matrix(y[keep], p[keep], model.config.num_classes[task])
+    for task, (logits, labels) in track_logits(model, cache).items():
+        matrix = confusion_matrix(labels, logits.argmax(1), model.config.num_classes[task])
         if task == "intent":
             out["intent_f1"] = float(macro_f1(matrix) or 0.0)
         elif task == "view":
             out["view_acc"] = float(np.trace(matrix) / max(1, matrix.sum()))
         else:
             out[f"{task}_f1"] = float((per_class_scores(matrix)["f1"][1]) or 0.0)
+    model.train()
     out["score"] = 0.5 * out["intent_f1"] + 0.5 * out["brake_f1"]
     return out
 
@@ -162,7 +130,7 @@ def train(model: torch.nn.Module, train_caches: Sequence[FeatureCache], val: Fea
         optim.step()
         step += 1
         if step % 25 == 0:
-            LOG.info("step %d loss %.4f %s (%.1f s/step)", step, float(loss),
+            LOG.info("step %d loss %.4f %s (%.1f s/step)", step, float(loss.detach()),
                      {k: round(v, 3) for k, v in parts.items()},
                      (time.time() - started) / 25)
             started = time.time()
