@@ -35,7 +35,9 @@ INDEPENDENT_BAGS = ("bags/independent_day", "bags/independent_night")
 COLUMNS = (("intent macro-F1", "intent_f1"), ("intent FP", "intent_fp"),
            ("intent FN", "intent_fn"), ("brake acc.", "brake_acc"), ("brake F1", "brake_f1"),
            ("brake recall", "brake_recall"), ("left F1", "left_f1"), ("right F1", "right_f1"),
-           ("intent switches / truth", "switches"))
+           ("intent switches / truth", "switches"),
+           ("UNKNOWN where a lamp is visible", "unknown_visible"))
+TAIL_LAMPS_BAG = "bags/night_tail_lamps"
 
 
 def _on_class(overall: Dict[str, Any], task: str, key: str) -> Optional[float]:
@@ -49,6 +51,12 @@ def figures(metrics: Dict[str, Any]) -> Dict[str, Optional[float]]:
     report = metrics["no_grace"]
     summary, overall = report["summary"], report["overall"]
     switches = metrics.get("switches", {}).get("intent", {})
+    unknown = visible = 0
+    for task in ("brake", "left", "right"):
+        confusion = overall.get(task, {}).get("confusion") or []
+        for row in confusion[:2]:  # true OFF, true ON: the lamp is there to be judged
+            visible += sum(row)
+            unknown += row[2] if len(row) > 2 else 0
     return {"intent_f1": summary["intent_macro_f1"], "intent_fp": summary["intent_fp_rate"],
             "intent_fn": summary["intent_fn_rate"], "brake_acc": summary["brake_accuracy"],
             "brake_f1": _on_class(overall, "brake", "f1"),
@@ -56,6 +64,7 @@ def figures(metrics: Dict[str, Any]) -> Dict[str, Optional[float]]:
             "left_f1": _on_class(overall, "left", "f1"),
             "right_f1": _on_class(overall, "right", "f1"),
             "switches": switches.get("ratio"),
+            "unknown_visible": unknown / visible if visible else None,
             "scored_frames": metrics.get("counts", {}).get("scored")}
 
 
@@ -68,6 +77,26 @@ def evaluate(name: str, data: List[str], checkpoint: Path, out: Path,
     print("$", " ".join(cmd), flush=True)
     subprocess.run(cmd, check=True, cwd=REPO, stdout=subprocess.DEVNULL)
     return figures(json.loads((target / "metrics.json").read_text()))
+
+
+def tail_lamp_blinkers(checkpoint: Path, out: Path) -> float:
+    """Share of judged vehicle-frames of the steady night tail-lamp bag with a blinker ON
+    (as ``test/test_night_tail_lamps.py`` counts them: replayed as the node runs it)."""
+    from signal_light_node.labels import LightStatus
+    from signal_light_node.runtime.engine import engine_from_checkpoint
+    from signal_light_node.tools.replay import replay_bag
+
+    counts = [0, 0]
+
+    def count(image: Any, boxes: Any, frame: Any) -> None:
+        for result in frame.results:
+            if result.judged:
+                counts[0] += 1
+                counts[1] += int(LightStatus.ON in (result.left.state, result.right.state))
+
+    replay_bag(REPO / TAIL_LAMPS_BAG, out / "tail_lamps", engine_from_checkpoint(checkpoint),
+               progress=False, on_frame=count)
+    return counts[1] / max(1, counts[0])
 
 
 def _cell(key: str, value: Optional[float]) -> str:
@@ -105,10 +134,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             for folder, name, data in sets}
     args.out.mkdir(parents=True, exist_ok=True)
     table = markdown(rows)
+    tail = tail_lamp_blinkers(args.checkpoint, args.out)
+    table += (f"\nSteady night tail lamps ({TAIL_LAMPS_BAG}): blinker ON on {100 * tail:.1f} % "
+              f"of judged vehicle-frames (target < 5 %).\n")
     (args.out / "transfer.md").write_text(table)
     (args.out / "transfer.json").write_text(json.dumps(
         {"checkpoint": str(args.checkpoint), "intent_filter": not args.no_intent_filter,
-         "sets": rows}, indent=2) + "\n")
+         "sets": rows, "tail_lamp_blinker_on": tail}, indent=2) + "\n")
     print(table)
     return 0
 

@@ -75,10 +75,11 @@ def _frame_features(net: torch.nn.Module, crops: np.ndarray, batch: int
     feats, maps = [], []
     for start in range(0, len(crops), batch):
         x = torch.from_numpy(np.ascontiguousarray(crops[start:start + batch])).permute(0, 3, 1, 2)
+        x = x.to(next(net.parameters()).device)
         f, m = net.frame_features(x.float().mul_(1.0 / 255.0).contiguous(
             memory_format=torch.channels_last))
-        feats.append(f.half().numpy())
-        maps.append(m.half().numpy())
+        feats.append(f.half().cpu().numpy())
+        maps.append(m.half().cpu().numpy())
     return np.concatenate(feats), np.concatenate(maps)
 
 
@@ -200,12 +201,14 @@ def track_logits(model: torch.nn.Module, cache: FeatureCache, batch: int = 64
     """Per task ``(logits [M, K], labels [M])`` of every track stepped from its first
     frame, over the labelled frames after the evaluation's warm-up (1 s, >= 10 frames)."""
     model.eval()
+    device = next(model.parameters()).device
     out: Dict[str, List[Tuple[np.ndarray, np.ndarray]]] = {t: [] for t in TASKS}
     for start in range(0, len(cache), batch):
         tracks = range(start, min(start + batch, len(cache)))
         rows = [(cache.window(i, 0, int(cache.lengths[i])), float(cache.fps[i])) for i in tracks]
         b = collate_windows(rows, max(int(cache.lengths[i]) for i in tracks))
-        logits, _ = model.sequence_features(b["features"], b["maps"])
+        logits, _ = model.sequence_features(b["features"].to(device), b["maps"].to(device))
+        logits = {k: v.cpu() for k, v in logits.items()}
         warm = torch.clamp(torch.ceil(b["fps"]), min=10).to(torch.int64)
         scored = b["mask"] & (torch.arange(b["mask"].shape[1])[None] >= warm[:, None])
         for i, task in enumerate(TASKS):

@@ -99,17 +99,19 @@ def _lr(step: int, steps: int, lr: float, warm: int = 50) -> float:
 
 def train(model: torch.nn.Module, train_caches: Sequence[FeatureCache], val: FeatureCache,
           out: Path, steps: int, batch: int, seq_len: int, lr: float, seed: int,
-          val_every: int, resume: bool, meta: Dict[str, Any]) -> Dict[str, Any]:
+          val_every: int, resume: bool, meta: Dict[str, Any],
+          device: torch.device = torch.device("cpu")) -> Dict[str, Any]:
     """The training loop of the module doc; returns the best validation figures."""
     rng = np.random.default_rng(seed)
+    model.to(device)
     model.freeze_encoder()
     params = [p for p in model.parameters() if p.requires_grad]
     optim = torch.optim.AdamW(params, lr=lr, weight_decay=1e-4)
-    weights = class_weights(train_caches, model.config)
+    weights = {k: v.to(device) for k, v in class_weights(train_caches, model.config).items()}
     step, best, history = 0, {"score": -1.0}, []
     state_file = out / "last.state.pt"
     if resume and state_file.is_file():
-        saved = torch.load(state_file, weights_only=False)
+        saved = torch.load(state_file, weights_only=False, map_location=device)
         model.load_state_dict(saved["model"])
         optim.load_state_dict(saved["optim"])
         rng.bit_generator.state = saved["rng"]
@@ -120,9 +122,9 @@ def train(model: torch.nn.Module, train_caches: Sequence[FeatureCache], val: Fea
     while step < steps:
         for group in optim.param_groups:
             group["lr"] = _lr(step, steps, lr)
-        b = _batch(train_caches, rng, batch, seq_len)
+        b = {k: v.to(device) for k, v in _batch(train_caches, rng, batch, seq_len).items()}
         logits, _ = model.sequence_features(b["features"], b["maps"])
-        warm = warmup_frames(b["fps"].tolist(), 2, 0.4)
+        warm = warmup_frames(b["fps"].tolist(), 2, 0.4).to(device)
         loss, parts = multitask_loss(logits, b["labels"], b["mask"], TASK_WEIGHTS, weights, warm)
         optim.zero_grad(set_to_none=True)
         loss.backward()
@@ -175,11 +177,15 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--val-every", type=int, default=250)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--resume", action="store_true")
+    parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
-    model = build_fresh(json.loads(args.model), args.seed)
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        parser.error("CUDA requested but not available")
+    model = build_fresh(json.loads(args.model), args.seed).to(device)
     fingerprint = trunk_fingerprint(model)
     cache_root = (args.cache or args.out.parent / "cache") / fingerprint
     caches = []
@@ -192,7 +198,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     meta = {"recipe": "trunk_recipe", "args": {k: str(v) for k, v in vars(args).items()},
             "training_data": [str(p) for p in args.pool], "trunk_fingerprint": fingerprint}
     best = train(model, caches, val, args.out, args.steps, args.batch, args.seq_len, args.lr,
-                 args.seed, args.val_every, args.resume, meta)
+                 args.seed, args.val_every, args.resume, meta, device)
     (args.out / "summary.json").write_text(json.dumps(best, indent=1))
     LOG.info("best: %s", best)
     return 0
