@@ -167,11 +167,14 @@ class TrunkLightNet(nn.Module):
 
     # ------------------------------------------------------------------ recurrent part
 
-    def _evidence(self, features: Tensor, maps: Tensor, history: Tuple
+    def _evidence(self, z: Tensor, maps: Tensor, history: Tuple
                   ) -> Tuple[Tensor, Optional[Tensor], Tuple]:
-        """ConvLSTM input, frequency features and the new history for one frame."""
+        """One frame's evidence maps, raw frequency features and new history.
+
+        ``z`` is the projected trunk features. Only element-wise work, so a sequence
+        loops over it cheaply and runs the convolutions on all its frames at once.
+        """
         cfg = self.config
-        z = self.project(features)
         parts = [z, maps]
         rest = list(history)
         new_history = []
@@ -194,8 +197,14 @@ class TrunkLightNet(nn.Module):
                 lamps.half_signals(maps), resonators.reshape(n, 2, self.n_signals, periods),
                 level.reshape(n, -1), seen.reshape(n, 1), lamps.PERIODS)
             new_history.append((resonators.reshape(n, -1, 1, 1), level.reshape(n, -1, 1, 1)))
+        return torch.cat(parts, 1), freq, tuple(new_history)
+
+    def _fuse(self, evidence: Tensor, freq: Optional[Tensor]) -> Tensor:
+        """The ConvLSTM input of ``[M, E, G, G]`` evidence and ``[M, F]`` frequency features."""
+        parts = [evidence]
+        if self.freq is not None and freq is not None:
             parts.append(self.freq(freq)[:, :, None, None].expand(-1, -1, self.grid, self.grid))
-        return self.fuse(torch.cat(parts, 1)), freq, tuple(new_history)
+        return self.fuse(torch.cat(parts, 1))
 
     def _recur(self, x: Tensor, state: State) -> Tuple[Tensor, State]:
         new_state = []
@@ -219,21 +228,41 @@ class TrunkLightNet(nn.Module):
                       ) -> Tuple[Dict[str, Tensor], State]:
         """One frame from per-frame features (:meth:`frame_features`): logits and new state."""
         n_cells = len(self.cells)
-        x, freq, history = self._evidence(features, maps, state[n_cells:])
-        hidden, lstm_state = self._recur(x, state[:n_cells])
+        evidence, freq, history = self._evidence(self.project(features), maps, state[n_cells:])
+        hidden, lstm_state = self._recur(self._fuse(evidence, freq), state[:n_cells])
         return self._heads(hidden, freq), lstm_state + history
 
     def sequence_features(self, features: Tensor, maps: Tensor, state: Optional[State] = None
                           ) -> Tuple[Dict[str, Tensor], State]:
-        """``T`` frames from per-frame features ``[N, T, ...]``: logits ``[N, T, K]``, state."""
+        """``T`` frames from per-frame features ``[N, T, ...]``: logits ``[N, T, K]``, state.
+
+        The same computation as ``T`` calls of :meth:`step_features`, arranged for
+        training: the convolutions and heads run on all frames at once, and only the
+        element-wise evidence and the ConvLSTM cells are unrolled.
+        """
         n, t = features.shape[:2]
         if state is None:
             state = self.initial_state(n)
-        outputs: List[Dict[str, Tensor]] = []
-        for i in range(t):
-            logits, state = self.step_features(features[:, i], maps[:, i], state)
-            outputs.append(logits)
-        return {k: torch.stack([o[k] for o in outputs], 1) for k in outputs[0]}, state
+        n_cells = len(self.cells)
+        z = self.project(features.flatten(0, 1))
+        z = z.reshape((n, t) + tuple(z.shape[1:]))
+        history = state[n_cells:]
+        evidence, freqs = [], []
+        # unbind, not z[:, i]: each index's backward would fill a zero tensor of all T frames.
+        for z_i, maps_i in zip(z.unbind(1), maps.unbind(1)):
+            ev, freq, history = self._evidence(z_i, maps_i, history)
+            evidence.append(ev)
+            freqs.append(freq)
+        freq_all = None if freqs[0] is None else torch.stack(freqs, 1).flatten(0, 1)
+        x = self._fuse(torch.stack(evidence, 1).flatten(0, 1), freq_all)
+        x = x.reshape((n, t) + tuple(x.shape[1:]))
+        lstm_state = state[:n_cells]
+        hidden = []
+        for x_i in x.unbind(1):
+            h, lstm_state = self._recur(x_i, lstm_state)
+            hidden.append(h)
+        logits = self._heads(torch.stack(hidden, 1).flatten(0, 1), freq_all)
+        return {k: v.reshape(n, t, -1) for k, v in logits.items()}, lstm_state + history
 
     # ---------------------------------------------------------------------- public API
 
