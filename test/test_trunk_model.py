@@ -1,5 +1,7 @@
 """The pretrained-trunk network: trunk layers and weights, lamp evidence, streaming, files."""
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -208,3 +210,26 @@ def test_calibration_error_and_fitted_temperature():
     labels = np.array([rng.choice(3, p=np.exp(z) / np.exp(z).sum()) for z in true_logits])
     # A model three times too sure of itself: the fit divides by about 3.
     assert fit_temperature(3.0 * true_logits, labels) == pytest.approx(3.0, rel=0.15)
+
+
+def test_trunk_recipe_trains_resumes_and_calibrates(tmp_path):
+    from signal_light_node.data.split import write_split
+    from signal_light_node.training import calibrate, trunk_recipe
+
+    split = tmp_path / "pool_1"
+    write_split(split, seed=7, n_sequences=3, seq_len=12, crop=trunk_config().crop_config(),
+                full_tracks=True, progress=False)
+    args = ["--out", str(tmp_path / "run"), "--pool", str(split), "--val", str(split),
+            "--batch", "2", "--seq-len", "8", "--val-every", "2", "--threads", "1"]
+    assert trunk_recipe.main(args + ["--steps", "2"]) == 0
+    first = load_checkpoint(tmp_path / "run" / "last.pt")
+    assert first.meta["step"] == 2 and first.config.encoder == "efficientnet_lite0"
+    assert trunk_recipe.main(args + ["--steps", "4", "--resume"]) == 0
+    assert load_checkpoint(tmp_path / "run" / "last.pt").meta["step"] == 4
+    history = (tmp_path / "run" / "history.jsonl").read_text().splitlines()
+    assert [json.loads(line)["step"] for line in history] == [2, 4]
+    report = calibrate.calibrate(tmp_path / "run" / "best.pt", split, tmp_path / "cal.pt",
+                                 tmp_path / "cache")
+    calibrated = load_checkpoint(tmp_path / "cal.pt")
+    assert set(calibrated.config.temperatures) == set(report)
+    assert calibrated.meta["calibration"]["heads"]["brake"]["frames"] >= 0

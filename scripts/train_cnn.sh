@@ -1,0 +1,153 @@
+#!/usr/bin/env bash
+# The recipe of the weights shipped from 2026-11-22 to 2026-11-24 (the small CNN encoder
+# with temporal input; scripts/train_default.sh now trains the pretrained-trunk model).
+# Kept to reproduce them and the "today's encoder" rows of the ablations (about 35 minutes
+# on a 2-core CPU: 20 of rendering, 5 of training, 10 of evaluation):
+#
+#   scripts/train_cnn.sh                   # CPU
+#   DEVICE=cuda THREADS=16 scripts/train_cnn.sh   # a GPU machine (see README)
+#
+# What it does:
+#   1. renders the data in parallel worker processes (one per seed): POOL_SEEDS pools of
+#      POOL_TRACKS whole tracks (style families 0 and 1 only), a validation split
+#      (windows), the own test split (whole tracks, families 0 and 1) and the held-out
+#      family test split (whole tracks, style family 2: lamp colours and camera tone
+#      curves never rendered for training);
+#   2. takes the base weights: by default the per-frame encoder and lanes trained by
+#      scripts/train_base.sh and shipped until 2026-11-22 (read from git at BASE_COMMIT,
+#      so nothing is downloaded); BASE=FILE uses another checkpoint, BASE=train runs
+#      scripts/train_base.sh first (about 83 minutes more);
+#   3. fine-tunes it with temporal evidence (--model temporal_input=true: the crop's
+#      change against the track's previous crop and running mean as 6 more input
+#      channels, zero-initialised so training starts from the base model's outputs) as
+#      stateful lanes (--mode lanes: LANES tracks side by side, SEQ_LEN frames per step,
+#      the state carried across steps as in the node), with a random camera response per
+#      track (--camera-response) and a cosine learning-rate decay over the last ANNEAL
+#      share of MINUTES; resumable (an interrupted run continues from last.pt);
+#   4. copies the best checkpoint (validation score with the state carried) to WEIGHTS;
+#   5. scores it on the own and held-out family test splits and the independent
+#      generator's bags with scripts/transfer_report.py (RUN/transfer).
+#
+# Every setting can be overridden from the environment; a 3-minute smoke run:
+#   RUN=runs/smoke POOL_SEEDS=31 POOL_TRACKS=24 VAL_SEQUENCES=16 TEST_TRACKS=12 \
+#     TEST_FRAMES=40 MINUTES=1 WEIGHTS=runs/smoke/default.pt scripts/train_cnn.sh
+set -euo pipefail
+
+cd "$(dirname "$0")/.."
+if [[ -z "${VIRTUAL_ENV:-}" && -f env.sh ]]; then
+  # shellcheck disable=SC1091
+  source env.sh
+fi
+
+RUN=${RUN:-runs/default}
+DATA=${DATA:-$RUN}
+WEIGHTS=${WEIGHTS:-$RUN/cnn.pt}
+BASE=${BASE:-git}                    # git | train | a checkpoint file
+BASE_COMMIT=${BASE_COMMIT:-b0d71f1}  # the commit whose shipped weights are the base
+SEED=${SEED:-1}
+POOL_SEEDS=${POOL_SEEDS:-"31 32 33"}
+POOL_TRACKS=${POOL_TRACKS:-600}
+POOL_FRAMES=${POOL_FRAMES:-150}
+VAL_SEED=${VAL_SEED:-700001}
+VAL_SEQUENCES=${VAL_SEQUENCES:-128}
+VAL_LEN=${VAL_LEN:-48}
+TEST_SEED=${TEST_SEED:-900001}
+FAMILY_SEED=${FAMILY_SEED:-910001}
+TEST_TRACKS=${TEST_TRACKS:-240}
+TEST_FRAMES=${TEST_FRAMES:-150}
+MINUTES=${MINUTES:-45}               # a cap; STEPS ends the run first
+STEPS=${STEPS:-150}                 # the best validation came at step 150 (see docs/model.md)
+LANES=${LANES:-32}
+SEQ_LEN=${SEQ_LEN:-12}
+LR=${LR:-2e-4}
+VAL_EVERY=${VAL_EVERY:-150}
+ANNEAL=${ANNEAL:-0}
+MODEL=${MODEL-temporal_input=true}  # --model changes on top of the base architecture
+TRAIN_ARGS=${TRAIN_ARGS---camera-response --shape-warp --freeze-norms --grown-init-scale 0.25}
+PRECISION=${PRECISION:-auto}
+DEVICE=${DEVICE:-cpu}
+THREADS=${THREADS:-2}
+EVAL=${EVAL:-1}                      # 0: stop after copying the weights (ablations evaluate)
+
+mkdir -p "$RUN" "$DATA"
+start=$(date +%s)
+echo "== 1/5 data in $DATA: pools (seeds $POOL_SEEDS), validation, test, held-out family test"
+pools=()
+pids=()
+for seed in $POOL_SEEDS; do
+  pools+=(--pool "$DATA/pool_$seed")
+  if [[ ! -f "$DATA/pool_$seed/manifest.json" ]]; then
+    python -m signal_light_node.data.split "$DATA/pool_$seed" --seed "$seed" \
+      --sequences "$POOL_TRACKS" --seq-len "$POOL_FRAMES" --full-tracks --overwrite \
+      > "$DATA/pool_$seed.log" 2>&1 &
+    pids+=($!)
+  fi
+done
+python - "$DATA" "$VAL_SEED" "$VAL_SEQUENCES" "$VAL_LEN" "$TEST_SEED" "$FAMILY_SEED" \
+  "$TEST_TRACKS" "$TEST_FRAMES" <<'PY'
+import sys
+from pathlib import Path
+
+from signal_light_node.data.split import write_split
+from signal_light_node.model import ModelConfig
+from signal_light_node.synth.lamps import HELD_OUT_FAMILY
+
+run, val_seed, val_n, val_len, test_seed, family_seed, test_n, test_len = sys.argv[1:]
+crop = ModelConfig().crop_config()
+splits = (("val_split", val_seed, val_n, val_len, False, None),
+          ("test_split", test_seed, test_n, test_len, True, None),
+          ("family_test_split", family_seed, test_n, test_len, True, HELD_OUT_FAMILY))
+for name, seed, n, length, full, family in splits:
+    out = Path(run) / name
+    if (out / "manifest.json").is_file():
+        print(f"{out} exists; reusing it")
+        continue
+    extra = {} if family is None else {"renderer_overrides": {"family": family}}
+    write_split(out, seed=int(seed), n_sequences=int(n), seq_len=int(length), crop=crop,
+                full_tracks=full, progress=False, **extra)
+PY
+for pid in "${pids[@]}"; do wait "$pid"; done
+if [[ -n "${DATA_ONLY:-}" ]]; then
+  echo "== DATA_ONLY set: splits ready in $DATA"
+  exit 0
+fi
+
+echo "== 2/5 base weights ($BASE)"
+base=$BASE
+if [[ "$BASE" == git ]]; then
+  base="$RUN/base.pt"
+  [[ -f "$base" ]] || git show "$BASE_COMMIT:signal_light_node/weights/default.pt" > "$base"
+elif [[ "$BASE" == train ]]; then
+  base="$RUN/base/default.pt"
+  [[ -f "$base" ]] || RUN="$RUN/base" WEIGHTS="$base" bash scripts/train_base.sh
+fi
+
+echo "== 3/5 temporal fine-tune: $MINUTES minutes, $LANES lanes x $SEQ_LEN frames"
+resume=()
+if [[ -f "$RUN/temporal/summary.json" ]]; then
+  echo "$RUN/temporal/summary.json exists: finished before; skipping"
+else
+  if [[ -f "$RUN/temporal/last.pt" && -f "$RUN/temporal/last.state.pt" ]]; then
+    resume=(--resume)
+  fi
+  # shellcheck disable=SC2086  # TRAIN_ARGS is split into words on purpose
+  signal-light train --out "$RUN/temporal" --mode lanes --init-from "$base" --model "$MODEL" \
+    --max-minutes "$MINUTES" --steps "$STEPS" --batch "$LANES" --seq-len "$SEQ_LEN" \
+    --lr "$LR" --val-every "$VAL_EVERY" --anneal-fraction "$ANNEAL" --seed "$SEED" \
+    --val-split "$DATA/val_split" --threads "$THREADS" --workers 0 --device "$DEVICE" \
+    --precision "$PRECISION" "${pools[@]}" $TRAIN_ARGS "${resume[@]}"
+fi
+
+echo "== 4/5 best checkpoint -> $WEIGHTS"
+mkdir -p "$(dirname "$WEIGHTS")"
+cp "$RUN/temporal/best.pt" "$WEIGHTS"
+
+if [[ "$EVAL" != 1 ]]; then
+  echo "== EVAL=0: not evaluated"
+  exit 0
+fi
+echo "== 5/5 evaluation: own test split, held-out style family, independent generator"
+python scripts/transfer_report.py --checkpoint "$WEIGHTS" --data "$DATA" --out "$RUN/transfer" \
+  --threads "$THREADS"
+echo "== done in $(( ($(date +%s) - start) / 60 )) minutes; reports: $RUN/transfer/transfer.md" \
+  "and $RUN/transfer/{own,family,independent}/metrics.md"
