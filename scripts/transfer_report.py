@@ -40,7 +40,9 @@ COLUMNS = (("intent macro-F1", "intent_f1"), ("intent FP", "intent_fp"),
 #: Hard negatives from the independent generator: no signal at all (--events none).
 #: night_tail_lamps: steady lit tail lamps from behind; night_no_signals: every view at
 #: night (head lamps, glare, wet-road reflections); day_running_lamps: every view by day
-#: (daytime running lamps, sun glints).
+#: (daytime running lamps, sun glints). The last two: `python -m signal_light_node.evalgen
+#: -o bags/NAME --seed 41|42 --lighting day|night --events none --width 640 --height 360
+#: --frames 60 --jpeg-quality 80`.
 HARD_NEGATIVE_BAGS = ("bags/night_tail_lamps", "bags/night_no_signals", "bags/day_running_lamps")
 
 
