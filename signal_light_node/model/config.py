@@ -79,6 +79,10 @@ class ModelConfig:
             previous frame and running mean (features and lamp maps).
         frequency_evidence: Give it the periodic energy of the lamp maps' left and right
             halves per blink period (``model.lamp_evidence``).
+        lit_head: Give the trunk network a training-only per-frame head that judges whether
+            each lamp is lit in this very frame (``lit_labels``; a blink's dark half is
+            OFF there): it teaches the per-frame part to see lamps, the recurrent part
+            learns the logical states. Never used by a step.
         temperatures: Per-task logit temperature of the trunk network's heads (missing
             tasks 1.0), fitted on a held-out style family by ``training.calibrate``.
     """
@@ -113,6 +117,7 @@ class ModelConfig:
     feature_channels: int = 64
     relative_evidence: bool = True
     frequency_evidence: bool = True
+    lit_head: bool = False
     temperatures: Mapping[str, float] = field(default_factory=dict, hash=False)
 
     def __post_init__(self) -> None:
@@ -131,7 +136,8 @@ class ModelConfig:
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"model config has a value of the wrong type: {exc}") from None
         # bool("false") is True: refuse anything but a real boolean (CLI values are JSON).
-        for name in ("use_attention", "temporal_input", "relative_evidence", "frequency_evidence"):
+        for name in ("use_attention", "temporal_input", "relative_evidence", "frequency_evidence",
+                     "lit_head"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"model config {name} must be true or false, got "
                                   f"{getattr(self, name)!r}")
@@ -254,6 +260,6 @@ def trunk_config(**changes: Any) -> ModelConfig:
 
     base: Dict[str, Any] = dict(encoder="efficientnet_lite0", mean=IMAGENET_MEAN_BGR,
                                 std=IMAGENET_STD_BGR, use_attention=False, lstm_hidden=(64,),
-                                head_grid=4, head_channels=16, fc_hidden=128)
+                                head_grid=4, head_channels=16, fc_hidden=128, lit_head=True)
     base.update(changes)
     return ModelConfig(**base)

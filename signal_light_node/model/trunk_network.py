@@ -43,6 +43,9 @@ if TYPE_CHECKING:  # pragma: no cover - typing only
 
 #: Width of the frequency features after their linear layer, broadcast into the ConvLSTM.
 FREQ_CHANNELS = 16
+#: Lamps the training-only per-frame head judges (``ModelConfig.lit_head``); its logits
+#: come out of :meth:`TrunkLightNet.sequence_features` as ``lit_<task>``.
+LIT_TASKS = ("brake", "left", "right")
 
 
 class TrunkLightNet(nn.Module):
@@ -90,6 +93,10 @@ class TrunkLightNet(nn.Module):
             nn.ReLU(inplace=True), nn.Dropout(config.dropout))
         self.heads = nn.ModuleDict({t: nn.Linear(config.fc_hidden, config.num_classes[t])
                                     for t in TASKS})
+        self.lit_head: Optional[nn.Linear] = None
+        if config.lit_head:
+            self.lit_head = nn.Linear(width * self.grid * self.grid,
+                                      sum(config.num_classes[t] for t in LIT_TASKS))
         self._trunk_frozen = False
         self._norms_frozen = False
 
@@ -262,6 +269,10 @@ class TrunkLightNet(nn.Module):
             h, lstm_state = self._recur(x_i, lstm_state)
             hidden.append(h)
         logits = self._heads(torch.stack(hidden, 1).flatten(0, 1), freq_all)
+        if self.lit_head is not None:
+            lit = self.lit_head(x.flatten(0, 1).flatten(1))
+            sizes = [self.config.num_classes[task] for task in LIT_TASKS]
+            logits.update({f"lit_{task}": part for task, part in zip(LIT_TASKS, lit.split(sizes, 1))})
         return {k: v.reshape(n, t, -1) for k, v in logits.items()}, lstm_state + history
 
     # ---------------------------------------------------------------------- public API

@@ -185,13 +185,16 @@ def collate_windows(rows: Sequence[Tuple[Dict[str, np.ndarray], float]], seq_len
     feats = np.zeros((n, seq_len) + first["features"].shape[1:], np.float32)
     maps = np.zeros((n, seq_len) + first["maps"].shape[1:], np.float32)
     labels = np.full((n, seq_len, len(TASKS)), -1, np.int64)
+    lit = np.full((n, seq_len, len(TASKS)), -1, np.int64)
     mask = np.zeros((n, seq_len), bool)
     for i, (w, _) in enumerate(rows):
         t = len(w["labels"])
         feats[i, :t], maps[i, :t], labels[i, :t] = w["features"], w["maps"], w["labels"]
+        lit[i, :t] = w["lit_labels"]
         mask[i, :t] = True
     return {"features": torch.from_numpy(feats), "maps": torch.from_numpy(maps),
-            "labels": torch.from_numpy(labels), "mask": torch.from_numpy(mask),
+            "labels": torch.from_numpy(labels), "lit_labels": torch.from_numpy(lit),
+            "mask": torch.from_numpy(mask),
             "fps": torch.tensor([fps for _, fps in rows], dtype=torch.float64)}
 
 

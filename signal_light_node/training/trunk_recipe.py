@@ -38,6 +38,7 @@ from signal_light_node.labels import TASKS
 from signal_light_node.model.checkpoint import save_checkpoint
 from signal_light_node.model.config import ModelConfig, trunk_config
 from signal_light_node.model.registry import build_model
+from signal_light_node.model.trunk_network import LIT_TASKS
 from signal_light_node.tools.metrics import confusion_matrix, macro_f1, per_class_scores
 from signal_light_node.training.feature_cache import (FeatureCache, collate_windows, track_logits,
                                                       trunk_fingerprint, write_cache)
@@ -45,6 +46,8 @@ from signal_light_node.training.loss import multitask_loss, warmup_frames
 
 LOG = logging.getLogger("trunk_recipe")
 TASK_WEIGHTS = {"intent": 1.0, "brake": 1.0, "left": 0.5, "right": 0.5, "view": 0.5}
+#: Weight of each lamp of the per-frame "lit now" head (``ModelConfig.lit_head``).
+LIT_WEIGHT = 0.5
 
 
 def _batch(caches: Sequence[FeatureCache], rng: np.random.Generator, batch: int, seq_len: int
@@ -126,6 +129,12 @@ def train(model: torch.nn.Module, train_caches: Sequence[FeatureCache], val: Fea
         logits, _ = model.sequence_features(b["features"], b["maps"])
         warm = warmup_frames(b["fps"].tolist(), 2, 0.4).to(device)
         loss, parts = multitask_loss(logits, b["labels"], b["mask"], TASK_WEIGHTS, weights, warm)
+        if "lit_left" in logits:
+            lit_loss, lit_parts = multitask_loss(
+                dict(logits, **{t: logits[f"lit_{t}"] for t in LIT_TASKS}), b["lit_labels"], b["mask"],
+                {t: LIT_WEIGHT for t in LIT_TASKS}, weights)
+            loss = loss + lit_loss
+            parts.update({f"lit_{t}": v for t, v in lit_parts.items()})
         optim.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, 5.0)
