@@ -63,7 +63,8 @@ def test_trunk_config_is_validated():
 
 
 @pytest.mark.parametrize("changes", [{}, {"relative_evidence": False},
-                                     {"frequency_evidence": False}, {"trunk_stride": 8}])
+                                     {"frequency_evidence": False}, {"trunk_stride": 8},
+                                     {"lit_periods": False}])
 def test_stepping_frame_by_frame_equals_the_sequence(changes):
     model = _model(**changes)
     crops = torch.rand(3, 6, 3, 64, 64, generator=torch.Generator().manual_seed(1))
@@ -81,8 +82,9 @@ def test_stepping_frame_by_frame_equals_the_sequence(changes):
 
 def test_state_layers_follow_the_options():
     full = _model().initial_state(2)
-    assert len(full) == 4  # ConvLSTM, features history, lamp history, resonators
-    assert len(_model(relative_evidence=False, frequency_evidence=False).initial_state(2)) == 2
+    assert len(full) == 5  # ConvLSTM, features, lamp maps, resonators, lit resonators
+    assert len(_model(relative_evidence=False, frequency_evidence=False,
+                      lit_periods=False).initial_state(2)) == 2
     assert all(float(t.abs().sum()) == 0 for pair in full for t in pair)
 
 

@@ -82,7 +82,10 @@ class ModelConfig:
         lit_head: Give the trunk network a training-only per-frame head that judges whether
             each lamp is lit in this very frame (``lit_labels``; a blink's dark half is
             OFF there): it teaches the per-frame part to see lamps, the recurrent part
-            learns the logical states. Never used by a step.
+            learns the logical states.
+        lit_periods: Use the lit head in every step too: each lamp's per-frame P(lit)
+            drives its own blink-period resonators and a decaying peak, which join the
+            track vector (needs ``lit_head``).
         temperatures: Per-task logit temperature of the trunk network's heads (missing
             tasks 1.0), fitted on a held-out style family by ``training.calibrate``.
     """
@@ -118,6 +121,7 @@ class ModelConfig:
     relative_evidence: bool = True
     frequency_evidence: bool = True
     lit_head: bool = False
+    lit_periods: bool = False
     temperatures: Mapping[str, float] = field(default_factory=dict, hash=False)
 
     def __post_init__(self) -> None:
@@ -137,7 +141,7 @@ class ModelConfig:
             raise ConfigError(f"model config has a value of the wrong type: {exc}") from None
         # bool("false") is True: refuse anything but a real boolean (CLI values are JSON).
         for name in ("use_attention", "temporal_input", "relative_evidence", "frequency_evidence",
-                     "lit_head"):
+                     "lit_head", "lit_periods"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"model config {name} must be true or false, got "
                                   f"{getattr(self, name)!r}")
@@ -167,6 +171,8 @@ class ModelConfig:
             raise ConfigError(f"model config std must be positive, got {self.std}")
         if self.norm not in ("batch", "group"):
             raise ConfigError(f"model config norm must be 'batch' or 'group', got {self.norm!r}")
+        if self.lit_periods and not self.lit_head:
+            raise ConfigError("model config lit_periods needs lit_head")
         if self.encoder not in ENCODERS:
             raise ConfigError(f"model config encoder must be one of {list(ENCODERS)}, "
                               f"got {self.encoder!r}")
@@ -260,6 +266,7 @@ def trunk_config(**changes: Any) -> ModelConfig:
 
     base: Dict[str, Any] = dict(encoder="efficientnet_lite0", mean=IMAGENET_MEAN_BGR,
                                 std=IMAGENET_STD_BGR, use_attention=False, lstm_hidden=(64,),
-                                head_grid=4, head_channels=16, fc_hidden=128, lit_head=True)
+                                head_grid=4, head_channels=16, fc_hidden=128, lit_head=True,
+                                lit_periods=True)
     base.update(changes)
     return ModelConfig(**base)

@@ -97,14 +97,45 @@ def resonator_coefficients(periods: Sequence[float], like: Tensor) -> Tuple[Tens
     return rho * torch.cos(w), rho * torch.sin(w)
 
 
+def resonate(signals: Tensor, resonators: Tensor, level: Tensor, seen: Tensor,
+             periods: Sequence[float]) -> Tuple[Tensor, Tensor]:
+    """One frame of a resonator bank over any signals.
+
+    Args:
+        signals: ``[N, S]`` this frame's signals.
+        resonators: ``[N, 2, S, P]`` real and imaginary parts per signal and period.
+        level: ``[N, S]`` running level of each signal (removes its steady part).
+        seen: ``[N, 1]`` 1 where the track has a previous frame.
+        periods: The ``P`` periods in frames.
+
+    Returns:
+        The new resonators and the new level.
+    """
+    cos_w, sin_w = resonator_coefficients(periods, signals)
+    # A new track starts its level at its first signal, so its onset drives nothing.
+    level = level * seen + signals * (1.0 - seen)
+    gain = 1.0 - torch.exp(-1.0 / (MEMORY_PERIODS * _as(periods, signals)))
+    drive = (signals - level).unsqueeze(-1) * gain
+    re, im = resonators[:, 0] * seen.unsqueeze(-1), resonators[:, 1] * seen.unsqueeze(-1)
+    new_re = cos_w * re - sin_w * im + drive
+    new_im = sin_w * re + cos_w * im
+    return torch.stack((new_re, new_im), 1), level + (signals - level) * 0.1
+
+
+def log_amplitude(resonators: Tensor) -> Tensor:
+    """``[N, S, P]`` log amplitude of ``[N, 2, S, P]`` resonators (floor 1e-3)."""
+    power = resonators[:, 0] ** 2 + resonators[:, 1] ** 2
+    return torch.log(torch.sqrt(power + 1e-8) + 1e-3)
+
+
 def resonator_step(signals: Tensor, resonators: Tensor, level: Tensor, seen: Tensor,
                    periods: Sequence[float]) -> Tuple[Tensor, Tensor, Tensor]:
-    """One frame of the resonator bank.
+    """One frame of the left/right resonator bank of the lamp maps (:func:`half_signals`).
 
     Args:
         signals: ``[N, 2K]`` this frame's signals (left K, then right K).
         resonators: ``[N, 2, 2K, P]`` real and imaginary parts per signal and period.
-        level: ``[N, 2K]`` running level of each signal (removes its steady part).
+        level: ``[N, 2K]`` running level of each signal.
         seen: ``[N, 1]`` 1 where the track has a previous frame.
         periods: The ``P`` periods in frames.
 
@@ -112,22 +143,14 @@ def resonator_step(signals: Tensor, resonators: Tensor, level: Tensor, seen: Ten
         ``[N, 3K * P]`` features (log amplitude of the left and the right resonators,
         their phase agreement in [-1, 1]), the new resonators and the new level.
     """
-    cos_w, sin_w = resonator_coefficients(periods, signals)
-    # A new track starts its level at its first signal, so its onset drives nothing.
-    level = level * seen + signals * (1.0 - seen)
-    drive = (signals - level).unsqueeze(-1) * (1.0 - torch.exp(-1.0 / (MEMORY_PERIODS *
-                                                                        _as(periods, signals))))
-    re, im = resonators[:, 0] * seen.unsqueeze(-1), resonators[:, 1] * seen.unsqueeze(-1)
-    new_re = cos_w * re - sin_w * im + drive
-    new_im = sin_w * re + cos_w * im
-    level = level + (signals - level) * 0.1
+    resonators, level = resonate(signals, resonators, level, seen, periods)
+    re, im = resonators[:, 0], resonators[:, 1]
     k = signals.shape[1] // 2
-    power = new_re * new_re + new_im * new_im
-    cross = new_re[:, :k] * new_re[:, k:] + new_im[:, :k] * new_im[:, k:]
+    power = re * re + im * im
+    cross = re[:, :k] * re[:, k:] + im[:, :k] * im[:, k:]
     agreement = cross / torch.sqrt(power[:, :k] * power[:, k:] + 1e-10)
-    amplitude = torch.log(torch.sqrt(power + 1e-8) + 1e-3)
-    features = torch.cat((amplitude.flatten(1), agreement.flatten(1)), 1)
-    return features, torch.stack((new_re, new_im), 1), level
+    features = torch.cat((log_amplitude(resonators).flatten(1), agreement.flatten(1)), 1)
+    return features, resonators, level
 
 
 def _as(periods: Sequence[float], like: Tensor) -> Tensor:

@@ -41,8 +41,11 @@ from signal_light_node.model.trunk import EfficientLiteTrunk, load_imagenet_weig
 if TYPE_CHECKING:  # pragma: no cover - typing only
     from signal_light_node.model.config import ModelConfig
 
-#: Width of the frequency features after their linear layer, broadcast into the ConvLSTM.
+#: Width of the track vector (frequency and lit-lamp features) after its linear layer,
+#: broadcast into the ConvLSTM.
 FREQ_CHANNELS = 16
+#: Per-frame decay of the lit head's peak memory (``lit_periods``).
+LIT_PEAK_DECAY = 0.9
 #: Lamps the training-only per-frame head judges (``ModelConfig.lit_head``); its logits
 #: come out of :meth:`TrunkLightNet.sequence_features` as ``lit_<task>``.
 LIT_TASKS = ("brake", "left", "right")
@@ -71,11 +74,18 @@ class TrunkLightNet(nn.Module):
         c_in = width + lamps.LAMP_CHANNELS
         if config.relative_evidence:
             c_in += 2 * width + 2 * lamps.LAMP_CHANNELS
+        evidence_channels = c_in
         self.n_signals = 2 * len(lamps.SIGNAL_CHANNELS)
         self.n_freq = lamps.resonator_features(self.n_signals, len(lamps.PERIODS))
+        self.lit_sizes = [config.num_classes[t] for t in LIT_TASKS]
+        # Per track, one vector: the lamp maps' resonator features, then the lit head's
+        # resonator amplitudes, decaying peaks and probabilities (``lit_periods``).
+        self.n_vector = (self.n_freq if config.frequency_evidence else 0) + \
+            (len(LIT_TASKS) * (len(lamps.PERIODS) + 1) + sum(self.lit_sizes)
+             if config.lit_periods else 0)
         self.freq: Optional[nn.Sequential] = None
-        if config.frequency_evidence:
-            self.freq = nn.Sequential(nn.Linear(self.n_freq, FREQ_CHANNELS), nn.ReLU(inplace=True))
+        if self.n_vector:
+            self.freq = nn.Sequential(nn.Linear(self.n_vector, FREQ_CHANNELS), nn.ReLU(inplace=True))
             c_in += FREQ_CHANNELS
         self.fuse = nn.Sequential(nn.Conv2d(c_in, width, 1), nn.ReLU(inplace=True))
         cells = []
@@ -87,16 +97,18 @@ class TrunkLightNet(nn.Module):
         self.lstm_dropout = nn.Dropout(config.lstm_dropout)
         last = config.lstm_hidden[-1]
         self.head_conv = nn.Conv2d(last, config.head_channels, 1)
-        extra = self.n_freq if config.frequency_evidence else 0
         self.fc = nn.Sequential(
-            nn.Linear(config.head_channels * config.head_grid ** 2 + last + extra, config.fc_hidden),
+            nn.Linear(config.head_channels * config.head_grid ** 2 + last + self.n_vector,
+                      config.fc_hidden),
             nn.ReLU(inplace=True), nn.Dropout(config.dropout))
         self.heads = nn.ModuleDict({t: nn.Linear(config.fc_hidden, config.num_classes[t])
                                     for t in TASKS})
         self.lit_head: Optional[nn.Linear] = None
         if config.lit_head:
-            self.lit_head = nn.Linear(width * self.grid * self.grid,
-                                      sum(config.num_classes[t] for t in LIT_TASKS))
+            # With lit_periods it judges the per-frame evidence and feeds the track's
+            # vector; without, it is a training-only head on the fused map.
+            lit_in = evidence_channels if config.lit_periods else width
+            self.lit_head = nn.Linear(lit_in * self.grid * self.grid, sum(self.lit_sizes))
         self._trunk_frozen = False
         self._norms_frozen = False
 
@@ -154,6 +166,9 @@ class TrunkLightNet(nn.Module):
         shapes.append(((2 * lamps.LAMP_CHANNELS, g, g), (1, 1, 1)))
         if self.config.frequency_evidence:
             shapes.append(((2 * self.n_signals * len(lamps.PERIODS), 1, 1), (self.n_signals, 1, 1)))
+        if self.config.lit_periods:
+            n_lit = len(LIT_TASKS)
+            shapes.append(((2 * n_lit * len(lamps.PERIODS), 1, 1), (2 * n_lit, 1, 1)))
         return shapes
 
     def initial_state(self, n: int) -> State:
@@ -175,11 +190,12 @@ class TrunkLightNet(nn.Module):
     # ------------------------------------------------------------------ recurrent part
 
     def _evidence(self, z: Tensor, maps: Tensor, history: Tuple
-                  ) -> Tuple[Tensor, Optional[Tensor], Tuple]:
-        """One frame's evidence maps, raw frequency features and new history.
+                  ) -> Tuple[Tensor, Optional[Tensor], Optional[Tensor], Tuple]:
+        """One frame: evidence maps, the track vector, lit-head logits and new history.
 
-        ``z`` is the projected trunk features. Only element-wise work, so a sequence
-        loops over it cheaply and runs the convolutions on all its frames at once.
+        ``z`` is the projected trunk features. Besides the lit head's linear layer only
+        element-wise work, so a sequence loops over it cheaply and runs the convolutions
+        on all its frames at once.
         """
         cfg = self.config
         parts = [z, maps]
@@ -196,21 +212,45 @@ class TrunkLightNet(nn.Module):
         else:
             mean_maps = mean_maps + (maps - mean_maps) * (seen * cfg.mean_rate + (1.0 - seen))
         new_history.append((torch.cat((maps, mean_maps), 1), torch.ones_like(seen)))
-        freq = None
-        if self.freq is not None:
+        evidence = torch.cat(parts, 1)
+        n, periods = maps.shape[0], len(lamps.PERIODS)
+        vector: List[Tensor] = []
+        if cfg.frequency_evidence:
             resonators, level = rest.pop(0)
-            n, periods = maps.shape[0], len(lamps.PERIODS)
             freq, resonators, level = lamps.resonator_step(
                 lamps.half_signals(maps), resonators.reshape(n, 2, self.n_signals, periods),
                 level.reshape(n, -1), seen.reshape(n, 1), lamps.PERIODS)
             new_history.append((resonators.reshape(n, -1, 1, 1), level.reshape(n, -1, 1, 1)))
-        return torch.cat(parts, 1), freq, tuple(new_history)
+            vector.append(freq)
+        lit_logits = None
+        if cfg.lit_periods:
+            lit_logits = self.lit_head(evidence.flatten(1))
+            lit_vector, lit_history = self._lit_periods(lit_logits, rest.pop(0), seen.reshape(n, 1))
+            vector.append(lit_vector)
+            new_history.append(lit_history)
+        return evidence, (torch.cat(vector, 1) if vector else None), lit_logits, tuple(new_history)
 
-    def _fuse(self, evidence: Tensor, freq: Optional[Tensor]) -> Tensor:
-        """The ConvLSTM input of ``[M, E, G, G]`` evidence and ``[M, F]`` frequency features."""
+    def _lit_periods(self, lit_logits: Tensor, history: Tuple[Tensor, Tensor], seen: Tensor
+                     ) -> Tuple[Tensor, Tuple[Tensor, Tensor]]:
+        """The track vector's lit-lamp part: resonators over each lamp's per-frame P(lit),
+        its decaying peak and the probabilities themselves; and the new history."""
+        n, n_lit, periods = lit_logits.shape[0], len(LIT_TASKS), len(lamps.PERIODS)
+        probs = [torch.softmax(part, 1) for part in lit_logits.split(self.lit_sizes, 1)]
+        p_on = torch.stack([p[:, 1] for p in probs], 1)
+        resonators, memory = history
+        level, peak = memory.reshape(n, 2 * n_lit).chunk(2, 1)
+        resonators, level = lamps.resonate(p_on, resonators.reshape(n, 2, n_lit, periods), level,
+                                           seen, lamps.PERIODS)
+        peak = torch.maximum(p_on, peak * (LIT_PEAK_DECAY * seen))
+        vector = torch.cat([lamps.log_amplitude(resonators).flatten(1), peak] + probs, 1)
+        return vector, (resonators.reshape(n, -1, 1, 1),
+                        torch.cat((level, peak), 1).reshape(n, -1, 1, 1))
+
+    def _fuse(self, evidence: Tensor, vector: Optional[Tensor]) -> Tensor:
+        """The ConvLSTM input of ``[M, E, G, G]`` evidence and the ``[M, V]`` track vector."""
         parts = [evidence]
-        if self.freq is not None and freq is not None:
-            parts.append(self.freq(freq)[:, :, None, None].expand(-1, -1, self.grid, self.grid))
+        if self.freq is not None and vector is not None:
+            parts.append(self.freq(vector)[:, :, None, None].expand(-1, -1, self.grid, self.grid))
         return self.fuse(torch.cat(parts, 1))
 
     def _recur(self, x: Tensor, state: State) -> Tuple[Tensor, State]:
@@ -235,9 +275,10 @@ class TrunkLightNet(nn.Module):
                       ) -> Tuple[Dict[str, Tensor], State]:
         """One frame from per-frame features (:meth:`frame_features`): logits and new state."""
         n_cells = len(self.cells)
-        evidence, freq, history = self._evidence(self.project(features), maps, state[n_cells:])
-        hidden, lstm_state = self._recur(self._fuse(evidence, freq), state[:n_cells])
-        return self._heads(hidden, freq), lstm_state + history
+        evidence, vector, _, history = self._evidence(self.project(features), maps,
+                                                      state[n_cells:])
+        hidden, lstm_state = self._recur(self._fuse(evidence, vector), state[:n_cells])
+        return self._heads(hidden, vector), lstm_state + history
 
     def sequence_features(self, features: Tensor, maps: Tensor, state: Optional[State] = None
                           ) -> Tuple[Dict[str, Tensor], State]:
@@ -254,13 +295,14 @@ class TrunkLightNet(nn.Module):
         z = self.project(features.flatten(0, 1))
         z = z.reshape((n, t) + tuple(z.shape[1:]))
         history = state[n_cells:]
-        evidence, freqs = [], []
+        evidence, vectors, lits = [], [], []
         # unbind, not z[:, i]: each index's backward would fill a zero tensor of all T frames.
         for z_i, maps_i in zip(z.unbind(1), maps.unbind(1)):
-            ev, freq, history = self._evidence(z_i, maps_i, history)
+            ev, vector, lit, history = self._evidence(z_i, maps_i, history)
             evidence.append(ev)
-            freqs.append(freq)
-        freq_all = None if freqs[0] is None else torch.stack(freqs, 1).flatten(0, 1)
+            vectors.append(vector)
+            lits.append(lit)
+        freq_all = None if vectors[0] is None else torch.stack(vectors, 1).flatten(0, 1)
         x = self._fuse(torch.stack(evidence, 1).flatten(0, 1), freq_all)
         x = x.reshape((n, t) + tuple(x.shape[1:]))
         lstm_state = state[:n_cells]
@@ -270,9 +312,10 @@ class TrunkLightNet(nn.Module):
             hidden.append(h)
         logits = self._heads(torch.stack(hidden, 1).flatten(0, 1), freq_all)
         if self.lit_head is not None:
-            lit = self.lit_head(x.flatten(0, 1).flatten(1))
-            sizes = [self.config.num_classes[task] for task in LIT_TASKS]
-            logits.update({f"lit_{task}": part for task, part in zip(LIT_TASKS, lit.split(sizes, 1))})
+            lit = torch.stack(lits, 1).flatten(0, 1) if lits[0] is not None else \
+                self.lit_head(x.flatten(0, 1).flatten(1))
+            logits.update({f"lit_{task}": part
+                           for task, part in zip(LIT_TASKS, lit.split(self.lit_sizes, 1))})
         return {k: v.reshape(n, t, -1) for k, v in logits.items()}, lstm_state + history
 
     # ---------------------------------------------------------------------- public API
