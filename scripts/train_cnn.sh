@@ -46,15 +46,7 @@ BASE=${BASE:-git}                    # git | train | a checkpoint file
 BASE_COMMIT=${BASE_COMMIT:-b0d71f1}  # the commit whose shipped weights are the base
 SEED=${SEED:-1}
 POOL_SEEDS=${POOL_SEEDS:-"31 32 33"}
-POOL_TRACKS=${POOL_TRACKS:-600}
-POOL_FRAMES=${POOL_FRAMES:-150}
-VAL_SEED=${VAL_SEED:-700001}
-VAL_SEQUENCES=${VAL_SEQUENCES:-128}
-VAL_LEN=${VAL_LEN:-48}
-TEST_SEED=${TEST_SEED:-900001}
-FAMILY_SEED=${FAMILY_SEED:-910001}
-TEST_TRACKS=${TEST_TRACKS:-240}
-TEST_FRAMES=${TEST_FRAMES:-150}
+# The other data settings (POOL_TRACKS, VAL_*, TEST_*, FAMILY_SEED, CAL_*): scripts/render_data.sh.
 MINUTES=${MINUTES:-45}               # a cap; STEPS ends the run first
 STEPS=${STEPS:-150}                 # the best validation came at step 150 (see docs/model.md)
 LANES=${LANES:-32}
@@ -73,40 +65,8 @@ mkdir -p "$RUN" "$DATA"
 start=$(date +%s)
 echo "== 1/5 data in $DATA: pools (seeds $POOL_SEEDS), validation, test, held-out family test"
 pools=()
-pids=()
-for seed in $POOL_SEEDS; do
-  pools+=(--pool "$DATA/pool_$seed")
-  if [[ ! -f "$DATA/pool_$seed/manifest.json" ]]; then
-    python -m signal_light_node.data.split "$DATA/pool_$seed" --seed "$seed" \
-      --sequences "$POOL_TRACKS" --seq-len "$POOL_FRAMES" --full-tracks --overwrite \
-      > "$DATA/pool_$seed.log" 2>&1 &
-    pids+=($!)
-  fi
-done
-python - "$DATA" "$VAL_SEED" "$VAL_SEQUENCES" "$VAL_LEN" "$TEST_SEED" "$FAMILY_SEED" \
-  "$TEST_TRACKS" "$TEST_FRAMES" <<'PY'
-import sys
-from pathlib import Path
-
-from signal_light_node.data.split import write_split
-from signal_light_node.model import ModelConfig
-from signal_light_node.synth.lamps import HELD_OUT_FAMILY
-
-run, val_seed, val_n, val_len, test_seed, family_seed, test_n, test_len = sys.argv[1:]
-crop = ModelConfig().crop_config()
-splits = (("val_split", val_seed, val_n, val_len, False, None),
-          ("test_split", test_seed, test_n, test_len, True, None),
-          ("family_test_split", family_seed, test_n, test_len, True, HELD_OUT_FAMILY))
-for name, seed, n, length, full, family in splits:
-    out = Path(run) / name
-    if (out / "manifest.json").is_file():
-        print(f"{out} exists; reusing it")
-        continue
-    extra = {} if family is None else {"renderer_overrides": {"family": family}}
-    write_split(out, seed=int(seed), n_sequences=int(n), seq_len=int(length), crop=crop,
-                full_tracks=full, progress=False, **extra)
-PY
-for pid in "${pids[@]}"; do wait "$pid"; done
+for seed in $POOL_SEEDS; do pools+=(--pool "$DATA/pool_$seed"); done
+DATA=$DATA POOL_SEEDS=$POOL_SEEDS CAL_TRACKS=0 bash scripts/render_data.sh
 if [[ -n "${DATA_ONLY:-}" ]]; then
   echo "== DATA_ONLY set: splits ready in $DATA"
   exit 0

@@ -62,6 +62,37 @@ def _conv_block(c_in: int, c_out: int, stride: int, norm: str) -> nn.Sequential:
     )
 
 
+def register_normalisation(module: nn.Module, config: "ModelConfig") -> None:
+    """Give ``module`` the ``_mean`` / ``_inv_std`` buffers of the config's input statistics.
+
+    Not persistent: the config is the source of truth for normalisation.
+    """
+    mean = torch.tensor(config.mean, dtype=torch.float32).view(1, 3, 1, 1)
+    std = torch.tensor(config.std, dtype=torch.float32).view(1, 3, 1, 1)
+    module.register_buffer("_mean", mean, persistent=False)
+    module.register_buffer("_inv_std", 1.0 / std, persistent=False)
+
+
+def check_crops(crops: Tensor, ndim: int, size: int) -> None:
+    """Raise :class:`CropError` unless ``crops`` is ``[N, 3, S, S]`` (ndim 4) or
+    ``[N, T, 3, S, S]`` (ndim 5) with ``S == size``."""
+    if crops.dim() != ndim or crops.shape[-3] != 3 or crops.shape[-1] != size \
+            or crops.shape[-2] != size:
+        want = "[N, 3, S, S]" if ndim == 4 else "[N, T, 3, S, S]"
+        raise CropError(f"model input must be {want} with S={size}, got {tuple(crops.shape)}")
+
+
+def eval_frozen(model: nn.Module, frozen: List[nn.Module], norms_frozen: bool) -> None:
+    """After ``model.train(mode)``: frozen parts and, if asked, every batch norm stay in
+    eval mode (their running statistics are kept)."""
+    for module in frozen:
+        module.eval()
+    if norms_frozen:
+        for module in model.modules():
+            if isinstance(module, nn.modules.batchnorm._BatchNorm):
+                module.eval()
+
+
 class AttentionFCN(nn.Module):
     """Fully convolutional net giving one attention value in [0, 1] per pixel."""
 
@@ -127,11 +158,7 @@ class LightStateNet(nn.Module):
         super().__init__()
         self.config = config
         self.input_size = config.input_size
-        mean = torch.tensor(config.mean, dtype=torch.float32).view(1, 3, 1, 1)
-        std = torch.tensor(config.std, dtype=torch.float32).view(1, 3, 1, 1)
-        # Buffers, not persistent: the config is the source of truth for normalisation.
-        self.register_buffer("_mean", mean, persistent=False)
-        self.register_buffer("_inv_std", 1.0 / std, persistent=False)
+        register_normalisation(self, config)
 
         self.attention_net: Optional[AttentionFCN] = (
             AttentionFCN(config.attention_channels) if config.use_attention else None)
@@ -185,11 +212,7 @@ class LightStateNet(nn.Module):
         return (x - self._mean) * self._inv_std
 
     def _check_crops(self, crops: Tensor, ndim: int) -> None:
-        size = self.input_size
-        if crops.dim() != ndim or crops.shape[-3] != 3 or crops.shape[-1] != size \
-                or crops.shape[-2] != size:
-            want = "[N, 3, S, S]" if ndim == 4 else "[N, T, 3, S, S]"
-            raise CropError(f"model input must be {want} with S={size}, got {tuple(crops.shape)}")
+        check_crops(crops, ndim, self.input_size)
 
     def attention(self, crops: Tensor) -> Tensor:
         """Attention mask ``[N, 1, S, S]`` in [0, 1] of ``[N, 3, S, S]`` crops in [0, 1].
@@ -266,13 +289,8 @@ class LightStateNet(nn.Module):
     def train(self, mode: bool = True) -> "LightStateNet":
         """``nn.Module.train``, except that a frozen encoder or frozen norms stay in eval mode."""
         super().train(mode)
-        if self._encoder_frozen:
-            for module in self._encoder_modules():
-                module.eval()
-        if self._norms_frozen:
-            for module in self.modules():
-                if isinstance(module, nn.modules.batchnorm._BatchNorm):
-                    module.eval()
+        eval_frozen(self, self._encoder_modules() if self._encoder_frozen else [],
+                    self._norms_frozen)
         return self
 
     # ------------------------------------------------------------------ recurrent part

@@ -35,7 +35,8 @@ from signal_light_node.errors import ConfigError, CropError
 from signal_light_node.labels import TASKS
 from signal_light_node.model import lamp_evidence as lamps
 from signal_light_node.model.interface import State, state_batch_size
-from signal_light_node.model.network import ConvLSTMCell
+from signal_light_node.model.network import (ConvLSTMCell, check_crops, eval_frozen,
+                                                register_normalisation)
 from signal_light_node.model.trunk import EfficientLiteTrunk, load_imagenet_weights
 
 if TYPE_CHECKING:  # pragma: no cover - typing only
@@ -61,10 +62,7 @@ class TrunkLightNet(nn.Module):
         super().__init__()
         self.config = config
         self.input_size = config.input_size
-        mean = torch.tensor(config.mean, dtype=torch.float32).view(1, 3, 1, 1)
-        std = torch.tensor(config.std, dtype=torch.float32).view(1, 3, 1, 1)
-        self.register_buffer("_mean", mean, persistent=False)
-        self.register_buffer("_inv_std", 1.0 / std, persistent=False)
+        register_normalisation(self, config)
         self.trunk = EfficientLiteTrunk(config.input_size, config.trunk_stride)
         if pretrained:
             load_imagenet_weights(self.trunk)
@@ -115,11 +113,7 @@ class TrunkLightNet(nn.Module):
     # ------------------------------------------------------------------ per-frame part
 
     def _check_crops(self, crops: Tensor, ndim: int) -> None:
-        size = self.input_size
-        if crops.dim() != ndim or crops.shape[-3] != 3 or crops.shape[-1] != size \
-                or crops.shape[-2] != size:
-            want = "[N, 3, S, S]" if ndim == 4 else "[N, T, 3, S, S]"
-            raise CropError(f"model input must be {want} with S={size}, got {tuple(crops.shape)}")
+        check_crops(crops, ndim, self.input_size)
 
     def frame_features(self, crops: Tensor) -> Tuple[Tensor, Tensor]:
         """Per-frame ``(trunk features [N,C,G,G], lamp maps [N,6,G,G])`` of crops in [0, 1].
@@ -148,12 +142,7 @@ class TrunkLightNet(nn.Module):
     def train(self, mode: bool = True) -> "TrunkLightNet":
         """``nn.Module.train``, except that a frozen trunk or frozen norms stay in eval mode."""
         super().train(mode)
-        if self._trunk_frozen:
-            self.trunk.eval()
-        if self._norms_frozen:
-            for module in self.modules():
-                if isinstance(module, nn.modules.batchnorm._BatchNorm):
-                    module.eval()
+        eval_frozen(self, [self.trunk] if self._trunk_frozen else [], self._norms_frozen)
         return self
 
     # ------------------------------------------------------------------ state

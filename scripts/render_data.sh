@@ -1,0 +1,61 @@
+#!/usr/bin/env bash
+# Render the training and evaluation splits of the training scripts into DATA, once:
+# POOL_SEEDS pools of POOL_TRACKS whole tracks (style families 0 and 1), one worker process
+# per pool, and beside them the validation split (windows), the own test split and the
+# held-out family test split (style family 2), plus a family-2 calibration split when
+# CAL_TRACKS > 0. A split whose manifest exists is reused. Called by train_default.sh and
+# train_cnn.sh with their settings in the environment (the defaults are theirs).
+set -euo pipefail
+
+cd "$(dirname "$0")/.."
+: "${DATA:?DATA must name the data directory}"
+POOL_SEEDS=${POOL_SEEDS:-"31 32 33"}
+POOL_TRACKS=${POOL_TRACKS:-600}
+POOL_FRAMES=${POOL_FRAMES:-150}
+VAL_SEED=${VAL_SEED:-700001}
+VAL_SEQUENCES=${VAL_SEQUENCES:-128}
+VAL_LEN=${VAL_LEN:-48}
+TEST_SEED=${TEST_SEED:-900001}
+FAMILY_SEED=${FAMILY_SEED:-910001}
+CAL_SEED=${CAL_SEED:-920001}
+TEST_TRACKS=${TEST_TRACKS:-240}
+TEST_FRAMES=${TEST_FRAMES:-150}
+CAL_TRACKS=${CAL_TRACKS:-0}
+
+mkdir -p "$DATA"
+pids=()
+for seed in $POOL_SEEDS; do
+  if [[ ! -f "$DATA/pool_$seed/manifest.json" ]]; then
+    python -m signal_light_node.data.split "$DATA/pool_$seed" --seed "$seed" \
+      --sequences "$POOL_TRACKS" --seq-len "$POOL_FRAMES" --full-tracks --overwrite \
+      > "$DATA/pool_$seed.log" 2>&1 &
+    pids+=($!)
+  fi
+done
+python - "$DATA" "$VAL_SEED" "$VAL_SEQUENCES" "$VAL_LEN" "$TEST_SEED" "$FAMILY_SEED" \
+  "$TEST_TRACKS" "$TEST_FRAMES" "$CAL_SEED" "$CAL_TRACKS" <<'PY'
+import sys
+from pathlib import Path
+
+from signal_light_node.data.split import write_split
+from signal_light_node.model import ModelConfig
+from signal_light_node.synth.lamps import HELD_OUT_FAMILY
+
+run, val_seed, val_n, val_len, test_seed, family_seed, test_n, test_len, cal_seed, cal_n = \
+    sys.argv[1:]
+crop = ModelConfig().crop_config()
+splits = [("val_split", val_seed, val_n, val_len, False, None),
+          ("test_split", test_seed, test_n, test_len, True, None),
+          ("family_test_split", family_seed, test_n, test_len, True, HELD_OUT_FAMILY)]
+if int(cal_n) > 0:
+    splits.append(("family_cal_split", cal_seed, cal_n, test_len, True, HELD_OUT_FAMILY))
+for name, seed, n, length, full, family in splits:
+    out = Path(run) / name
+    if (out / "manifest.json").is_file():
+        print(f"{out} exists; reusing it")
+        continue
+    extra = {} if family is None else {"renderer_overrides": {"family": family}}
+    write_split(out, seed=int(seed), n_sequences=int(n), seq_len=int(length), crop=crop,
+                full_tracks=full, progress=False, **extra)
+PY
+for pid in "${pids[@]}"; do wait "$pid"; done
