@@ -200,20 +200,6 @@ def test_feature_cache_trains_the_model_that_runs_on_crops(tmp_path):
         FeatureCache.load(tmp_path / "cache", trunk_fingerprint(other))
 
 
-def test_calibration_error_and_fitted_temperature():
-    from signal_light_node.training.calibrate import expected_calibration_error, fit_temperature
-
-    probs = np.array([[0.9, 0.1], [0.9, 0.1], [0.6, 0.4], [0.6, 0.4]])
-    labels = np.array([0, 1, 0, 0])
-    # bin 0.9: accuracy 0.5 vs 0.9; bin 0.6: accuracy 1.0 vs 0.6.
-    assert expected_calibration_error(probs, labels) == pytest.approx(0.5 * 0.4 + 0.5 * 0.4)
-    rng = np.random.default_rng(0)
-    true_logits = rng.normal(0, 2, (4000, 3))
-    labels = np.array([rng.choice(3, p=np.exp(z) / np.exp(z).sum()) for z in true_logits])
-    # A model three times too sure of itself: the fit divides by about 3.
-    assert fit_temperature(3.0 * true_logits, labels) == pytest.approx(3.0, rel=0.15)
-
-
 def test_trunk_recipe_trains_resumes_and_calibrates(tmp_path):
     from signal_light_node.data.split import write_split
     from signal_light_node.training import calibrate, trunk_recipe

@@ -86,8 +86,8 @@ class ModelConfig:
         lit_periods: Use the lit head in every step too: each lamp's per-frame P(lit)
             drives its own blink-period resonators and a decaying peak, which join the
             track vector (needs ``lit_head``).
-        temperatures: Per-task logit temperature of the trunk network's heads (missing
-            tasks 1.0), fitted on a held-out style family by ``training.calibrate``.
+        temperatures: Per-task logit temperature of the heads (missing tasks 1.0), fitted
+            on a held-out style family by ``training.calibrate``.
     """
 
     arch: str = "convlstm_attention"

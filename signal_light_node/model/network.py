@@ -24,7 +24,7 @@ in eval mode this is the same computation as stepping frame by frame.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Dict, List, Optional, Tuple
+from typing import TYPE_CHECKING, Dict, List, Mapping, Optional, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -91,6 +91,14 @@ def eval_frozen(model: nn.Module, frozen: List[nn.Module], norms_frozen: bool) -
         for module in model.modules():
             if isinstance(module, nn.modules.batchnorm._BatchNorm):
                 module.eval()
+
+
+def apply_temperatures(logits: Dict[str, Tensor], temperatures: Mapping[str, float]
+                       ) -> Dict[str, Tensor]:
+    """Each task's logits divided by its temperature (``ModelConfig.temperatures``; a
+    task without one, or with 1.0, is left as it is, so an uncalibrated graph is unchanged)."""
+    return {t: v if temperatures.get(t, 1.0) == 1.0 else v * (1.0 / temperatures[t])
+            for t, v in logits.items()}
 
 
 class AttentionFCN(nn.Module):
@@ -340,7 +348,8 @@ class LightStateNet(nn.Module):
         grid = F.adaptive_avg_pool2d(F.relu(self.head_conv(hidden)), self.config.head_grid)
         pooled = torch.cat((grid.flatten(1), hidden.amax(dim=(2, 3))), 1)
         z = self.fc(pooled)
-        return {t: head(z) for t, head in self.heads.items()}
+        return apply_temperatures({t: head(z) for t, head in self.heads.items()},
+                                  self.config.temperatures)
 
     # ---------------------------------------------------------------------- public API
 

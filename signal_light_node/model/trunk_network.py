@@ -35,8 +35,8 @@ from signal_light_node.errors import ConfigError, CropError
 from signal_light_node.labels import TASKS
 from signal_light_node.model import lamp_evidence as lamps
 from signal_light_node.model.interface import State, state_batch_size
-from signal_light_node.model.network import (ConvLSTMCell, check_crops, eval_frozen,
-                                                register_normalisation)
+from signal_light_node.model.network import (ConvLSTMCell, apply_temperatures, check_crops,
+                                                eval_frozen, register_normalisation)
 from signal_light_node.model.trunk import EfficientLiteTrunk, load_imagenet_weights
 
 if TYPE_CHECKING:  # pragma: no cover - typing only
@@ -256,9 +256,8 @@ class TrunkLightNet(nn.Module):
         if freq is not None:
             parts.append(freq)
         z = self.fc(torch.cat(parts, 1))
-        temps = self.config.temperatures
-        return {t: head(z) if temps.get(t, 1.0) == 1.0 else head(z) * (1.0 / temps[t])
-                for t, head in self.heads.items()}
+        return apply_temperatures({t: head(z) for t, head in self.heads.items()},
+                                  self.config.temperatures)
 
     def step_features(self, features: Tensor, maps: Tensor, state: State
                       ) -> Tuple[Dict[str, Tensor], State]:

@@ -18,14 +18,15 @@ import argparse
 import json
 import logging
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 import torch
 
 from signal_light_node.model.checkpoint import load_checkpoint, save_checkpoint
-from signal_light_node.training.feature_cache import (FeatureCache, track_logits,
-                                                      trunk_fingerprint, write_cache)
+from signal_light_node.labels import TASKS
+from signal_light_node.training.feature_cache import (FeatureCache, collect_scored, split_tracks,
+                                                      track_logits, trunk_fingerprint, write_cache)
 
 LOG = logging.getLogger(__name__)
 
@@ -44,6 +45,32 @@ def expected_calibration_error(probs: np.ndarray, labels: np.ndarray, bins: int 
         if sel.any():
             total += sel.mean() * abs(correct[sel].mean() - confidence[sel].mean())
     return float(total)
+
+
+@torch.no_grad()
+def crop_track_logits(model: torch.nn.Module, split: Path, batch: int = 16
+                      ) -> Dict[str, Tuple[np.ndarray, np.ndarray]]:
+    """:func:`~signal_light_node.training.feature_cache.track_logits` for any model: every
+    track of ``split`` run from its crops, from its first frame."""
+    model.eval()
+    out: Dict[str, List[Tuple[np.ndarray, np.ndarray]]] = {t: [] for t in TASKS}
+    tracks = list(split_tracks(split))
+    for start in range(0, len(tracks), batch):
+        chunk = tracks[start:start + batch]
+        length = max(len(t["crops"]) for t in chunk)
+        crops = np.zeros((len(chunk), length) + chunk[0]["crops"].shape[1:], np.uint8)
+        labels = np.full((len(chunk), length, len(TASKS)), -1, np.int64)
+        mask = np.zeros((len(chunk), length), bool)
+        for i, t in enumerate(chunk):
+            n = len(t["crops"])
+            crops[i, :n], labels[i, :n], mask[i, :n] = t["crops"], t["labels"], True
+        x = torch.from_numpy(crops).permute(0, 1, 4, 2, 3).float().div_(255.0)
+        logits, _ = model.forward_sequence(x)
+        collect_scored(out, {k: v for k, v in logits.items() if k in TASKS},
+                       {"labels": torch.from_numpy(labels), "mask": torch.from_numpy(mask),
+                        "fps": torch.tensor([t["fps"] for t in chunk], dtype=torch.float64)})
+    return {t: (np.concatenate([a for a, _ in v]), np.concatenate([y for _, y in v]))
+            for t, v in out.items()}
 
 
 def _nll(logits: np.ndarray, labels: np.ndarray, temperature: float) -> float:
@@ -67,12 +94,16 @@ def calibrate(checkpoint: Path, split: Path, out: Path, cache_root: Path) -> Dic
     """Fit the temperatures of ``checkpoint`` on ``split``; write the calibrated ``out``."""
     loaded = load_checkpoint(checkpoint)
     model = loaded.model.eval()
-    fingerprint = trunk_fingerprint(model)
-    cache = FeatureCache.load(write_cache(split, model, cache_root / fingerprint / split.name),
-                              fingerprint)
+    if hasattr(model, "frame_features"):  # a frozen trunk: its features cached once
+        fingerprint = trunk_fingerprint(model)
+        cache = FeatureCache.load(write_cache(split, model, cache_root / fingerprint / split.name),
+                                  fingerprint)
+        per_task = track_logits(model, cache)
+    else:
+        per_task = crop_track_logits(model, split)
     report: Dict[str, Dict[str, float]] = {}
     temps: Dict[str, float] = {}
-    for task, (logits, labels) in track_logits(model, cache).items():
+    for task, (logits, labels) in per_task.items():
         old = float(loaded.config.temperatures.get(task, 1.0))
         raw = logits * old  # the logits before any earlier temperature
         t = fit_temperature(raw, labels)
@@ -83,7 +114,7 @@ def calibrate(checkpoint: Path, split: Path, out: Path, cache_root: Path) -> Dic
         LOG.info("%s: T=%.3f ECE %.4f -> %.4f (%d frames)", task, t, report[task]["ece_before"],
                  report[task]["ece_after"], len(labels))
     config = loaded.config.replace(temperatures=temps)
-    model.config = config
+    model.config = config  # the heads read their temperatures from it
     meta = dict(loaded.meta, calibration={"split": str(split), "heads": report})
     save_checkpoint(out, model, config, meta)
     return report

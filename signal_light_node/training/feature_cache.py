@@ -53,7 +53,7 @@ def trunk_fingerprint(model: torch.nn.Module) -> str:
     return digest.hexdigest()[:16]
 
 
-def _split_tracks(split_dir: Path) -> Iterator[Dict[str, np.ndarray]]:
+def split_tracks(split_dir: Path) -> Iterator[Dict[str, np.ndarray]]:
     """The whole tracks of a split directory, shard by shard (only the real frames)."""
     manifest = json.loads((split_dir / "manifest.json").read_text())
     shards = manifest.get("shards") or sorted(p.name for p in split_dir.glob("shard_*.npz"))
@@ -108,7 +108,7 @@ def write_cache(split_dir: "str | os.PathLike[str]", model: torch.nn.Module,
     tmp.mkdir(parents=True)
     columns: Dict[str, List[Any]] = {k: [] for k in ("features", "maps", "labels", "lit_labels",
                                                       "lengths", "fps", "lighting")}
-    for track in _split_tracks(split_dir):
+    for track in split_tracks(split_dir):
         crops = track["crops"]
         if rng is not None:
             crops = randomise_camera(warp_sequence(crops, rng), rng)
@@ -211,12 +211,18 @@ def track_logits(model: torch.nn.Module, cache: FeatureCache, batch: int = 64
         rows = [(cache.window(i, 0, int(cache.lengths[i])), float(cache.fps[i])) for i in tracks]
         b = collate_windows(rows, max(int(cache.lengths[i]) for i in tracks))
         logits, _ = model.sequence_features(b["features"].to(device), b["maps"].to(device))
-        logits = {k: v.cpu() for k, v in logits.items()}
-        warm = torch.clamp(torch.ceil(b["fps"]), min=10).to(torch.int64)
-        scored = b["mask"] & (torch.arange(b["mask"].shape[1])[None] >= warm[:, None])
-        for i, task in enumerate(TASKS):
-            y = b["labels"][..., i]
-            keep = scored & (y >= 0)
-            out[task].append((logits[task][keep].numpy(), y[keep].numpy()))
+        collect_scored(out, {k: v.cpu() for k, v in logits.items()}, b)
     return {t: (np.concatenate([a for a, _ in v]), np.concatenate([y for _, y in v]))
             for t, v in out.items()}
+
+
+def collect_scored(out: Dict[str, List[Tuple[np.ndarray, np.ndarray]]],
+                   logits: Dict[str, torch.Tensor], batch: Dict[str, torch.Tensor]) -> None:
+    """Append per task the ``(logits, labels)`` of a batch's labelled frames past the
+    evaluation's warm-up (1 s of the track, at least 10 frames)."""
+    warm = torch.clamp(torch.ceil(batch["fps"]), min=10).to(torch.int64)
+    scored = batch["mask"] & (torch.arange(batch["mask"].shape[1])[None] >= warm[:, None])
+    for i, task in enumerate(TASKS):
+        y = batch["labels"][..., i]
+        keep = scored & (y >= 0)
+        out[task].append((logits[task][keep].numpy(), y[keep].numpy()))
