@@ -153,6 +153,7 @@ def render_markdown(result: Dict[str, Any]) -> str:
     ratio = "–" if intent["ratio"] is None else f"{intent['ratio']:.2f}"
     parts = [
         f"## Evaluation of `{result['checkpoint']}`", "",
+        *([result["model"]["text"], ""] if result.get("model") else []),
         f"Data: `{json.dumps(result['data_brief'])}`", "",
         f"{counts['tracks']} tracks, {counts['stepped']} frames "
         f"{'judged' if result.get('ideal_observer') else 'stepped through `model.step`'}, "
@@ -191,7 +192,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from signal_light_node.labels import CLASS_NAMES
-    from signal_light_node.runtime.backend import create_backend
+    from signal_light_node.runtime.backend import ModelRun, create_backend
     from signal_light_node.tools.metrics import render_confusion_png
     from signal_light_node.training.evaluation import EvalSettings, evaluate_tracks
     from signal_light_node.training.ideal_observer import score_ideal_observer
@@ -204,6 +205,7 @@ def run(args: argparse.Namespace) -> int:
                             warmup_seconds=args.warmup_seconds, grace_seconds=args.grace,
                             batch_tracks=args.batch_tracks)
     started = time.monotonic()
+    ran: Optional[ModelRun] = None
     if args.ideal_observer:
         _check_one_source(args)
         # The model only gives the crop settings the split must have been made with.
@@ -216,12 +218,14 @@ def run(args: argparse.Namespace) -> int:
         result = evaluate_tracks(backend, tracks, settings, progress=not args.no_progress,
                                  total=total, intent_filter=intent_filter)
         result["intent_filter_text"] = intent_filter.describe()
+        ran = ModelRun.of(backend)  # after the steps: the threads they ran on
     result = {"checkpoint": str(checkpoint), "ideal_observer": bool(args.ideal_observer),
               "data": data,
               "data_brief": {k: v for k, v in data.items()
                              if k not in ("label_histogram", "lighting")},
               "seconds": round(time.monotonic() - started, 1),
-              "backend": backend.name, "checkpoint_meta": _model_meta(backend), **result}
+              "backend": backend.name, "checkpoint_meta": _model_meta(backend),
+              "model": None if ran is None else ran.as_dict(), **result}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")

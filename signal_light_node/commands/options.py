@@ -23,29 +23,38 @@ def add_labelled_data_options(group: ArgumentContainer) -> None:
 
 
 def add_model_options(group: ArgumentContainer) -> None:
-    """``--checkpoint``, ``--backend`` and ``--precision`` of the commands that run a model."""
-    from signal_light_node.runtime.backend import AUTO_BACKEND, PRECISIONS, known_backends
+    """``--checkpoint``, ``--backend`` and ``--precision`` of the commands that run a model.
+
+    ``--backend`` and ``--precision`` default to the node's parameters (one copy of them,
+    in ``runtime.backend``), so that a replay or an evaluation runs what the node runs.
+    """
+    from signal_light_node.runtime.backend import (AUTO_BACKEND, DEFAULT_BACKEND,
+                                                   DEFAULT_PRECISION, PRECISIONS,
+                                                   known_backends)
 
     group.add_argument("--checkpoint", type=Path, default=None,
                        help="model file: a .pt checkpoint (--backend torch) or its .onnx export "
                             "(--backend onnxruntime); default: the shipped one")
     group.add_argument("--backend", choices=known_backends() + (AUTO_BACKEND,),
-                       default="torch",
-                       help="model backend (default torch); onnxruntime runs the file "
-                            "`signal-light export --onnx` writes; auto picks as the node's "
-                            "default does (by the file's suffix; onnxruntime on the CPU for "
-                            "the shipped model)")
-    group.add_argument("--precision", choices=PRECISIONS, default="auto",
-                       help="weights: fp32, int8 (an int8 export, onnxruntime on the CPU) or "
-                            "auto: a --checkpoint as it is; of the shipped model int8 with "
-                            "onnxruntime on the CPU, else fp32")
+                       default=DEFAULT_BACKEND,
+                       help="model backend, as the node's backend parameter (default "
+                            "%(default)s); auto picks by the file's suffix, and for the "
+                            "shipped model onnxruntime on the CPU, torch on CUDA; onnxruntime "
+                            "runs the file `signal-light export --onnx` writes")
+    group.add_argument("--precision", choices=PRECISIONS, default=DEFAULT_PRECISION,
+                       help="weights, as the node's precision parameter (default "
+                            "%(default)s): fp32, int8 (an int8 export, onnxruntime on "
+                            "the CPU) or auto: a --checkpoint as it is; of the shipped model "
+                            "int8 with onnxruntime on the CPU, else fp32")
 
 
 def add_torch_options(group: ArgumentContainer) -> None:
     """``--device``, ``--threads`` and ``--no-progress`` of the commands that run the model."""
-    group.add_argument("--device", default="cpu", help="torch device: cpu, cuda or cuda:N")
+    group.add_argument("--device", default="cpu", help="device: cpu, cuda or cuda:N")
     group.add_argument("--threads", type=int, default=None,
-                       help="torch CPU threads (unset: torch's choice)")
+                       help="CPU threads of a model step (torch: intra-op; onnxruntime: "
+                            "splitting the batch); unset: the backend's choice, as the node's "
+                            "num_threads 0 (onnxruntime: 1 or all per step, by the load)")
     group.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 

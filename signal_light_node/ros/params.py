@@ -1,7 +1,9 @@
 """Every parameter of the ``signal_light_detector`` node, declared and validated in one place.
 
-:class:`DetectorParams` holds the values and their defaults (the only copy of the defaults;
-``config/detector.yaml`` is tested against it), :data:`PARAM_SPECS` describes each one
+:class:`DetectorParams` holds the values and their defaults (the only copy of the defaults
+but ``backend`` and ``precision``, which come from ``runtime.backend`` because
+``signal-light replay`` and ``evaluate`` default to them too; ``config/detector.yaml`` is
+tested against it), :data:`PARAM_SPECS` describes each one
 (description, range or choices, whether it may change at run time), and
 :func:`validate_params` checks a set of values with a reason a user can act on. Only
 :func:`declare_parameters` and :func:`read_parameters` touch rclpy, and they import it
@@ -19,6 +21,7 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 from signal_light_node.errors import ConfigError
 from signal_light_node.io.image_codec import DEFAULT_MAX_IMAGE_PIXELS
 from signal_light_node.io.topics import camera_name_problem
+from signal_light_node.runtime.backend import DEFAULT_BACKEND, DEFAULT_PRECISION, PRECISIONS
 from signal_light_node.runtime.intent_filter import IntentFilterConfig
 from signal_light_node.labels import LIGHT_CODES
 
@@ -85,8 +88,9 @@ class DetectorParams:
 
     model_path: str = ""
     device: str = "cpu"
-    backend: str = "auto"
-    precision: str = "auto"
+    # Shared with signal-light replay / evaluate (runtime.backend), so a replay is the node.
+    backend: str = DEFAULT_BACKEND
+    precision: str = DEFAULT_PRECISION
     image_transport: str = "raw"
     cameras: List[str] = field(default_factory=list)
     reliability: str = "best_effort"
@@ -167,7 +171,7 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
                            "same accuracy) or auto: a model_path as it is; of the shipped "
                            "model int8 with onnxruntime on the CPU, else fp32. A model_path "
                            "of another precision is refused at start.",
-                           choices=("auto", "fp32", "int8")),
+                           choices=PRECISIONS),
     "image_transport": ParamSpec(
         "raw: subscribe ~/input/image (sensor_msgs/Image); compressed: subscribe "
         "~/input/image/compressed (sensor_msgs/CompressedImage).", choices=("raw", "compressed")),

@@ -17,12 +17,16 @@ only when asked for, so this module imports neither torch nor onnxruntime:
   :class:`signal_light_node.model.backends.onnx_backend.OnnxRuntimeBackend`, a model
   exported by ``signal-light export --onnx`` (``.onnx``).
 
-``auto`` (:data:`AUTO_BACKEND`, the node's default) is not a backend but picks one
+``auto`` (:data:`AUTO_BACKEND`, the node's default, :data:`DEFAULT_BACKEND`, which
+``signal-light replay`` and ``evaluate`` share) is not a backend but picks one
 (:func:`resolve_backend`): by the model file's suffix, and for the shipped model
 onnxruntime on the CPU, which runs the same network faster there than torch (measured on
 a 2-core AVX2 machine, 32 tracks: step 36-41 ms against 48-51 ms). The precision
 (:data:`PRECISIONS`) picks among the shipped files the same way: ``auto`` takes the int8
 export where it runs (onnxruntime on the CPU: 0.73-0.78x the float step, the same scores).
+
+:class:`ModelRun` says what ran once ``auto`` was resolved: the model file, backend,
+precision, device and CPU threads (what a replay and an evaluation report).
 """
 
 from __future__ import annotations
@@ -30,6 +34,8 @@ from __future__ import annotations
 import importlib.util
 import logging
 import re
+import sys
+from dataclasses import dataclass, field
 from typing import (TYPE_CHECKING, Any, Callable, Dict, NamedTuple, Optional, Protocol, Tuple,
                     runtime_checkable)
 
@@ -52,6 +58,11 @@ AUTO_BACKEND = "auto"
 #: words for a file; ``auto`` picks).
 AUTO_PRECISION = "auto"
 PRECISIONS = (AUTO_PRECISION, "fp32", "int8")
+
+#: What the node runs unless told otherwise (``ros.params.DetectorParams``), and so what
+#: ``signal-light replay`` and ``evaluate`` run: a replay is meant to be the node.
+DEFAULT_BACKEND = AUTO_BACKEND
+DEFAULT_PRECISION = AUTO_PRECISION
 
 #: Devices a backend may be asked for: ``cpu``, ``cuda`` or ``cuda:N``.
 _DEVICE = re.compile(r"(cpu|cuda(:\d+)?)\Z")
@@ -82,7 +93,9 @@ class ModelBackend(Protocol):
         device: Where it runs (``cpu``, ``cuda``, ``cuda:N``).
         source: The file it was loaded from ("" when built in memory).
 
-    A backend may also say its weights' ``precision`` (``fp32`` when it does not).
+    A backend may also say its weights' ``precision`` (``fp32`` when it does not), the
+    most CPU ``threads`` a step may use and the ``threads_in_use`` of its last step
+    (:func:`step_threads`).
     """
 
     name: str
@@ -284,3 +297,101 @@ def as_backend(model: Any, device: str = "cpu") -> ModelBackend:
     from signal_light_node.model.backends.torch_backend import TorchBackend
 
     return TorchBackend(model, device=check_device(device))
+
+
+# ------------------------------------------------------------------ what ran
+def step_threads(backend: Any) -> Optional[int]:
+    """CPU threads the backend's last step ran on, as the node's /diagnostics
+    ``model_threads``; None when the backend does not say.
+
+    onnxruntime says so itself (``threads_in_use``: one or all of its threads per step by
+    the load, fewer for a batch smaller than that); torch runs its process-wide intra-op
+    thread count. torch is only looked up, never imported: a torch backend has loaded it.
+    """
+    held = getattr(backend, "threads_in_use", None)
+    if held is not None:
+        return int(held)
+    torch = sys.modules.get("torch") if getattr(backend, "name", "") == "torch" else None
+    return int(torch.get_num_threads()) if torch is not None else None
+
+
+@dataclass
+class ModelRun:
+    """The model a replay or an evaluation ran, after ``auto`` was resolved.
+
+    Attributes:
+        model_file: The file it was loaded from ("" when built in memory).
+        backend: The backend that ran it (``torch``, ``onnxruntime``).
+        precision: Its weights (``fp32``, ``int8``).
+        device: Where it ran.
+        most_threads: The most CPU threads a step may use; None when the backend does not
+            say.
+        threads_by_load: Each step runs one or ``most_threads`` threads as the load allows
+            (onnxruntime without a thread count).
+        last_step_threads: Threads of the last step (:func:`step_threads`).
+        steps_by_threads: Steps counted with :meth:`count_step`, per the threads they ran
+            on; empty when nobody counted.
+    """
+
+    model_file: str
+    backend: str
+    precision: str
+    device: str
+    most_threads: Optional[int] = None
+    threads_by_load: bool = False
+    last_step_threads: Optional[int] = None
+    steps_by_threads: Dict[int, int] = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, backend: Any) -> "ModelRun":
+        """What ``backend`` is and, so far, ran on (its last step's threads)."""
+        last = step_threads(backend)
+        most = getattr(backend, "threads", None)
+        return cls(model_file=str(getattr(backend, "source", "") or ""),
+                   backend=str(getattr(backend, "name", type(backend).__name__)),
+                   precision=str(getattr(backend, "precision", "fp32")),
+                   device=str(getattr(backend, "device", "")),
+                   most_threads=last if most is None else int(most),
+                   threads_by_load=getattr(backend, "thread_choice", None) is not None,
+                   last_step_threads=last)
+
+    def count_step(self, backend: Any) -> None:
+        """Count a step ``backend`` has just run, on the threads it ran on."""
+        threads = step_threads(backend)
+        self.last_step_threads = threads
+        if threads is not None:
+            self.steps_by_threads[threads] = self.steps_by_threads.get(threads, 0) + 1
+
+    def threads_text(self) -> str:
+        """The threads that ran, e.g. ``2 on 80 steps, 1 on 40 steps (1 or 2 per step, by
+        the load)``; without counted steps, the last step's."""
+        if self.steps_by_threads:
+            text = ", ".join(f"{t} on {n} steps" for t, n in
+                             sorted(self.steps_by_threads.items(), reverse=True))
+        elif self.last_step_threads is not None:
+            text = f"{self.last_step_threads} in the last step"
+        else:
+            return "not known"
+        if self.threads_by_load:
+            text += f" (1 or {self.most_threads} per step, by the load)"
+        elif self.most_threads is not None and (
+                set(self.steps_by_threads) or {self.last_step_threads}) != {self.most_threads}:
+            text += f" (at most {self.most_threads}: a small batch takes fewer)"
+        return text
+
+    def text(self) -> str:
+        """One line: ``model: FILE, backend B, precision P, device D, threads: ...``."""
+        return (f"model: {self.model_file or 'built in memory'}, backend {self.backend}, "
+                f"precision {self.precision}, device {self.device}, threads: "
+                f"{self.threads_text()}")
+
+    def as_dict(self) -> Dict[str, Any]:
+        """The fields for JSON (thread counts as string keys), with the threads' and the
+        whole line's :meth:`text`."""
+        return {"model_file": self.model_file, "backend": self.backend,
+                "precision": self.precision, "device": self.device,
+                "most_threads": self.most_threads, "threads_by_load": self.threads_by_load,
+                "last_step_threads": self.last_step_threads,
+                "steps_by_threads": {str(t): n for t, n in
+                                     sorted(self.steps_by_threads.items(), reverse=True)},
+                "threads": self.threads_text(), "text": self.text()}

@@ -32,6 +32,7 @@ from signal_light_node.io.bagio import BagWriter, find_topic, make, open_bag
 from signal_light_node.boxes import TrackBox
 from signal_light_node.io.conversions import (detections_to_boxes, result_row, stamp_to_ns,
                                            truth_row)
+from signal_light_node.runtime.backend import ModelRun
 from signal_light_node.runtime.engine import ENGINE_STAGES, FrameResult, LightStateEngine
 from signal_light_node.errors import ImageConversionError
 from signal_light_node.io.image_codec import DEFAULT_MAX_IMAGE_PIXELS, msg_to_bgr
@@ -99,6 +100,8 @@ class ReplaySummary:
         pairing: How images and detections were paired.
         pairing_counters: The pairer's counters (``runtime.pairing.COUNTERS``).
         topics_written: The output topics written, result array first.
+        model: The model that ran (file, backend, precision, device, the threads of its
+            steps); None until a replay fills it.
     """
 
     output: Path
@@ -125,6 +128,7 @@ class ReplaySummary:
     pairing: PairingConfig = PairingConfig()
     pairing_counters: Dict[str, int] = field(default_factory=dict)
     topics_written: List[str] = field(default_factory=list)
+    model: Optional[ModelRun] = None
 
     @property
     def frames_per_s(self) -> float:
@@ -148,7 +152,8 @@ class ReplaySummary:
         """A few lines for the terminal."""
         mean, p95 = self.latency_ms()
         c = self.counters
-        lines = [
+        lines = [self.model.text()] if self.model is not None else []
+        lines += [
             f"output: {self.output} ({self.outputs} messages on "
             f"{', '.join(self.topics_written or [OUTPUT_TOPIC])})",
             f"images: {self.images} from {self.image_topic}, detections from "
@@ -268,7 +273,8 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
     bag_path, output = Path(bag_path), Path(output)
     adapters = output_adapters(markers=markers)
     summary = ReplaySummary(output=output, pairing=pairing,
-                            topics_written=[a.topic for a in adapters])
+                            topics_written=[a.topic for a in adapters],
+                            model=ModelRun.of(engine.backend))
     with open_bag(bag_path) as bag:
         topics = bag.topics()
         img_t = find_topic(topics, IMAGE_TYPES, image_topic, "image", bag_path)
@@ -327,6 +333,8 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
                                                   "image could not be decoded")
                 else:
                     frame = engine.process(image, stamp, boxes)
+                    if frame.n_judged:  # the frame ran a model step
+                        summary.model.count_step(engine.backend)
                     summary.engine_s += frame.latency_s
                     summary.latencies_s.append(frame.latency_s)
                 t_build = time.perf_counter()

@@ -36,6 +36,7 @@ from signal_light_node.io.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, GROUN
                                          IMAGE_TYPES, VEHICLE_LIGHTS_TYPE, camera_name_problem,
                                          camera_topic)
 from signal_light_node.outputs import output_adapters
+from signal_light_node.runtime.backend import ModelRun
 from signal_light_node.runtime.camera_batch import unjudged_camera_frame
 from signal_light_node.runtime.engine import LightStateEngine
 from signal_light_node.runtime.pairing import COUNTERS, OrderedPairing, PairingConfig, pair_in_order
@@ -292,7 +293,8 @@ def replay_cameras(sources: Sequence[CameraSource], output: "str | Path",
         raise ConfigError(f"cameras of the replay: {problem}")
     output = Path(output)
     adapters = output_adapters(markers=markers)
-    summary = CamerasReplaySummary(output=output, pairing=pairing)
+    summary = CamerasReplaySummary(output=output, pairing=pairing,
+                                   model=ModelRun.of(engine.backend))
     per_bag = {b: sum(s.bag == b for s in sources) for b in {s.bag for s in sources}}
     with contextlib.ExitStack() as stack:
         cameras = [_open_camera(stack, s, per_bag[s.bag] == 1, adapters, pairing)
@@ -442,10 +444,13 @@ def _run_tick(engine: LightStateEngine, tick: Sequence[_Frame], adapters: Sequen
               writer: BagWriter, summary: CamerasReplaySummary) -> None:
     """One shared engine step for the tick's frames (one per camera), then their outputs."""
     usable = [f for f in tick if f.image is not None]
-    judged = iter(engine.process_many([(f.camera.source.name, f.image, f.stamp_ns, f.boxes)
-                                       for f in usable]) if usable else [])
+    frames = engine.process_many([(f.camera.source.name, f.image, f.stamp_ns, f.boxes)
+                                  for f in usable]) if usable else []
+    judged = iter(frames)
     if usable:
         summary.steps += 1
+    if any(r.n_judged for r in frames):  # the tick ran one shared model step
+        summary.model.count_step(engine.backend)
     step_s = None
     for f in tick:
         name = f.camera.source.name
