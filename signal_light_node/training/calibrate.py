@@ -6,7 +6,8 @@ The split must be rendered for calibration alone (a style family the model was n
 trained on, with seeds no test split uses): fitting on a test set would flatter it.
 Each head's logits are divided by one temperature ``T`` that minimises the negative
 log-likelihood of its labels over the split's frames after the warm-up (a 1-D search
-over ``log T``); a temperature changes no argmax, only how sure the outputs are, so
+over ``log T``), kept only where it also lowers the calibration error there (else 1); a
+temperature changes no argmax, only how sure the outputs are, so
 the node's ON/OFF/UNKNOWN decisions move only where a threshold acts on a probability
 (the intent filter's). The expected calibration error (ECE, 15 bins of top-class
 confidence) before and after is printed and stored in the checkpoint's meta.
@@ -107,10 +108,13 @@ def calibrate(checkpoint: Path, split: Path, out: Path, cache_root: Path) -> Dic
         old = float(loaded.config.temperatures.get(task, 1.0))
         raw = logits * old  # the logits before any earlier temperature
         t = fit_temperature(raw, labels)
+        before = expected_calibration_error(_softmax(raw, 1.0), labels)
+        after = expected_calibration_error(_softmax(raw, t), labels)
+        if after > before:  # the likelihood's optimum can cost calibration error: keep 1
+            t, after = 1.0, before
         temps[task] = round(t, 4)
         report[task] = {"temperature": temps[task], "frames": int(len(labels)),
-                        "ece_before": expected_calibration_error(_softmax(raw, 1.0), labels),
-                        "ece_after": expected_calibration_error(_softmax(raw, t), labels)}
+                        "ece_before": before, "ece_after": after}
         LOG.info("%s: T=%.3f ECE %.4f -> %.4f (%d frames)", task, t, report[task]["ece_before"],
                  report[task]["ece_after"], len(labels))
     config = loaded.config.replace(temperatures=temps)
