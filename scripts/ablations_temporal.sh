@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Ablations of the temporal recipe (scripts/train_cnn.sh): what the temporal input and
+# Ablations of the temporal recipe (scripts/train_default.sh): what the temporal input and
 # the randomisation each bring, on the own test split, the held-out style family and the
 # independent generator's bags:
 #
@@ -41,7 +41,7 @@ pids=()
 for name in "${VARIANTS[@]}"; do
   echo "== $name -> $OUT/$name (log $OUT/$name.log)"
   RUN="$OUT/$name" WEIGHTS="$OUT/$name/model.pt" MODEL="${MODELS[$name]}" \
-    TRAIN_ARGS="${AUGMENT[$name]}" bash scripts/train_cnn.sh > "$OUT/$name.log" 2>&1 &
+    TRAIN_ARGS="${AUGMENT[$name]}" bash scripts/train_default.sh > "$OUT/$name.log" 2>&1 &
   pids+=($!)
 done
 for pid in "${pids[@]}"; do wait "$pid"; done

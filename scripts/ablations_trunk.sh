@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Ablations of the trunk recipe (scripts/train_default.sh): what the pretrained trunk,
+# Ablations of the trunk recipe (scripts/train_trunk.sh): what the pretrained trunk,
 # the evidence relative to the vehicle and the blink-frequency evidence each bring, on the
 # own test split, the held-out style family, the independent generator and the hard
 # negatives:
@@ -24,7 +24,7 @@ if [[ -z "${VIRTUAL_ENV:-}" && -f env.sh ]]; then
   source env.sh
 fi
 
-export DATA=${DATA:-runs/default}   # the shipped run's splits (scripts/train_default.sh)
+export DATA=${DATA:-runs/default}   # the shipped run's splits (scripts/train_trunk.sh)
 OUT=${OUT:-runs/ablations_trunk}
 export STEPS=${STEPS:-600}
 export VAL_EVERY=${VAL_EVERY:-200}
@@ -41,7 +41,7 @@ mkdir -p "$OUT"
 run_variant() {
   local name=$1
   RUN="$OUT/$name" WEIGHTS="$OUT/$name/model.pt" MODEL="${MODELS[$name]}" EXPORT=0 \
-    bash scripts/train_default.sh > "$OUT/$name.log" 2>&1
+    bash scripts/train_trunk.sh > "$OUT/$name.log" 2>&1
 }
 running=0
 for name in "${VARIANTS[@]}"; do

