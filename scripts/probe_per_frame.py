@@ -6,10 +6,13 @@ For every frame of SPLIT, each representation (the pretrained trunk cut at strid
 a CNN checkpoint fed no history) is computed once; a logistic regression per lamp
 (brake, left, right: lit or not in this very frame, the split's ``lit_labels``, frames
 where the lamp is hidden left out) is fitted on the even tracks and scored (ROC AUC) on
-the odd ones. Usage::
+the odd ones. With ``--transfer SPLIT2`` each probe is also fitted on all of SPLIT and
+scored on SPLIT2 (e.g. the held-out style family): does what tells a lit lamp carry over?
+Usage::
 
     python scripts/probe_per_frame.py --split runs/default/val_split \\
-        --cnn CNN_CHECKPOINT --json docs/results/trunk_probe_per_frame.json
+        --transfer runs/default/family_cal_split --cnn CNN_CHECKPOINT \\
+        --json docs/results/trunk_probe_per_frame.json
 """
 
 from __future__ import annotations
@@ -53,7 +56,8 @@ def representations(x: torch.Tensor, cnn: Path) -> Dict[str, torch.Tensor]:
 
 
 def probe(x: torch.Tensor, lit: np.ndarray, train: np.ndarray) -> Dict[str, float]:
-    """Held-out AUC per lamp of a logistic regression on ``x``."""
+    """AUC per lamp on the frames not in ``train`` of a logistic regression fitted on
+    the frames in it."""
     x = (x - x[train].mean(0)) / (x[train].std(0) + 1e-4)
     out = {}
     for task in ("brake", "left", "right"):
@@ -82,17 +86,26 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--split", type=Path, required=True)
     parser.add_argument("--cnn", type=Path, required=True, help="a CNN-encoder checkpoint")
+    parser.add_argument("--transfer", type=Path, default=None,
+                        help="a second split to score probes fitted on all of --split")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
     torch.set_num_threads(1)
     tracks = list(split_tracks(args.split))
+    n_fit = sum(len(t["crops"]) for t in tracks)
+    if args.transfer is not None:
+        tracks += list(split_tracks(args.transfer))
     crops = np.concatenate([t["crops"] for t in tracks])
     lit = np.concatenate([t["lit_labels"] for t in tracks])
     track_of = np.concatenate([np.full(len(t["crops"]), i) for i, t in enumerate(tracks)])
     x = torch.from_numpy(crops).permute(0, 3, 1, 2).float() / 255.0
-    results = {}
+    own = np.arange(len(x)) < n_fit
+    results: Dict[str, Dict[str, Dict[str, float]]] = {}
     for name, features in representations(x, args.cnn).items():
-        results[name] = probe(features, lit, track_of % 2 == 0)
+        results[name] = {"held-out tracks": probe(features[own], lit[own],
+                                                  track_of[own] % 2 == 0)}
+        if args.transfer is not None:
+            results[name]["transfer split"] = probe(features, lit, own)
         print(f"{name} ({features.shape[1]} values): {results[name]}", flush=True)
     if args.json:
         args.json.write_text(json.dumps(results, indent=1) + "\n")
