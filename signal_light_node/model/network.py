@@ -156,6 +156,15 @@ class ConvLSTMCell(nn.Module):
         return h, c
 
 
+def convlstm_stack(c_in: int, config: "ModelConfig") -> nn.ModuleList:
+    """The stacked ConvLSTM cells of ``config.lstm_hidden`` on ``c_in`` input channels."""
+    cells = []
+    for hidden in config.lstm_hidden:
+        cells.append(ConvLSTMCell(c_in, hidden, config.lstm_kernel))
+        c_in = hidden
+    return nn.ModuleList(cells)
+
+
 class LightStateNet(nn.Module):
     """Attention + CNN + two ConvLSTM layers + multi-task heads (see module doc).
 
@@ -179,11 +188,7 @@ class LightStateNet(nn.Module):
             c_in = width
         self.backbone = nn.Sequential(*stages)
 
-        cells = []
-        for hidden in config.lstm_hidden:
-            cells.append(ConvLSTMCell(c_in, hidden, config.lstm_kernel))
-            c_in = hidden
-        self.cells = nn.ModuleList(cells)
+        self.cells = convlstm_stack(c_in, config)
         self.lstm_dropout = nn.Dropout(config.lstm_dropout)
 
         last = config.lstm_hidden[-1]

@@ -35,7 +35,7 @@ from signal_light_node.errors import ConfigError, CropError
 from signal_light_node.labels import TASKS
 from signal_light_node.model import lamp_evidence as lamps
 from signal_light_node.model.interface import State, state_batch_size
-from signal_light_node.model.network import (ConvLSTMCell, apply_temperatures, check_crops,
+from signal_light_node.model.network import (apply_temperatures, check_crops, convlstm_stack,
                                                 eval_frozen, register_normalisation)
 from signal_light_node.model.trunk import EfficientLiteTrunk, load_imagenet_weights
 
@@ -86,12 +86,7 @@ class TrunkLightNet(nn.Module):
             self.freq = nn.Sequential(nn.Linear(self.n_vector, FREQ_CHANNELS), nn.ReLU(inplace=True))
             c_in += FREQ_CHANNELS
         self.fuse = nn.Sequential(nn.Conv2d(c_in, width, 1), nn.ReLU(inplace=True))
-        cells = []
-        c_in = width
-        for hidden in config.lstm_hidden:
-            cells.append(ConvLSTMCell(c_in, hidden, config.lstm_kernel))
-            c_in = hidden
-        self.cells = nn.ModuleList(cells)
+        self.cells = convlstm_stack(width, config)
         self.lstm_dropout = nn.Dropout(config.lstm_dropout)
         last = config.lstm_hidden[-1]
         self.head_conv = nn.Conv2d(last, config.head_channels, 1)
