@@ -37,13 +37,12 @@ COLUMNS = (("intent macro-F1", "intent_f1"), ("intent FP", "intent_fp"),
            ("brake recall", "brake_recall"), ("left F1", "left_f1"), ("right F1", "right_f1"),
            ("intent switches / truth", "switches"),
            ("UNKNOWN where a lamp is visible", "unknown_visible"))
-#: Hard negatives from the independent generator: no signal at all (--events none).
-#: night_tail_lamps: steady lit tail lamps from behind; night_no_signals: every view at
-#: night (head lamps, glare, wet-road reflections); day_running_lamps: every view by day
-#: (daytime running lamps, sun glints). The last two: `python -m signal_light_node.evalgen
-#: -o bags/NAME --seed 41|42 --lighting day|night --events none --width 640 --height 360
-#: --frames 60 --jpeg-quality 80`.
-HARD_NEGATIVE_BAGS = ("bags/night_tail_lamps", "bags/night_no_signals", "bags/day_running_lamps")
+#: The hard-negative bags are signal_light_node.tools.hard_negatives.HARD_NEGATIVE_BAGS: from
+#: the independent generator with no signal at all. night_tail_lamps: steady lit tail lamps
+#: from behind; night_no_signals: every view at night (head lamps, glare, wet-road
+#: reflections); day_running_lamps: every view by day (daytime running lamps, sun glints).
+#: The last two: `python -m signal_light_node.evalgen -o bags/NAME --seed 41|42
+#: --lighting day|night --events none --width 640 --height 360 --frames 60 --jpeg-quality 80`.
 
 
 def _on_class(overall: Dict[str, Any], task: str, key: str) -> Optional[float]:
@@ -85,27 +84,14 @@ def evaluate(name: str, data: List[str], checkpoint: Path, out: Path,
     return figures(json.loads((target / "metrics.json").read_text()))
 
 
-def false_lights(checkpoint: Path, bag: str, out: Path) -> Dict[str, float]:
-    """Shares of judged vehicle-frames of a bag without any signal that report a blinker
-    ON and the brake ON (counted as ``test/test_night_tail_lamps.py`` does: the bag
-    replayed as the node runs it)."""
-    from signal_light_node.labels import LightStatus
+def hard_negatives(checkpoint: Path, out: Path) -> Dict[str, Dict[str, float]]:
+    """Shares of judged vehicle-frames reporting a light ON in each hard-negative bag."""
     from signal_light_node.runtime.engine import engine_from_checkpoint
-    from signal_light_node.tools.replay import replay_bag
+    from signal_light_node.tools.hard_negatives import HARD_NEGATIVE_BAGS, false_lights
 
-    counts = [0, 0, 0]
-
-    def count(image: Any, boxes: Any, frame: Any) -> None:
-        for result in frame.results:
-            if result.judged:
-                counts[0] += 1
-                counts[1] += int(LightStatus.ON in (result.left.state, result.right.state))
-                counts[2] += int(result.brake.state == LightStatus.ON)
-
-    replay_bag(REPO / bag, out / Path(bag).name, engine_from_checkpoint(checkpoint),
-               progress=False, on_frame=count)
-    judged = max(1, counts[0])
-    return {"judged": counts[0], "blinker_on": counts[1] / judged, "brake_on": counts[2] / judged}
+    return {bag: vars(false_lights(REPO / bag, engine_from_checkpoint(checkpoint),
+                                   out / Path(bag).name))
+            for bag in HARD_NEGATIVE_BAGS}
 
 
 def _cell(key: str, value: Optional[float]) -> str:
@@ -143,7 +129,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             for folder, name, data in sets}
     args.out.mkdir(parents=True, exist_ok=True)
     table = markdown(rows)
-    negatives = {bag: false_lights(args.checkpoint, bag, args.out) for bag in HARD_NEGATIVE_BAGS}
+    negatives = hard_negatives(args.checkpoint, args.out)
     table += ("\nHard negatives (no signal at all; share of judged vehicle-frames reporting "
               "a light ON; target for blinkers < 5 %):\n\n| bag | blinker ON | brake ON | "
               "judged |\n|---|---:|---:|---:|\n")
