@@ -79,7 +79,8 @@ def class_weights(caches: Sequence[FeatureCache], config: ModelConfig, power: fl
 
 
 def validate(model: torch.nn.Module, cache: FeatureCache) -> Dict[str, float]:
-    """Intent macro-F1, brake / left / right ON-F1 and view accuracy after the warm-up."""
+    """Intent macro-F1, brake / left / right ON-F1 and view accuracy after the warm-up
+    (tracks stepped from their first frame); the model is left in training mode."""
     out: Dict[str, float] = {}
     for task, (logits, labels) in track_logits(model, cache).items():
         matrix = confusion_matrix(labels, logits.argmax(1), model.config.num_classes[task])
@@ -100,66 +101,81 @@ def _lr(step: int, steps: int, lr: float, warm: int = 50) -> float:
     return lr * 0.5 * (1.0 + math.cos(math.pi * min(1.0, (step - warm) / max(1, steps - warm))))
 
 
+def step_loss(model: torch.nn.Module, batch: Dict[str, torch.Tensor],
+              weights: Dict[str, torch.Tensor]) -> Tuple[torch.Tensor, Dict[str, float]]:
+    """The loss of one batch of windows: the task heads (blinkers and intent past each
+    window's warm-up) plus, with a lit head, each lamp's per-frame lit state."""
+    logits, _ = model.sequence_features(batch["features"], batch["maps"])
+    warm = warmup_frames(batch["fps"].tolist(), 2, 0.4).to(batch["labels"].device)
+    loss, parts = multitask_loss(logits, batch["labels"], batch["mask"], TASK_WEIGHTS, weights,
+                                 warm)
+    if "lit_left" in logits:
+        lit_logits = dict(logits, **{t: logits[f"lit_{t}"] for t in LIT_TASKS})
+        lit_loss, lit_parts = multitask_loss(lit_logits, batch["lit_labels"], batch["mask"],
+                                             {t: LIT_WEIGHT for t in LIT_TASKS}, weights)
+        loss = loss + lit_loss
+        parts.update({f"lit_{t}": v for t, v in lit_parts.items()})
+    return loss, parts
+
+
+def _save(out: Path, model: torch.nn.Module, optim: torch.optim.Optimizer,
+          rng: np.random.Generator, progress: Dict[str, Any], meta: Dict[str, Any],
+          figures: Dict[str, float]) -> None:
+    """After a validation: ``best.pt`` if it is the best so far, ``last.pt`` and the
+    training state a ``--resume`` continues from."""
+    with (out / "history.jsonl").open("a") as stream:
+        stream.write(json.dumps(figures) + "\n")
+    if figures["score"] > progress["best"]["score"]:
+        progress["best"] = figures
+        save_checkpoint(out / "best.pt", model, model.config,
+                        dict(meta, validation=figures, step=progress["step"]))
+    save_checkpoint(out / "last.pt", model, model.config, dict(meta, step=progress["step"]))
+    torch.save({"model": model.state_dict(), "optim": optim.state_dict(),
+                "rng": rng.bit_generator.state, **progress}, out / "last.state.pt")
+
+
 def train(model: torch.nn.Module, train_caches: Sequence[FeatureCache], val: FeatureCache,
           out: Path, steps: int, batch: int, seq_len: int, lr: float, seed: int,
           val_every: int, resume: bool, meta: Dict[str, Any],
-          device: torch.device = torch.device("cpu")) -> Dict[str, Any]:
+          device: Optional[torch.device] = None) -> Dict[str, Any]:
     """The training loop of the module doc; returns the best validation figures."""
+    device = device or torch.device("cpu")
     rng = np.random.default_rng(seed)
-    model.to(device)
-    model.freeze_encoder()
+    model.to(device).freeze_encoder()
     params = [p for p in model.parameters() if p.requires_grad]
     optim = torch.optim.AdamW(params, lr=lr, weight_decay=1e-4)
     weights = {k: v.to(device) for k, v in class_weights(train_caches, model.config).items()}
-    step, best, history = 0, {"score": -1.0}, []
-    state_file = out / "last.state.pt"
-    if resume and state_file.is_file():
-        saved = torch.load(state_file, weights_only=False, map_location=device)
+    progress: Dict[str, Any] = {"step": 0, "best": {"score": -1.0}, "history": []}
+    if resume and (out / "last.state.pt").is_file():
+        saved = torch.load(out / "last.state.pt", weights_only=False, map_location=device)
         model.load_state_dict(saved["model"])
         optim.load_state_dict(saved["optim"])
         rng.bit_generator.state = saved["rng"]
-        step, best, history = saved["step"], saved["best"], saved["history"]
-        LOG.info("resumed at step %d (best %.4f)", step, best["score"])
+        progress = {k: saved[k] for k in progress}
+        LOG.info("resumed at step %d (best %.4f)", progress["step"], progress["best"]["score"])
     model.train()
     started = time.time()
-    while step < steps:
+    while progress["step"] < steps:
         for group in optim.param_groups:
-            group["lr"] = _lr(step, steps, lr)
+            group["lr"] = _lr(progress["step"], steps, lr)
         b = {k: v.to(device) for k, v in _batch(train_caches, rng, batch, seq_len).items()}
-        logits, _ = model.sequence_features(b["features"], b["maps"])
-        warm = warmup_frames(b["fps"].tolist(), 2, 0.4).to(device)
-        loss, parts = multitask_loss(logits, b["labels"], b["mask"], TASK_WEIGHTS, weights, warm)
-        if "lit_left" in logits:
-            lit_loss, lit_parts = multitask_loss(
-                dict(logits, **{t: logits[f"lit_{t}"] for t in LIT_TASKS}), b["lit_labels"], b["mask"],
-                {t: LIT_WEIGHT for t in LIT_TASKS}, weights)
-            loss = loss + lit_loss
-            parts.update({f"lit_{t}": v for t, v in lit_parts.items()})
+        loss, parts = step_loss(model, b, weights)
         optim.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, 5.0)
         optim.step()
-        step += 1
+        progress["step"] += 1
+        step = progress["step"]
         if step % 25 == 0:
             LOG.info("step %d loss %.4f %s (%.1f s/step)", step, float(loss.detach()),
-                     {k: round(v, 3) for k, v in parts.items()},
-                     (time.time() - started) / 25)
+                     {k: round(v, 3) for k, v in parts.items()}, (time.time() - started) / 25)
             started = time.time()
         if step % val_every == 0 or step == steps:
-            figures = validate(model, val)
-            figures["step"] = step
-            history.append(figures)
+            figures = dict(validate(model, val), step=step)
+            progress["history"].append(figures)
             LOG.info("validation at step %d: %s", step, figures)
-            (out / "history.jsonl").open("a").write(json.dumps(figures) + "\n")
-            if figures["score"] > best["score"]:
-                best = figures
-                save_checkpoint(out / "best.pt", model, model.config,
-                                dict(meta, validation=figures, step=step))
-            save_checkpoint(out / "last.pt", model, model.config, dict(meta, step=step))
-            torch.save({"model": model.state_dict(), "optim": optim.state_dict(),
-                        "rng": rng.bit_generator.state, "step": step, "best": best,
-                        "history": history}, state_file)
-    return best
+            _save(out, model, optim, rng, progress, meta, figures)
+    return progress["best"]
 
 
 def build_fresh(changes: Dict[str, Any], seed: int) -> torch.nn.Module:
