@@ -80,6 +80,8 @@ def check_crops(crops: Tensor, ndim: int, size: int) -> None:
             or crops.shape[-2] != size:
         want = "[N, 3, S, S]" if ndim == 4 else "[N, T, 3, S, S]"
         raise CropError(f"model input must be {want} with S={size}, got {tuple(crops.shape)}")
+    if ndim == 5 and crops.shape[1] == 0:
+        raise CropError("forward_sequence needs at least one frame, got T=0")
 
 
 def eval_frozen(model: nn.Module, frozen: List[nn.Module], norms_frozen: bool) -> None:
@@ -409,8 +411,6 @@ class LightStateNet(nn.Module):
         """
         self._check_crops(crops, 5)
         n, t = crops.shape[:2]
-        if t == 0:
-            raise CropError("forward_sequence needs at least one frame, got T=0")
         if state is not None:
             self._check_state(state, n)
         evidence = history = None

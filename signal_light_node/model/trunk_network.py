@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from signal_light_node.errors import ConfigError, CropError
+from signal_light_node.errors import ConfigError
 from signal_light_node.labels import TASKS
 from signal_light_node.model import lamp_evidence as lamps
 from signal_light_node.model.interface import State, state_batch_size
@@ -326,8 +326,6 @@ class TrunkLightNet(nn.Module):
         """Run ``T`` frames of ``N`` tracks ``[N, T, 3, S, S]``; equals ``T`` steps."""
         self._check_crops(crops, 5)
         n, t = crops.shape[:2]
-        if t == 0:
-            raise CropError("forward_sequence needs at least one frame, got T=0")
         if state is not None:
             self._check_state(state, n)
         features, maps = self.frame_features(crops.flatten(0, 1))
