@@ -13,6 +13,8 @@ One step for ``N`` tracks::
          running mean (four more maps)
       -> with ``frequency_evidence``: resonator bank over the left/right halves of m
          (periodic energy per blink period, left/right phase agreement)
+      -> with ``lit_periods``: a linear "lamp lit in this frame" head on the evidence so
+         far; each lamp's P(lit) drives its own resonators and a decaying peak
       -> 1x1 fusion + ReLU -> ConvLSTM layers (explicit (h, c) per layer)
       -> heads: 1x1 conv pooled to a grid (keeps left/right) + global max of h + the
          frequency features -> dense layer with dropout -> one linear layer per task.
