@@ -604,7 +604,7 @@ def run_detector(make_node: Callable[[], "SignalLightDetector"],
         node = make_node()
         _warn_foreign_params_files(node, args)
         start(node)
-        rclpy.spin(node)
+        _spin(node)
     except SignalLightError as exc:
         logger = node.get_logger() if node is not None else rclpy.logging.get_logger(NODE_NAME)
         logger.fatal(f"cannot start: {exc}")
@@ -617,6 +617,17 @@ def run_detector(make_node: Callable[[], "SignalLightDetector"],
             node.destroy_node()
         rclpy.try_shutdown()
     return code
+
+
+def _spin(node: Node) -> None:
+    """``rclpy.spin`` until shutdown; a Ctrl-C that lands between two waits shuts the
+    context down under the executor, which then raises rclpy's RCLError ("the given
+    context is not valid") instead of ExternalShutdownException: that is a shutdown too."""
+    try:
+        rclpy.spin(node)
+    except Exception:
+        if rclpy.ok(context=node.context):
+            raise
 
 
 def main(args: Optional[List[str]] = None) -> int:
