@@ -89,12 +89,14 @@ def half_signals(maps: Tensor) -> Tensor:
     return torch.cat((left, right), 1)
 
 
-def resonator_coefficients(periods: Sequence[float], like: Tensor) -> Tuple[Tensor, Tensor]:
-    """``(rho * cos w, rho * sin w)`` per period, each ``[P]`` (``w = 2 pi / period``)."""
+def resonator_coefficients(periods: Sequence[float], like: Tensor
+                           ) -> Tuple[Tensor, Tensor, Tensor]:
+    """``(rho * cos w, rho * sin w, rho)`` per period, each ``[P]`` (``w = 2 pi / period``,
+    ``rho`` the decay per frame)."""
     p = torch.tensor([float(x) for x in periods], dtype=like.dtype, device=like.device)
     rho = torch.exp(-1.0 / (MEMORY_PERIODS * p))
     w = 2.0 * math.pi / p
-    return rho * torch.cos(w), rho * torch.sin(w)
+    return rho * torch.cos(w), rho * torch.sin(w), rho
 
 
 def resonate(signals: Tensor, resonators: Tensor, level: Tensor, seen: Tensor,
@@ -111,11 +113,10 @@ def resonate(signals: Tensor, resonators: Tensor, level: Tensor, seen: Tensor,
     Returns:
         The new resonators and the new level.
     """
-    cos_w, sin_w = resonator_coefficients(periods, signals)
+    cos_w, sin_w, rho = resonator_coefficients(periods, signals)
     # A new track starts its level at its first signal, so its onset drives nothing.
     level = level * seen + signals * (1.0 - seen)
-    gain = 1.0 - torch.exp(-1.0 / (MEMORY_PERIODS * _as(periods, signals)))
-    drive = (signals - level).unsqueeze(-1) * gain
+    drive = (signals - level).unsqueeze(-1) * (1.0 - rho)
     re, im = resonators[:, 0] * seen.unsqueeze(-1), resonators[:, 1] * seen.unsqueeze(-1)
     new_re = cos_w * re - sin_w * im + drive
     new_im = sin_w * re + cos_w * im
@@ -151,10 +152,6 @@ def resonator_step(signals: Tensor, resonators: Tensor, level: Tensor, seen: Ten
     agreement = cross / torch.sqrt(power[:, :k] * power[:, k:] + 1e-10)
     features = torch.cat((log_amplitude(resonators).flatten(1), agreement.flatten(1)), 1)
     return features, resonators, level
-
-
-def _as(periods: Sequence[float], like: Tensor) -> Tensor:
-    return torch.tensor([float(x) for x in periods], dtype=like.dtype, device=like.device)
 
 
 def resonator_features(n_signals: int, n_periods: int) -> int:

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from signal_light_node.data.camera_response import randomise_camera
+from signal_light_node.data.split import SequenceSplit
 from signal_light_node.data.shape_warp import warp_sequence
 from signal_light_node.errors import ConfigError
 from signal_light_node.labels import TASKS
@@ -53,29 +54,24 @@ def trunk_fingerprint(model: torch.nn.Module) -> str:
     return digest.hexdigest()[:16]
 
 
-def split_tracks(split_dir: Path) -> Iterator[Dict[str, np.ndarray]]:
-    """The whole tracks of a split directory, shard by shard (only the real frames)."""
-    manifest = json.loads((split_dir / "manifest.json").read_text())
-    shards = manifest.get("shards") or sorted(p.name for p in split_dir.glob("shard_*.npz"))
-    for shard in shards:
-        name = shard["file"] if isinstance(shard, dict) else shard
-        with np.load(split_dir / name, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
-        offsets = np.concatenate(([0], np.cumsum(arrays["lengths"])))
-        for i in range(len(arrays["lengths"])):
-            a, b = int(offsets[i]), int(offsets[i + 1])
-            yield {"crops": arrays["crops"][a:b], "labels": arrays["labels"][a:b],
-                   "lit_labels": arrays["lit_labels"][a:b], "fps": float(arrays["fps"][i]),
-                   "lighting": str(arrays["lighting"][i])}
+def split_tracks(split_dir: Path) -> Iterator[Dict[str, Any]]:
+    """The whole tracks of a split directory (:class:`~signal_light_node.data.split.SequenceSplit`),
+    cut to their real frames: crops, labels, lit labels, frame rate and lighting."""
+    for item in SequenceSplit(split_dir):
+        n = int(item["mask"].sum())
+        yield {"crops": item["crops"][:n], "labels": item["labels"][:n],
+               "lit_labels": item["lit_labels"][:n], "fps": float(item["meta"]["fps"]),
+               "lighting": str(item["meta"]["lighting"])}
 
 
 @torch.inference_mode()
 def _frame_features(net: torch.nn.Module, crops: np.ndarray, batch: int
                     ) -> Tuple[np.ndarray, np.ndarray]:
     feats, maps = [], []
+    device = next(net.parameters()).device
     for start in range(0, len(crops), batch):
         x = torch.from_numpy(np.ascontiguousarray(crops[start:start + batch])).permute(0, 3, 1, 2)
-        x = x.to(next(net.parameters()).device)
+        x = x.to(device)
         f, m = net.frame_features(x.float().mul_(1.0 / 255.0).contiguous(
             memory_format=torch.channels_last))
         feats.append(f.half().cpu().numpy())
