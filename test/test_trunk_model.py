@@ -60,11 +60,17 @@ def test_trunk_config_is_validated():
     with pytest.raises(ConfigError, match="encoder"):
         ModelConfig(encoder="resnet")
     assert trunk_config().feature_size == 4
+    with pytest.raises(ConfigError, match="lamp_detail"):
+        trunk_config(lamp_detail=2)  # frequency evidence reads whole lamp-map halves
+    with pytest.raises(ConfigError, match="lit_hidden"):
+        trunk_config(lit_hidden=-1)
 
 
 @pytest.mark.parametrize("changes", [{}, {"relative_evidence": False},
                                      {"frequency_evidence": False}, {"trunk_stride": 8},
-                                     {"lit_periods": False}])
+                                     {"lit_periods": False},
+                                     {"frequency_evidence": False, "lamp_detail": 2,
+                                      "lit_hidden": 16}])
 def test_stepping_frame_by_frame_equals_the_sequence(changes):
     model = _model(**changes)
     crops = torch.rand(3, 6, 3, 64, 64, generator=torch.Generator().manual_seed(1))
@@ -138,6 +144,16 @@ def test_relative_evidence_is_zero_for_a_new_track_and_fades_for_a_steady_map():
     for _ in range(60):
         evidence, mean = lamps.relative_step(current, current, mean, torch.ones(1, 1, 1, 1), 0.15)
     assert float(evidence.abs().max()) < 1e-3
+
+
+def test_finer_lamp_maps_are_the_coarse_ones_split_per_cell():
+    crops = torch.rand(2, 3, 64, 64, generator=torch.Generator().manual_seed(3))
+    fine = lamps.space_to_depth(lamps.lamp_maps(crops, 8), 2).reshape(2, 6, 4, 4, 4)
+    coarse = lamps.lamp_maps(crops, 4)
+    assert torch.allclose(fine[:, 0].mean(1), coarse[:, 0], atol=1e-6)  # mean of means
+    assert torch.equal(fine[:, 1:].amax(2), coarse[:, 1:])  # peak of peaks
+    model = _model(frequency_evidence=False, lamp_detail=2)
+    assert model.frame_features(crops)[1].shape == (2, 24, 4, 4)
 
 
 def test_lamp_maps_see_a_red_lamp_on_its_side():

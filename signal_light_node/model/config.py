@@ -86,6 +86,10 @@ class ModelConfig:
         lit_periods: Use the lit head in every step too: each lamp's per-frame P(lit)
             drives its own blink-period resonators and a decaying peak, which join the
             track vector (needs ``lit_head``).
+        lit_hidden: Width of the lit head's hidden layer (ReLU); 0 keeps it linear.
+        lamp_detail: The lamp maps are computed on a grid this many times finer than the
+            trunk's and stacked into channels per trunk cell (space to depth), so a small
+            lamp keeps its own cell; 1 keeps one lamp-map cell per trunk cell.
         temperatures: Per-task logit temperature of the heads (missing tasks 1.0), fitted
             on a held-out style family by ``training.calibrate``.
     """
@@ -122,6 +126,8 @@ class ModelConfig:
     frequency_evidence: bool = True
     lit_head: bool = False
     lit_periods: bool = False
+    lit_hidden: int = 0
+    lamp_detail: int = 1
     temperatures: Mapping[str, float] = field(default_factory=dict, hash=False)
 
     def __post_init__(self) -> None:
@@ -188,6 +194,16 @@ class ModelConfig:
                 or self.feature_channels < 1:
             raise ConfigError(f"model config feature_channels must be a positive integer, "
                               f"got {self.feature_channels!r}")
+        for name, low in (("lit_hidden", 0), ("lamp_detail", 1)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ConfigError(f"model config {name} must be an integer >= {low}, got {value!r}")
+        if self.encoder != "cnn" and self.input_size % (self.trunk_stride * self.lamp_detail):
+            raise ConfigError(f"model config input_size ({self.input_size}) must be a multiple "
+                              f"of trunk_stride x lamp_detail for the trunk encoder")
+        if self.lamp_detail > 1 and self.frequency_evidence:
+            raise ConfigError("model config frequency_evidence reads whole lamp-map halves: "
+                              "it needs lamp_detail 1")
         if self.channel_order != "bgr":
             raise ConfigError(f"model config channel_order must be 'bgr', got {self.channel_order!r}")
         CropConfig(size=self.input_size, margin=self.crop_margin)  # validates the margin

@@ -60,6 +60,18 @@ def lamp_maps(crops: Tensor, grid: int) -> Tensor:
     return torch.cat((mean, peaks, peaks[:, 0:1] - body, peaks[:, 1:2] - body), 1)
 
 
+def space_to_depth(maps: Tensor, factor: int) -> Tensor:
+    """``[N, C, H, W]`` -> ``[N, C * factor**2, H / factor, W / factor]``: each coarse cell
+    holds its ``factor x factor`` fine cells as channels (reshape and permute only, so the
+    ONNX export needs no special operator)."""
+    if factor == 1:
+        return maps
+    n, c, h, w = maps.shape
+    cells = maps.reshape(n, c, h // factor, factor, w // factor, factor)
+    return cells.permute(0, 1, 3, 5, 2, 4).reshape(n, c * factor * factor, h // factor,
+                                                   w // factor)
+
+
 def relative_step(current: Tensor, previous: Tensor, mean: Tensor, seen: Tensor,
                   rate: float) -> Tuple[Tensor, Tensor]:
     """A map against the track's previous frame and running mean.

@@ -6,7 +6,8 @@ One step for ``N`` tracks::
       per frame (no state; cacheable for a frozen trunk):
       -> normalise (ImageNet statistics) -> EfficientNet-Lite0 trunk (``model.trunk``)
          features f [N,C,G,G] (C 112, G = S/16; or C 40, G = S/8)
-      -> lamp maps m [N,6,G,G] of the raw crop (``model.lamp_evidence.lamp_maps``)
+      -> lamp maps m [N,6*d*d,G,G] of the raw crop on a grid d = ``lamp_detail`` times finer
+         (``model.lamp_evidence.lamp_maps``, stacked per trunk cell)
       per track (state):
       -> z = 1x1 projection of f
       -> with ``relative_evidence``: z and m against the track's previous frame and
@@ -71,9 +72,11 @@ class TrunkLightNet(nn.Module):
         self.grid = self.trunk.out_size
         width = config.feature_channels
         self.project = nn.Conv2d(self.trunk.out_channels, width, 1, bias=False)
-        c_in = width + lamps.LAMP_CHANNELS
+        # Lamp maps on a grid lamp_detail times finer, stacked per trunk cell.
+        self.lamp_channels = lamps.LAMP_CHANNELS * config.lamp_detail ** 2
+        c_in = width + self.lamp_channels
         if config.relative_evidence:
-            c_in += 2 * width + 2 * lamps.LAMP_CHANNELS
+            c_in += 2 * width + 2 * self.lamp_channels
         evidence_channels = c_in
         self.n_signals = 2 * len(lamps.SIGNAL_CHANNELS)
         self.n_freq = lamps.resonator_features(self.n_signals, len(lamps.PERIODS))
@@ -98,12 +101,15 @@ class TrunkLightNet(nn.Module):
             nn.ReLU(inplace=True), nn.Dropout(config.dropout))
         self.heads = nn.ModuleDict({t: nn.Linear(config.fc_hidden, config.num_classes[t])
                                     for t in TASKS})
-        self.lit_head: Optional[nn.Linear] = None
+        self.lit_head: Optional[nn.Module] = None
         if config.lit_head:
             # With lit_periods it judges the per-frame evidence and feeds the track's
             # vector; without, it is a training-only head on the fused map.
-            lit_in = evidence_channels if config.lit_periods else width
-            self.lit_head = nn.Linear(lit_in * self.grid * self.grid, sum(self.lit_sizes))
+            lit_in = (evidence_channels if config.lit_periods else width) * self.grid ** 2
+            n_lit = sum(self.lit_sizes)
+            self.lit_head = nn.Linear(lit_in, n_lit) if not config.lit_hidden else \
+                nn.Sequential(nn.Linear(lit_in, config.lit_hidden), nn.ReLU(inplace=True),
+                              nn.Linear(config.lit_hidden, n_lit))
         self._trunk_frozen = False
         self._norms_frozen = False
 
@@ -113,12 +119,15 @@ class TrunkLightNet(nn.Module):
         check_crops(crops, ndim, self.input_size)
 
     def frame_features(self, crops: Tensor) -> Tuple[Tensor, Tensor]:
-        """Per-frame ``(trunk features [N,C,G,G], lamp maps [N,6,G,G])`` of crops in [0, 1].
+        """Per-frame ``(trunk features [N,C,G,G], lamp maps [N,6*d*d,G,G])`` of crops in [0, 1]
+        (``d`` the config's ``lamp_detail``).
 
         They hold no track state, so a frozen trunk's can be computed once and cached.
         """
         x = crops.float()
-        return self.trunk((x - self._mean) * self._inv_std), lamps.lamp_maps(x, self.grid)
+        detail = self.config.lamp_detail
+        maps = lamps.space_to_depth(lamps.lamp_maps(x, self.grid * detail), detail)
+        return self.trunk((x - self._mean) * self._inv_std), maps
 
     def attention(self, crops: Tensor) -> Tensor:
         """All ones: this network has no attention mask (kept for the debug overlay)."""
@@ -149,7 +158,7 @@ class TrunkLightNet(nn.Module):
         shapes = []
         if self.config.relative_evidence:
             shapes.append(((width, g, g), (width, g, g)))
-        shapes.append(((2 * lamps.LAMP_CHANNELS, g, g), (1, 1, 1)))
+        shapes.append(((2 * self.lamp_channels, g, g), (1, 1, 1)))
         if self.config.frequency_evidence:
             shapes.append(((2 * self.n_signals * len(lamps.PERIODS), 1, 1), (self.n_signals, 1, 1)))
         if self.config.lit_periods:

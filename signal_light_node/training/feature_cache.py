@@ -46,8 +46,10 @@ def trunk_fingerprint(model: torch.nn.Module) -> str:
     """Hash of the trunk's weights and the config fields the per-frame part depends on."""
     digest = hashlib.sha256()
     cfg = model.config
-    digest.update(json.dumps([cfg.input_size, cfg.trunk_stride, list(cfg.mean), list(cfg.std)])
-                  .encode())
+    per_frame = [cfg.input_size, cfg.trunk_stride, list(cfg.mean), list(cfg.std)]
+    if cfg.lamp_detail != 1:  # the lamp maps' grid; left out at 1 so older caches stay valid
+        per_frame.append(cfg.lamp_detail)
+    digest.update(json.dumps(per_frame).encode())
     for name, value in sorted(model.trunk.state_dict().items()):
         digest.update(name.encode())
         digest.update(value.detach().cpu().numpy().tobytes())
