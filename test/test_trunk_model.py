@@ -70,7 +70,8 @@ def test_trunk_config_is_validated():
                                      {"frequency_evidence": False}, {"trunk_stride": 8},
                                      {"lit_periods": False},
                                      {"frequency_evidence": False, "lamp_detail": 2,
-                                      "lit_hidden": 16}])
+                                      "lit_hidden": 16},
+                                     {"blink_levels": False}])
 def test_stepping_frame_by_frame_equals_the_sequence(changes):
     model = _model(**changes)
     crops = torch.rand(3, 6, 3, 64, 64, generator=torch.Generator().manual_seed(1))
@@ -237,3 +238,24 @@ def test_trunk_recipe_trains_resumes_and_calibrates(tmp_path):
     calibrated = load_checkpoint(tmp_path / "cal.pt")
     assert set(calibrated.config.temperatures) == set(report)
     assert calibrated.meta["calibration"]["heads"]["brake"]["frames"] >= 0
+
+
+@pytest.mark.parametrize("blink_levels", [True, False])
+def test_without_blink_levels_a_steady_lit_blinker_leaves_the_track_vector_as_an_unlit_one(
+        blink_levels):
+    model = _model(blink_levels=blink_levels, frequency_evidence=False)
+    n_lit = sum(model.lit_sizes)
+
+    def vectors(left_on: float):
+        logits = torch.zeros(1, n_lit)
+        logits[0, 3 + 1] = left_on  # the left lamp's ON logit, steady over the frames
+        history = model.initial_state(1)[-1]
+        out = []
+        for t in range(12):
+            vector, history = model._lit_periods(logits, history, torch.full((1, 1), float(t > 0)))
+            out.append(vector)
+        assert out[-1].shape[1] == model.n_vector
+        return torch.cat(out[1:])
+
+    same = torch.allclose(vectors(6.0), vectors(-6.0), atol=1e-6)
+    assert same != blink_levels

@@ -86,6 +86,10 @@ class ModelConfig:
         lit_periods: Use the lit head in every step too: each lamp's per-frame P(lit)
             drives its own blink-period resonators and a decaying peak, which join the
             track vector (needs ``lit_head``).
+        blink_levels: With ``lit_periods``, the blinkers' per-frame P(lit) and decaying
+            peaks join the track vector beside their blink-period amplitudes; false keeps
+            only the amplitudes for the blinkers (a blinker is a lamp that flashes: a
+            steady lit lamp gives no blink evidence), the brake's level stays.
         lit_hidden: Width of the lit head's hidden layer (ReLU); 0 keeps it linear.
         lamp_detail: The lamp maps are computed on a grid this many times finer than the
             trunk's and stacked into channels per trunk cell (space to depth), so a small
@@ -126,6 +130,7 @@ class ModelConfig:
     frequency_evidence: bool = True
     lit_head: bool = False
     lit_periods: bool = False
+    blink_levels: bool = True
     lit_hidden: int = 0
     lamp_detail: int = 1
     temperatures: Mapping[str, float] = field(default_factory=dict, hash=False)
@@ -147,7 +152,7 @@ class ModelConfig:
             raise ConfigError(f"model config has a value of the wrong type: {exc}") from None
         # bool("false") is True: refuse anything but a real boolean (CLI values are JSON).
         for name in ("use_attention", "temporal_input", "relative_evidence", "frequency_evidence",
-                     "lit_head", "lit_periods"):
+                     "lit_head", "lit_periods", "blink_levels"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"model config {name} must be true or false, got "
                                   f"{getattr(self, name)!r}")

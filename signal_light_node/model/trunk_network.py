@@ -83,9 +83,11 @@ class TrunkLightNet(nn.Module):
         self.lit_sizes = [config.num_classes[t] for t in LIT_TASKS]
         # Per track, one vector: the lamp maps' resonator features, then the lit head's
         # resonator amplitudes, decaying peaks and probabilities (``lit_periods``).
+        # The lamps whose level (P(lit) and peak) joins the vector: all, or the brake only.
+        self.level_lamps = len(LIT_TASKS) if config.blink_levels else 1
         self.n_vector = (self.n_freq if config.frequency_evidence else 0) + \
-            (len(LIT_TASKS) * (len(lamps.PERIODS) + 1) + sum(self.lit_sizes)
-             if config.lit_periods else 0)
+            (len(LIT_TASKS) * len(lamps.PERIODS) + self.level_lamps
+             + sum(self.lit_sizes[:self.level_lamps]) if config.lit_periods else 0)
         self.freq: Optional[nn.Sequential] = None
         if self.n_vector:
             self.freq = nn.Sequential(nn.Linear(self.n_vector, FREQ_CHANNELS), nn.ReLU(inplace=True))
@@ -228,7 +230,8 @@ class TrunkLightNet(nn.Module):
     def _lit_periods(self, lit_logits: Tensor, history: Tuple[Tensor, Tensor], seen: Tensor
                      ) -> Tuple[Tensor, Tuple[Tensor, Tensor]]:
         """The track vector's lit-lamp part: resonators over each lamp's per-frame P(lit),
-        its decaying peak and the probabilities themselves; and the new history."""
+        its decaying peak and the probabilities themselves (the brake's only, without
+        ``blink_levels``); and the new history."""
         n, n_lit, periods = lit_logits.shape[0], len(LIT_TASKS), len(lamps.PERIODS)
         probs = [torch.softmax(part, 1) for part in lit_logits.split(self.lit_sizes, 1)]
         p_on = torch.stack([p[:, 1] for p in probs], 1)
@@ -237,7 +240,9 @@ class TrunkLightNet(nn.Module):
         resonators, level = lamps.resonate(p_on, resonators.reshape(n, 2, n_lit, periods), level,
                                            seen, lamps.PERIODS)
         peak = torch.maximum(p_on, peak * (LIT_PEAK_DECAY * seen))
-        vector = torch.cat([lamps.log_amplitude(resonators).flatten(1), peak] + probs, 1)
+        levels = self.level_lamps
+        vector = torch.cat([lamps.log_amplitude(resonators).flatten(1), peak[:, :levels]]
+                           + probs[:levels], 1)
         return vector, (resonators.reshape(n, -1, 1, 1),
                         torch.cat((level, peak), 1).reshape(n, -1, 1, 1))
 
