@@ -118,6 +118,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--no-intent-filter", action="store_true", help="score the raw model")
     p.add_argument("--threads", default="2")
+    p.add_argument("--independent-renders", nargs="*", type=Path, default=[], metavar="BAG",
+                   help="more bags of the independent generator (scripts/render_independent.sh),"
+                        " scored as one more row")
     args = p.parse_args(argv)
     extra = ["--threads", args.threads] + (["--no-intent-filter"] if args.no_intent_filter else [])
     # (report directory, row name, data)
@@ -125,6 +128,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             ("family", "held-out style family 2",
              ["--split", str(args.data / "family_test_split")]),
             ("independent", "independent generator (2 bags)", ["--bags", *INDEPENDENT_BAGS]))
+    if args.independent_renders:
+        bags = [str(b) for b in args.independent_renders]
+        sets += (("independent_renders", f"independent renders ({len(bags)} scenes)",
+                  ["--bags", *bags]),)
     rows = {name: evaluate(folder, data, args.checkpoint, args.out, extra)
             for folder, name, data in sets}
     args.out.mkdir(parents=True, exist_ok=True)

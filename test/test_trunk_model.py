@@ -181,10 +181,12 @@ def test_checkpoint_round_trip_needs_no_wheel(tmp_path, monkeypatch):
     assert torch.allclose(a["brake"], b["brake"])
 
 
-def test_onnx_export_steps_like_torch(tmp_path):
+@pytest.mark.parametrize("changes", [{}, {"frequency_evidence": False, "lamp_detail": 2,
+                                          "lit_hidden": 16, "blink_levels": False}])
+def test_onnx_export_steps_like_torch(tmp_path, changes):
     from signal_light_node.model.onnx_export import export_onnx
 
-    model = _model()
+    model = _model(**changes)
     path = save_checkpoint(tmp_path / "m.pt", model, model.config)
     report = export_onnx(tmp_path / "m.onnx", path)
     assert report.max_abs_diff is not None and report.max_abs_diff < 1e-4
