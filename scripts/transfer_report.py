@@ -12,7 +12,7 @@ asks for into one table (Markdown and JSON):
 
 Every set is scored after the warm-up, without a grace window, as the node publishes it
 (intent filter on unless ``--no-intent-filter``). Brake, left and right F1 are the F1 of
-the ON class; "switches" is predicted intent changes over the ground truth's.
+the ON class; "switches" are predicted intent (brake) changes over the ground truth's.
 
 Each set's full ``signal-light evaluate`` report lands in ``OUT/own``, ``OUT/family`` and
 ``OUT/independent``. Usage::
@@ -35,7 +35,7 @@ INDEPENDENT_BAGS = ("bags/independent_day", "bags/independent_night")
 COLUMNS = (("intent macro-F1", "intent_f1"), ("intent FP", "intent_fp"),
            ("intent FN", "intent_fn"), ("brake acc.", "brake_acc"), ("brake F1", "brake_f1"),
            ("brake recall", "brake_recall"), ("left F1", "left_f1"), ("right F1", "right_f1"),
-           ("intent switches / truth", "switches"),
+           ("intent switches / truth", "switches"), ("brake switches / truth", "brake_switches"),
            ("UNKNOWN where a lamp is visible", "unknown_visible"))
 #: The hard-negative bags are signal_light_node.tools.hard_negatives.HARD_NEGATIVE_BAGS: from
 #: the independent generator with no signal at all. night_tail_lamps: steady lit tail lamps
@@ -56,6 +56,7 @@ def figures(metrics: Dict[str, Any]) -> Dict[str, Optional[float]]:
     report = metrics["no_grace"]
     summary, overall = report["summary"], report["overall"]
     switches = metrics.get("switches", {}).get("intent", {})
+    brake_switches = metrics.get("switches", {}).get("brake", {})
     unknown = visible = 0
     for task in ("brake", "left", "right"):
         confusion = overall.get(task, {}).get("confusion") or []
@@ -68,7 +69,7 @@ def figures(metrics: Dict[str, Any]) -> Dict[str, Optional[float]]:
             "brake_recall": _on_class(overall, "brake", "recall"),
             "left_f1": _on_class(overall, "left", "f1"),
             "right_f1": _on_class(overall, "right", "f1"),
-            "switches": switches.get("ratio"),
+            "switches": switches.get("ratio"), "brake_switches": brake_switches.get("ratio"),
             "unknown_visible": unknown / visible if visible else None,
             "scored_frames": metrics.get("counts", {}).get("scored")}
 
@@ -97,7 +98,7 @@ def hard_negatives(checkpoint: Path, out: Path) -> Dict[str, Dict[str, float]]:
 def _cell(key: str, value: Optional[float]) -> str:
     if value is None:
         return "-"
-    return f"{value:.2f}x" if key == "switches" else f"{100 * value:.1f} %"
+    return f"{value:.2f}x" if key.endswith("switches") else f"{100 * value:.1f} %"
 
 
 def markdown(rows: Dict[str, Dict[str, Optional[float]]]) -> str:
