@@ -192,7 +192,8 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from signal_light_node.labels import CLASS_NAMES
-    from signal_light_node.runtime.backend import ModelRun, create_backend
+    from signal_light_node.model.backends.registry import create_backend
+    from signal_light_node.runtime.backend import ModelRun
     from signal_light_node.tools.metrics import render_confusion_png
     from signal_light_node.training.evaluation import EvalSettings, evaluate_tracks
     from signal_light_node.training.ideal_observer import score_ideal_observer

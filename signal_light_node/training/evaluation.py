@@ -44,7 +44,7 @@ from signal_light_node.runtime.intent_filter import IntentFilter, IntentFilterCo
 from signal_light_node.labels import CLASS_NAMES, TASKS
 from signal_light_node.tools.metrics import (MetricAccumulator, SwitchCounter, box_size_band,
                                        occlusion_band)
-from signal_light_node.runtime.backend import as_backend
+from signal_light_node.model.backends.registry import as_backend
 from signal_light_node.training.sources import TrackSequence
 
 logger = logging.getLogger(__name__)
