@@ -288,7 +288,7 @@ def build_report(input_bag: "str | Path", output_bag: "str | Path",
         stamps = [stamp_to_ns(m.msg.header.stamp) for m in bag.messages([inputs.image_topic])]
     report.frames_in = len(stamps)
 
-    from signal_light_node.tools.metrics import MetricAccumulator
+    from signal_light_node.evaluation.metrics import MetricAccumulator
 
     accumulator = MetricAccumulator() if truth else None
     for index, stamp in enumerate(stamps):

@@ -403,14 +403,14 @@ def score_summary(summary: ReplaySummary, settings: Any = None) -> Optional[Dict
     """Score the replay's output against the bag's ground truth, with the evaluation's rules.
 
     The warm-up and grace-window rules are those of ``signal-light evaluate``
-    (:class:`signal_light_node.training.evaluation.TrackScorer`); they apply from each
+    (:class:`signal_light_node.evaluation.scoring.TrackScorer`); they apply from each
     start of a track's state in the engine (``frames_observed == 1``), so a track that
     timed out and came back warms up again. Only judged boxes with a ground-truth entry
     of the same track ID are scored.
 
     Args:
         summary: A replay summary of a bag with ground truth.
-        settings: ``training.evaluation.EvalSettings`` (default: its defaults).
+        settings: ``evaluation.scoring.EvalSettings`` (default: its defaults).
 
     Returns:
         ``{"settings", "counts", "no_grace", "grace"}`` shaped like ``evaluate_tracks``'
@@ -418,8 +418,8 @@ def score_summary(summary: ReplaySummary, settings: Any = None) -> Optional[Dict
         where a track is one segment of a track's state, or None when no judged box had
         ground truth.
     """
-    from signal_light_node.training.evaluation import EvalSettings, TrackScorer
-    from signal_light_node.training.sources import TrackSequence
+    from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
+    from signal_light_node.evaluation.tracks import TrackSequence
 
     if not summary.tracks:
         return None
