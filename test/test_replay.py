@@ -20,9 +20,9 @@ from fake_light_model import FakeLightModel
 from signal_light_node.io import bagio
 from signal_light_node.boxes import TrackBox
 from signal_light_node.cli import main
-from signal_light_node.io.conversions import (boxes_to_detections, make_header,
-                                           stamp_to_ns, vehicle_light_array,
-                                           vehicle_light_array_to_results)
+from signal_light_node.io.conversions import boxes_to_detections, make_header, stamp_to_ns
+from signal_light_node.outputs.vehicle_lights import (vehicle_light_array,
+                                                      vehicle_light_array_to_results)
 from signal_light_node.runtime.engine import EngineConfig, LightStateEngine
 from signal_light_node.errors import BagIOError
 from signal_light_node.io.image_codec import bgr_to_compressed_fields, bgr_to_image_fields

@@ -186,7 +186,8 @@ def load_bag_tracks(path: Path, crop_config: CropConfig = CropConfig(),
             topic has another type.
     """
     from signal_light_node.io.bagio import find_topic, open_bag
-    from signal_light_node.io.conversions import detections_to_boxes, stamp_to_ns, truth_row
+    from signal_light_node.io.conversions import detections_to_boxes, stamp_to_ns
+    from signal_light_node.outputs.vehicle_lights import truth_row
     from signal_light_node.io.image_codec import msg_to_bgr
 
     path = Path(path)
