@@ -403,6 +403,15 @@ def test_every_layer_entry_names_a_module() -> None:
             assert full in modules, f"layer {name}: {full} is not a module or package"
 
 
+def test_the_layers_in_the_docs_are_the_tests() -> None:
+    """docs/ARCHITECTURE.md's layer table lists the layers of :data:`LAYERS`, in order."""
+    text = (PACKAGE.parent / "docs" / "ARCHITECTURE.md").read_text()
+    section = text.split("\n## Layers\n", 1)[1].split("\n## ", 1)[0]
+    rows = [line.split("|")[1].strip() for line in section.splitlines()
+            if line.startswith("| ") and not line.startswith(("| layer ", "| ---"))]
+    assert rows == [name for name, _ in LAYERS]
+
+
 # ------------------------------------------------------------------ the checks, checked
 def _package(tmp_path: Path, files: Dict[str, str]) -> Path:
     package = tmp_path / "signal_light_node"
