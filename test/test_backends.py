@@ -17,9 +17,9 @@ import pytest
 from signal_light_node.boxes import TrackBox
 from signal_light_node.errors import CheckpointError, ConfigError, CropError
 from signal_light_node.labels import TASKS
-from signal_light_node.runtime.backend import (StepOutput, as_backend, check_device,
-                                               create_backend, known_backends,
-                                               register_backend)
+from signal_light_node.model.backends.registry import (as_backend, create_backend,
+                                                       known_backends, register_backend)
+from signal_light_node.runtime.backend import StepOutput, check_device
 from signal_light_node.runtime.engine import EngineConfig, LightStateEngine
 from signal_light_node.runtime.intent_filter import IntentFilterConfig
 from signal_light_node.runtime.state_bank import StateBank
@@ -133,7 +133,10 @@ def test_registry_knows_both_backends_and_names_them_for_an_unknown_one():
         create_backend("torch", threads=-1)
 
 
-def test_a_registered_backend_is_created_by_name():
+def test_a_registered_backend_is_created_by_name(monkeypatch):
+    from signal_light_node.model.backends import registry
+
+    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))  # undone after
     made: List[tuple] = []
 
     def factory(path, device="cpu", threads=None):
@@ -308,7 +311,7 @@ def test_node_parameter_backend_is_validated_with_a_reason():
 
     assert DetectorParams().backend == "auto"
     assert validate_params({"backend": "onnxruntime"}).backend == "onnxruntime"
-    with pytest.raises(ConfigError, match="backend must be one of torch, onnxruntime"):
+    with pytest.raises(ConfigError, match="backend must be one of onnxruntime, torch, auto"):
         validate_params({"backend": "tensorrt"})
     with pytest.raises(ConfigError, match="does not fit backend onnxruntime.*export --onnx"):
         validate_params({"backend": "onnxruntime", "model_path": "/m/best.pt"})

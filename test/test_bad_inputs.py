@@ -377,7 +377,7 @@ def _peak_mb(fn) -> float:
 def test_limits_attention_overlay_memory_is_bounded_by_the_image(side, size):
     """Defect 4: the overlay took (1.3 x box side)^2 floats per box (965 MB, 1.76 GB)."""
     from signal_light_node.boxes import TrackBox
-    from signal_light_node.tools.visualize import draw_results
+    from signal_light_node.outputs.debug_image import draw_results
 
     engine = _fake_engine()
     image = np.full((size[1], size[0], 3), 120, np.uint8)

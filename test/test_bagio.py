@@ -12,9 +12,9 @@ import pytest
 
 from signal_light_node.io import bagio
 from signal_light_node.boxes import TrackBox
-from signal_light_node.io.conversions import (boxes_to_detections, detections_to_boxes,
-                                           make_header, vehicle_light_array,
-                                           vehicle_light_array_to_results)
+from signal_light_node.io.conversions import boxes_to_detections, detections_to_boxes, make_header
+from signal_light_node.outputs.vehicle_lights import (vehicle_light_array,
+                                                      vehicle_light_array_to_results)
 from signal_light_node.errors import BagIOError
 from signal_light_node.io.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
 from signal_light_node.labels import Intent, LightStatus, View

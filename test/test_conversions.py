@@ -10,7 +10,10 @@ import pytest
 
 from signal_light_node.io import bagio
 from signal_light_node.boxes import TrackBox
-from signal_light_node.io.conversions import boxes_to_detections, detections_to_boxes, make_header, ns_to_stamp_fields, stamp_to_ns, vehicle_light_array, vehicle_light_array_to_results
+from signal_light_node.io.conversions import (boxes_to_detections, detections_to_boxes, make_header,
+                                           ns_to_stamp_fields, stamp_to_ns)
+from signal_light_node.outputs.vehicle_lights import (vehicle_light_array,
+                                                      vehicle_light_array_to_results)
 from signal_light_node.ros.messages import rclpy_make
 from signal_light_node.labels import Intent, LightStatus, View
 from signal_light_node.runtime.results import LightEstimate, VehicleResult

@@ -13,14 +13,9 @@ from signal_light_node.runtime.crops import CropConfig
 from signal_light_node.runtime.intent_filter import IntentFilter, IntentFilterConfig
 from signal_light_node.labels import TASKS, Intent
 from signal_light_node.model import ModelConfig, build_model, save_checkpoint
-from signal_light_node.training.evaluation import (
-    EvalSettings,
-    evaluate_tracks,
-    grace_mask,
-    predict_track_batch,
-    warmup_mask,
-)
-from signal_light_node.training.sources import TrackSequence
+from signal_light_node.evaluation.scoring import EvalSettings, grace_mask, warmup_mask
+from signal_light_node.evaluation.streaming import evaluate_tracks, predict_track_batch
+from signal_light_node.evaluation.tracks import TrackSequence
 
 TINY = {"input_size": 16, "attention_channels": [4, 4, 4], "backbone_channels": [8, 16],
         "lstm_hidden": [8, 8], "head_channels": 4, "head_grid": 2, "fc_hidden": 16}

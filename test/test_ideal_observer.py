@@ -8,7 +8,7 @@ import torch
 from signal_light_node.cli import main
 from signal_light_node.labels import TASKS, Intent
 from signal_light_node.model import ModelConfig, build_model, save_checkpoint
-from signal_light_node.training.ideal_observer import ideal_observer, longest_dark_run
+from signal_light_node.evaluation.ideal_observer import ideal_observer, longest_dark_run
 
 from test_evaluate import TINY
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.runtime.backend import create_backend
+from signal_light_node.model.backends.registry import create_backend
 from signal_light_node.runtime.engine import LightStateEngine
 
 onnx = pytest.importorskip("onnx")

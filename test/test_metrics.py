@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from signal_light_node.tools import metrics as M
+from signal_light_node.evaluation import metrics as M
 from signal_light_node.errors import ConfigError
 
 # Intent: OFF=0 LEFT=1 RIGHT=2 HAZARD=3 UNKNOWN=4.

@@ -215,7 +215,8 @@ def test_markers_one_array_per_answered_frame(tmp_path, rclpy_isolated_env):
     """``publish_markers: true``: each answered frame gives one MarkerArray on
     ~/output/markers, a DELETEALL and then per vehicle its box and ID text in the image's
     frame, blinker arrows and brake bars exactly where the result says ON."""
-    from signal_light_node.io.conversions import stamp_to_ns, vehicle_light_array_to_results
+    from signal_light_node.io.conversions import stamp_to_ns
+    from signal_light_node.outputs.vehicle_lights import vehicle_light_array_to_results
     from signal_light_node.outputs.markers import DELETEALL, is_unknown, marker_label
 
     bag = scene_bag(tmp_path, raw=False)

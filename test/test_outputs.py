@@ -1,4 +1,5 @@
-"""The output adapters: the result array and the RViz markers, with both message factories."""
+"""The output adapters: the result array, the RViz markers and the debug image, with both
+message factories."""
 
 from __future__ import annotations
 
@@ -7,15 +8,18 @@ import pytest
 
 from signal_light_node.errors import ConfigError
 from signal_light_node.io import bagio
-from signal_light_node.io.conversions import make_header, stamp_to_ns, vehicle_light_array
-from signal_light_node.io.topics import (MARKER_ARRAY_TYPE, MARKERS_TOPIC, OUTPUT_TOPIC,
-                                         VEHICLE_LIGHTS_TYPE)
+from signal_light_node.io.conversions import make_header, stamp_to_ns
+from signal_light_node.io.image_codec import image_msg_to_bgr
+from signal_light_node.io.topics import (DEBUG_IMAGE_TOPIC, IMAGE_TYPE, MARKER_ARRAY_TYPE,
+                                         MARKERS_TOPIC, OUTPUT_TOPIC, VEHICLE_LIGHTS_TYPE)
 from signal_light_node.labels import Intent, LightStatus, View
-from signal_light_node.outputs import (METRES_PER_PIXEL, MarkerOutput, OutputAdapter,
-                                       VehicleLightsOutput, output_adapters)
+from signal_light_node.outputs import (METRES_PER_PIXEL, DebugImageOutput, MarkerOutput,
+                                       OutputAdapter, VehicleLightsOutput, output_adapters)
+from signal_light_node.outputs.debug_image import draw_results
 from signal_light_node.outputs.markers import (AMBER, ARROW, CUBE, DELETEALL, GREEN,
                                                LINE_STRIP, RED, TEXT_VIEW_FACING,
                                                UNKNOWN_GREY, is_unknown, marker_label)
+from signal_light_node.outputs.vehicle_lights import vehicle_light_array
 from signal_light_node.runtime.results import LightEstimate, VehicleResult
 
 STAMP = 1_700_000_000_123_456_789
@@ -59,6 +63,32 @@ def test_adapters_choice_and_interface():
     assert MarkerOutput.node_topic == "~/output/markers" and MarkerOutput.when_subscribed
     with pytest.raises(ConfigError):
         MarkerOutput(metres_per_pixel=0)
+    every = output_adapters(markers=True, debug_image=True)
+    assert [type(a) for a in every] == [VehicleLightsOutput, MarkerOutput, DebugImageOutput]
+    assert (DebugImageOutput.topic, DebugImageOutput.msgtype) == (DEBUG_IMAGE_TOPIC, IMAGE_TYPE)
+    assert DebugImageOutput.node_topic == "~/output/debug/image"
+    assert DebugImageOutput.when_subscribed and DebugImageOutput.draws_image
+    assert not (VehicleLightsOutput.draws_image or MarkerOutput.draws_image)
+
+
+@pytest.mark.parametrize("make", ["bags", "rclpy"])
+def test_debug_image_adapter_draws_the_frame_with_its_stamp(make):
+    if make == "rclpy":
+        from signal_light_node.ros.messages import rclpy_make as make
+    else:
+        make = bagio.make
+    header = make_header(STAMP, "camera", make)
+    image = np.full((120, 200, 3), 90, np.uint8)
+    results = [_result(roi=(20, 30, 60, 40), brake=ON)]
+    heat = np.zeros((120, 200), np.float32)
+    heat[30:70, 20:80] = 0.5
+    msg = DebugImageOutput().build(header, results, make, image=image, attention=heat)
+    assert msg.header.frame_id == "camera" and stamp_to_ns(msg.header.stamp) == STAMP
+    want = draw_results(image, results, attention=heat, caption=f"{STAMP / 1e9:.3f}")
+    np.testing.assert_array_equal(image_msg_to_bgr(msg), want)
+    assert (image == 90).all()  # the frame itself is not drawn on
+    with pytest.raises(ConfigError, match="decoded frame"):
+        DebugImageOutput().build(header, results, make)
 
 
 def test_result_adapter_is_the_vehicle_light_array():

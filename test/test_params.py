@@ -23,6 +23,19 @@ def test_every_field_has_a_spec_in_order():
     assert [f.name for f in dataclasses.fields(DetectorParams)] == list(PARAM_SPECS)
 
 
+def test_backend_choices_come_from_the_registry():
+    """Not a hand-written list: a backend the registry knows is a valid parameter value."""
+    from signal_light_node.model.backends.registry import known_backends
+    from signal_light_node.runtime.backend import AUTO_BACKEND
+
+    choices = PARAM_SPECS["backend"].choices
+    assert choices[-1] == AUTO_BACKEND and {"torch", "onnxruntime"} <= set(choices)
+    assert set(choices[:-1]) <= set(known_backends())  # a test may register more later
+    assert validate_params({"backend": "onnxruntime"}).backend == "onnxruntime"
+    with pytest.raises(ConfigError, match="backend must be one of"):
+        validate_params({"backend": "tensorrt"})
+
+
 def test_yaml_holds_exactly_the_declared_defaults():
     from_yaml = _yaml_params()
     defaults = DetectorParams().as_dict()

@@ -1,7 +1,7 @@
 """A VehicleLightStateArray makes a round trip between two processes over real rclpy.
 
 Both ends are subprocesses (rclpy is never initialised inside pytest): the publisher builds
-the message with ``conversions.vehicle_light_array`` + ``rclpy_make``, the subscriber reads
+the message with ``outputs.vehicle_lights.vehicle_light_array`` + ``rclpy_make``, the subscriber reads
 it back with ``vehicle_light_array_to_results`` and prints it as JSON.
 """
 
@@ -46,7 +46,8 @@ import sys, time
 sys.path.insert(0, {str(Path(__file__).parent)!r})
 import rclpy
 from test_rclpy_roundtrip import EXPECTED, FRAME_ID, STAMP_NS, TOPIC
-from signal_light_node.io.conversions import make_header, vehicle_light_array
+from signal_light_node.io.conversions import make_header
+from signal_light_node.outputs.vehicle_lights import vehicle_light_array
 from signal_light_node.ros.messages import rclpy_make
 
 rclpy.init()
@@ -65,7 +66,7 @@ import json, sys, time
 from dataclasses import asdict
 import rclpy
 from signal_light_msgs.msg import VehicleLightStateArray
-from signal_light_node.io.conversions import vehicle_light_array_to_results
+from signal_light_node.outputs.vehicle_lights import vehicle_light_array_to_results
 
 received = []
 rclpy.init()

@@ -20,14 +20,14 @@ from fake_light_model import FakeLightModel
 from signal_light_node.io import bagio
 from signal_light_node.boxes import TrackBox
 from signal_light_node.cli import main
-from signal_light_node.io.conversions import (boxes_to_detections, make_header,
-                                           stamp_to_ns, vehicle_light_array,
-                                           vehicle_light_array_to_results)
+from signal_light_node.io.conversions import boxes_to_detections, make_header, stamp_to_ns
+from signal_light_node.outputs.vehicle_lights import (vehicle_light_array,
+                                                      vehicle_light_array_to_results)
 from signal_light_node.runtime.engine import EngineConfig, LightStateEngine
 from signal_light_node.errors import BagIOError
 from signal_light_node.io.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
 from signal_light_node.labels import LIGHT_CODES, Intent, LightStatus, View
-from signal_light_node.tools.metrics import macro_f1
+from signal_light_node.evaluation.metrics import macro_f1
 from signal_light_node.tools.replay import (GROUND_TRUTH_TOPIC, OUTPUT_TOPIC, replay_bag,
                                       score_summary)
 from signal_light_node.runtime.crops import CropConfig
@@ -232,7 +232,7 @@ def test_ground_truth_is_matched_per_track_and_scored(small_bag, tmp_path):
     assert len(rec.stamps_ns) == N_FRAMES - 1  # every frame with detections, judged
     assert [int(r[1]) for r in rec.truth] == [int(t >= 6) for t in range(N_FRAMES)
                                               if t != MISSING_DET]
-    from signal_light_node.training.evaluation import EvalSettings
+    from signal_light_node.evaluation.scoring import EvalSettings
 
     result = score_summary(summary, EvalSettings(warmup_frames=0, warmup_seconds=0.0))
     assert result["counts"]["scored"] == 2 * (N_FRAMES - 1)
@@ -255,7 +255,7 @@ def test_ground_truth_is_matched_per_track_and_scored(small_bag, tmp_path):
 
 
 def test_scoring_restarts_the_warm_up_when_a_track_state_restarts(small_bag, tmp_path):
-    from signal_light_node.training.evaluation import EvalSettings
+    from signal_light_node.evaluation.scoring import EvalSettings
 
     # A 0.15 s timeout: track "7" times out across the missing frame 4 and starts over.
     engine = LightStateEngine(FakeLightModel(), EngineConfig(track_timeout_s=0.15))

@@ -16,8 +16,8 @@ from signal_light_node.boxes import TrackBox
 from signal_light_node.cli import main
 from signal_light_node.errors import ConfigError
 from signal_light_node.io import bagio
-from signal_light_node.io.conversions import (boxes_to_detections, make_header, stamp_to_ns,
-                                              vehicle_light_array)
+from signal_light_node.io.conversions import boxes_to_detections, make_header, stamp_to_ns
+from signal_light_node.outputs.vehicle_lights import vehicle_light_array
 from signal_light_node.io.image_codec import bgr_to_compressed_fields
 from signal_light_node.io.topics import GROUND_TRUTH_TOPIC, OUTPUT_TOPIC, camera_topic
 from signal_light_node.labels import Intent, LightStatus, View

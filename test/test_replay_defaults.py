@@ -14,7 +14,7 @@ import yaml
 
 from signal_light_node.cli import build_parser, main
 from signal_light_node.io import bagio
-from signal_light_node.io.conversions import vehicle_light_array_to_results
+from signal_light_node.outputs.vehicle_lights import vehicle_light_array_to_results
 from signal_light_node.ros.params import NODE_NAME, DetectorParams
 from signal_light_node.runtime.backend import ModelRun
 from signal_light_node.tools.replay import OUTPUT_TOPIC, replay_bag

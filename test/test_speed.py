@@ -169,7 +169,7 @@ def test_chunk_bounds_cover_the_batch_in_order():
 def test_onnxruntime_split_batch_is_bit_identical_to_one_run(tmp_path):
     from signal_light_node.model import save_checkpoint
     from signal_light_node.model.onnx_export import export_onnx
-    from signal_light_node.runtime.backend import create_backend
+    from signal_light_node.model.backends.registry import create_backend
 
     net = _tiny_net(seed=4, input_size=32)  # 32 / 8 = 4: head_grid 2 divides it
     weights = save_checkpoint(tmp_path / "tiny.pt", net, net.config)
@@ -192,8 +192,8 @@ def test_onnxruntime_split_batch_is_bit_identical_to_one_run(tmp_path):
 
 
 def test_backend_auto_picks_by_file_and_device(monkeypatch):
-    from signal_light_node.runtime import backend as backend_module
-    from signal_light_node.runtime.backend import resolve_backend
+    from signal_light_node.model.backends import registry as backend_module
+    from signal_light_node.model.backends.registry import resolve_backend
 
     assert resolve_backend("torch") == "torch" and resolve_backend("onnxruntime") == "onnxruntime"
     assert resolve_backend("auto", "/m/best.onnx") == "onnxruntime"

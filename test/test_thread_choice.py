@@ -71,7 +71,7 @@ def test_the_onnxruntime_backend_gives_the_same_outputs_on_either_count():
     import numpy as np
 
     pytest.importorskip("onnxruntime")
-    from signal_light_node.runtime.backend import create_backend
+    from signal_light_node.model.backends.registry import create_backend
 
     backend = create_backend("onnxruntime", precision="fp32")
     if backend.threads < 2:

@@ -11,7 +11,7 @@ from signal_light_node.runtime.crops import CropConfig
 from signal_light_node.data.split import SequenceSplit, write_split
 from signal_light_node.data.stream import PAD_LABEL
 from signal_light_node.errors import ConfigError
-from signal_light_node.training.sources import TrackSequence
+from signal_light_node.evaluation.tracks import TrackSequence
 from signal_light_node.training.track_batches import FrameBatches, LaneBatches
 from signal_light_node.training.loop import Trainer
 from signal_light_node.training.loss import batch_loss_warmup

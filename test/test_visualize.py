@@ -8,7 +8,8 @@ import pytest
 from signal_light_node.errors import ConfigError
 from signal_light_node.labels import Intent, LightStatus, View
 from signal_light_node.runtime.results import LightEstimate, VehicleResult
-from signal_light_node.tools.visualize import VideoSink, draw_results, overlay_attention
+from signal_light_node.outputs.debug_image import draw_results, overlay_attention
+from signal_light_node.tools.visualize import VideoSink
 
 AMBER = np.array([0, 180, 255])
 RED = np.array([40, 40, 235])

@@ -8,14 +8,14 @@ Every track is stepped through ``model.step`` from a fresh state and its outputs
 the node's intent filter (``--no-intent-filter`` scores the raw model); frames in the
 warm-up (the first ``max(--warmup-frames, --warmup-seconds)`` of each track) are not
 scored, and a second report also leaves out ``--grace`` seconds after each ground-truth
-change (see :mod:`signal_light_node.training.evaluation`). The reports also count the
+change (see :mod:`signal_light_node.evaluation.scoring`). The reports also count the
 switches (class changes along the tracks, predicted against true). Writes
 ``metrics.json``, ``metrics.md``,
 ``confusion_intent.png`` (no grace window) and ``confusion_intent_grace.png`` into
 ``--out`` and prints the Markdown.
 
 ``--ideal-observer`` scores, instead of a checkpoint, the best any online model could do
-on a split or synthetic tracks (:mod:`signal_light_node.training.ideal_observer`): the
+on a split or synthetic tracks (:mod:`signal_light_node.evaluation.ideal_observer`): the
 ceiling of each metric under these scoring rules.
 """
 
@@ -40,7 +40,7 @@ logger = logging.getLogger(__name__)
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``signal-light evaluate``."""
     # The scoring rules' defaults live in EvalSettings only (replay scores with them too).
-    from signal_light_node.training.evaluation import EvalSettings
+    from signal_light_node.evaluation.scoring import EvalSettings
 
     parser.formatter_class = argparse.ArgumentDefaultsHelpFormatter
     add_model_options(parser)
@@ -76,6 +76,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _tracks(args: argparse.Namespace, crop: Any) -> Tuple[Iterable[Any], Optional[int], Dict]:
     """The chosen data as an iterable of tracks, its length if known, and a description."""
+    from signal_light_node.evaluation.tracks import track_from_item
     from signal_light_node.training import sources
 
     _check_one_source(args)
@@ -91,7 +92,7 @@ def _tracks(args: argparse.Namespace, crop: Any) -> Tuple[Iterable[Any], Optiona
         return tracks, len(tracks), {"ucm": [str(u) for u in args.ucm]}
     items, total, data = _items(args, crop)
     source = args.split.name if args.split is not None else f"synthetic:{args.synthetic_seed}"
-    gen = (sources.track_from_item(item, f"{source}:{i}") for i, item in enumerate(items))
+    gen = (track_from_item(item, f"{source}:{i}") for i, item in enumerate(items))
     return gen, total, data
 
 
@@ -146,7 +147,7 @@ def _headline(result: Dict[str, Any]) -> str:
 
 def render_markdown(result: Dict[str, Any]) -> str:
     """The whole evaluation as Markdown (headline, then both full reports)."""
-    from signal_light_node.tools.metrics import markdown_report, switches_markdown
+    from signal_light_node.evaluation.metrics import markdown_report, switches_markdown
 
     st, counts = result["settings"], result["counts"]
     intent = result["switches"]["intent"]
@@ -192,10 +193,12 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from signal_light_node.labels import CLASS_NAMES
-    from signal_light_node.runtime.backend import ModelRun, create_backend
-    from signal_light_node.tools.metrics import render_confusion_png
-    from signal_light_node.training.evaluation import EvalSettings, evaluate_tracks
-    from signal_light_node.training.ideal_observer import score_ideal_observer
+    from signal_light_node.model.backends.registry import create_backend
+    from signal_light_node.runtime.backend import ModelRun
+    from signal_light_node.evaluation.ideal_observer import score_ideal_observer
+    from signal_light_node.evaluation.metrics import render_confusion_png
+    from signal_light_node.evaluation.scoring import EvalSettings
+    from signal_light_node.evaluation.streaming import evaluate_tracks
 
     backend = create_backend(args.backend, None if args.checkpoint is None
                              else str(args.checkpoint), device=args.device,

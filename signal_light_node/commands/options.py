@@ -28,9 +28,9 @@ def add_model_options(group: ArgumentContainer) -> None:
     ``--backend`` and ``--precision`` default to the node's parameters (one copy of them,
     in ``runtime.backend``), so that a replay or an evaluation runs what the node runs.
     """
+    from signal_light_node.model.backends.registry import known_backends
     from signal_light_node.runtime.backend import (AUTO_BACKEND, DEFAULT_BACKEND,
-                                                   DEFAULT_PRECISION, PRECISIONS,
-                                                   known_backends)
+                                                   DEFAULT_PRECISION, PRECISIONS)
 
     group.add_argument("--checkpoint", type=Path, default=None,
                        help="model file: a .pt checkpoint (--backend torch) or its .onnx export "

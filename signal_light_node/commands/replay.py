@@ -174,7 +174,7 @@ def render_scores(result: dict, bag: "Path | str", intent_filter: str = "") -> s
         bag: The bag replayed.
         intent_filter: ``IntentFilterConfig.describe()`` of the engine, if known.
     """
-    from signal_light_node.tools.metrics import markdown_report, switches_markdown
+    from signal_light_node.evaluation.metrics import markdown_report, switches_markdown
 
     st, c = result["settings"], result["counts"]
     head = (f"Agreement with the ground truth of {bag}: {c['frames']} judged frames with ground "

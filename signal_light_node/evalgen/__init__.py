@@ -4,7 +4,7 @@ It checks how well the model transfers to a domain it was never trained on. It
 shares no drawing, geometry, lamp or lighting code with :mod:`signal_light_node.synth`
 (the training renderer) and imports nothing from it. All it shares with the project is
 I/O and vocabulary: ``bagio``, ``conversions``, ``image_codec``, ``labels``, ``boxes``,
-``results``, ``topics`` and ``errors``. Its bags use the topics, message types and
+``results``, ``topics``, ``errors`` and the result message (``outputs.vehicle_lights``). Its bags use the topics, message types and
 ground-truth rules of ``synth.bag``: JPEG ``/camera/image_raw/compressed``,
 ``/camera/tracked_objects`` (id = track ID) and ``/ground_truth/vehicle_lights`` (one
 entry per detection, same order, probability 1 on the true states). So

@@ -52,6 +52,8 @@ INPUT_DETECTIONS_TOPIC = "/signal_light_detector/input/detections"
 OUTPUT_TOPIC = "/signal_light_detector/output/vehicle_lights"
 #: The results drawn for RViz (``publish_markers``; ``signal-light replay --markers``).
 MARKERS_TOPIC = "/signal_light_detector/output/markers"
+#: The annotated frame (``publish_debug_image``).
+DEBUG_IMAGE_TOPIC = "/signal_light_detector/output/debug/image"
 DIAGNOSTICS_TOPIC = "/diagnostics"
 
 #: The node's namespace of private topics under its default name.

@@ -12,10 +12,13 @@ No rclpy here.
 from __future__ import annotations
 
 import abc
-from typing import Any, ClassVar, Sequence
+from typing import Any, ClassVar, Optional, Sequence
 
-from signal_light_node.io.conversions import MessageFactory, vehicle_light_array
+import numpy as np
+
+from signal_light_node.io.conversions import MessageFactory
 from signal_light_node.io.topics import OUTPUT_TOPIC, VEHICLE_LIGHTS_TYPE
+from signal_light_node.outputs.vehicle_lights import vehicle_light_array
 from signal_light_node.runtime.results import VehicleResult
 
 
@@ -30,6 +33,9 @@ class OutputAdapter(abc.ABC):
         depth: Depth of the node's keep-last publisher.
         when_subscribed: The node builds and publishes the message only while someone
             subscribes (for outputs that cost time and that nothing else consumes).
+        draws_image: The message is drawn on the decoded camera frame: it is built only
+            for a frame whose image was decoded (the engine ran), and ``build`` gets the
+            ``image`` and the boxes' ``attention`` masks.
     """
 
     name: ClassVar[str]
@@ -38,15 +44,22 @@ class OutputAdapter(abc.ABC):
     node_topic: ClassVar[str]
     depth: ClassVar[int] = 10
     when_subscribed: ClassVar[bool] = False
+    draws_image: ClassVar[bool] = False
 
     @abc.abstractmethod
-    def build(self, header: Any, results: Sequence[VehicleResult], make: MessageFactory) -> Any:
+    def build(self, header: Any, results: Sequence[VehicleResult], make: MessageFactory,
+              image: Optional[np.ndarray] = None,
+              attention: Optional[np.ndarray] = None) -> Any:
         """The message for one frame.
 
         Args:
             header: The image's header (``stamp`` and ``frame_id``; rclpy or rosbags).
             results: The engine's results, one per input box, in input order.
             make: The message factory of the receiving side.
+            image: The decoded frame, HxWx3 uint8 BGR (given to :attr:`draws_image`
+                adapters; others ignore it).
+            attention: ``[H, W]`` attention masks of the frame's boxes in [0, 1], or None
+                (``LightStateEngine.attention_masks``; for :attr:`draws_image` adapters).
 
         Returns:
             A message of :attr:`msgtype`.
@@ -62,6 +75,8 @@ class VehicleLightsOutput(OutputAdapter):
     topic = OUTPUT_TOPIC
     node_topic = "~/output/vehicle_lights"
 
-    def build(self, header: Any, results: Sequence[VehicleResult], make: MessageFactory) -> Any:
-        """See :func:`signal_light_node.io.conversions.vehicle_light_array`."""
+    def build(self, header: Any, results: Sequence[VehicleResult], make: MessageFactory,
+              image: Optional[np.ndarray] = None,
+              attention: Optional[np.ndarray] = None) -> Any:
+        """See :func:`signal_light_node.outputs.vehicle_lights.vehicle_light_array`."""
         return vehicle_light_array(header, results, make)

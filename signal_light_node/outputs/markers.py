@@ -12,7 +12,7 @@ What a frame's array holds, in order:
   - ``blinker``/``2i`` and ``2i+1``: an amber ``ARROW`` beside the box for each blinker
     that is ON, pointing outwards on the side where the lamp appears in the image (the
     vehicle's left is the image's left except when seen from the front), as in the
-    debug image (:mod:`signal_light_node.tools.visualize`);
+    debug image (:mod:`signal_light_node.outputs.debug_image`);
   - ``brake``/``i``: a red bar (``CUBE``) along the bottom of the box while the brake is ON.
 
 Coordinates: the drawing lies in the image's ``frame_id`` with the image's stamp, at
@@ -154,7 +154,9 @@ class MarkerOutput(OutputAdapter):
         self.metres_per_pixel = float(metres_per_pixel)
         self.lifetime_s = float(lifetime_s)
 
-    def build(self, header: Any, results: Sequence[VehicleResult], make: MessageFactory) -> Any:
+    def build(self, header: Any, results: Sequence[VehicleResult], make: MessageFactory,
+              image: Optional[np.ndarray] = None,
+              attention: Optional[np.ndarray] = None) -> Any:
         """The frame's markers: a DELETEALL, then each vehicle's marks."""
         frame = _Frame(header, make, self.metres_per_pixel, self.lifetime_s)
         markers = [frame.marker("", 0, CUBE, WHITE, frame.vector(1, 1, 1), action=DELETEALL)]

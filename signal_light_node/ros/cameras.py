@@ -27,8 +27,8 @@ class CameraIO:
         name: The camera's name; ``""`` for the single-camera node.
         gaps: Middleware drops per input (``image``, ``detections``).
         pairer: Its pairing (set by the node's ``configure``).
-        outputs: ``(adapter, publisher)`` per output adapter, result array first.
-        debug: The debug-image publisher, if enabled.
+        outputs: ``(adapter, publisher)`` per output adapter, result array first (the
+            debug image is one when enabled).
         subscriptions: Its input subscriptions.
         image_topic: The resolved image topic (for error messages).
         counts: ``outputs``, ``bad_images``, ``oversized_images`` of this camera.
@@ -40,7 +40,6 @@ class CameraIO:
         default_factory=lambda: {"image": SequenceGaps(), "detections": SequenceGaps()})
     pairer: Optional[StampPairer] = None
     outputs: List[Tuple[Any, Any]] = field(default_factory=list)
-    debug: Any = None
     subscriptions: List[Any] = field(default_factory=list)
     image_topic: str = ""
     counts: Dict[str, int] = field(

@@ -7,8 +7,9 @@ A thin adapter over :class:`~signal_light_node.runtime.engine.LightStateEngine`:
 * a complete (image, detections) pair goes into a bounded drop-oldest queue;
 * one worker thread decodes the image, runs the engine and publishes the result through
   the output adapters (:mod:`signal_light_node.outputs`): ``~/output/vehicle_lights``,
-  with ``publish_markers`` and while watched ``~/output/markers``, and when enabled and
-  watched ``~/output/debug/image``;
+  with ``publish_markers`` and while watched ``~/output/markers``, and with
+  ``publish_debug_image`` and while watched ``~/output/debug/image`` (the frame drawn by
+  :class:`~signal_light_node.outputs.debug_image.DebugImageOutput`);
 * a timer publishes the node's figures on ``/diagnostics``.
 
 With ``cameras: [front, rear]`` every camera has all of the above under its name
@@ -63,8 +64,7 @@ _NS = 1_000_000_000
 IMAGE_TOPIC = "~/input/image"
 COMPRESSED_TOPIC = "~/input/image/compressed"
 DETECTIONS_TOPIC = "~/input/detections"
-OUTPUT_TOPIC = "~/output/vehicle_lights"
-DEBUG_TOPIC = "~/output/debug/image"
+# The output topics are the output adapters' (``OutputAdapter.node_topic``).
 
 _LEVEL_BYTES = {OK: b"\x00", WARN: b"\x01", ERROR: b"\x02"}
 
@@ -175,7 +175,6 @@ class SignalLightDetector(Node):
         # The single camera's publishers under the names the rest of the node uses.
         self._outputs = self._cameras[0].outputs
         self._out = self._outputs[0][1]
-        self._debug = self._cameras[0].debug
         self._diag = self._create_publisher(message_class(DIAGNOSTICS_TYPE), DIAGNOSTICS_TOPIC,
                                             10)
         process = self._process_cameras if self._several else self._process
@@ -219,15 +218,14 @@ class SignalLightDetector(Node):
         return publisher
 
     def _create_camera_topics(self, camera: CameraIO) -> None:
-        """One publisher per output adapter (the result array first) and the debug image."""
+        """One publisher per output adapter (the result array first; markers and the debug
+        image as the parameters ask)."""
+        adapters = output_adapters(markers=self.params.publish_markers,
+                                   debug_image=self.params.publish_debug_image)
         camera.outputs = [(adapter, self._create_publisher(message_class(adapter.msgtype),
                                                            camera.topic(adapter.node_topic),
                                                            adapter.depth))
-                          for adapter in output_adapters(markers=self.params.publish_markers)]
-        camera.debug = None
-        if self.params.publish_debug_image:
-            camera.debug = self._create_publisher(message_class(IMAGE_TYPE),
-                                                  camera.topic(DEBUG_TOPIC), 2)
+                          for adapter in adapters]
 
     def _subscribe(self, camera: CameraIO) -> None:
         """The camera's image and detections subscriptions (image first)."""
@@ -272,14 +270,14 @@ class SignalLightDetector(Node):
         for camera in self._cameras:
             for sub in camera.subscriptions:
                 self.destroy_subscription(sub)
-            camera.subscriptions, camera.outputs, camera.debug = [], [], None
+            camera.subscriptions, camera.outputs = [], []
         if getattr(self, "_timer", None) is not None:
             self.destroy_timer(self._timer)
             self._timer = None
         for pub in self._publishers_made:
             self.destroy_publisher(pub)
         self._publishers_made = []
-        self._outputs, self._debug, self._diag = [], None, None
+        self._outputs, self._diag = [], None
 
     def cleanup(self) -> None:
         """Free the model and every track state (``configure`` loads them again)."""
@@ -359,31 +357,29 @@ class SignalLightDetector(Node):
                 "queue": (taken - max(pair.image_received_ns, pair.detections_received_ns)) / _NS,
                 "decode": decode_s, **frame.stages_s, "outputs": t_publish - t_build,
                 "publish": time.perf_counter() - t_publish})
-        for adapter, publisher in others:
-            if not adapter.when_subscribed or publisher.get_subscription_count() > 0:
-                self._publish(publisher, adapter.build(pair.image.header, frame.results,
-                                                       rclpy_make))
+        self._publish_others(others, pair, boxes, image, frame.results)
         if image is None:
-            return  # no engine run, no debug image
+            return  # no engine run
         self._engine_time.add(frame.latency_s)
         if frame.warnings:
             self.get_logger().warning(f"stamp {pair.stamp_ns}: {'; '.join(frame.warnings)}",
                                       throttle_duration_sec=5.0)
-        if self._debug is not None and self._debug.get_subscription_count() > 0:
-            self._publish_debug(image, pair, boxes, frame.results)
 
-    def _publish_debug(self, image: Any, pair: Any, boxes: List[Any], results: List[Any],
-                       publisher: Any = None) -> None:
-        from signal_light_node.io.image_codec import bgr_to_image_fields
-        from signal_light_node.tools.visualize import draw_results
-
-        attention = self.engine.attention_masks(image, boxes)
-        drawn = draw_results(image, results, attention=attention,
-                             caption=f"{pair.stamp_ns / 1e9:.3f}")
-        msg = rclpy_make(IMAGE_TYPE, header=pair.image.header,
-                         **bgr_to_image_fields(drawn))
-        if self._publish(publisher or self._debug, msg):
-            self._counts["debug_images"] += 1
+    def _publish_others(self, others: Sequence[Tuple[Any, Any]], pair: Any, boxes: List[Any],
+                        image: Any, results: List[Any]) -> None:
+        """A frame's outputs after the result array: each while subscribed where it asks
+        so; one that draws on the frame (the debug image) only when the image was decoded,
+        with the attention masks of the boxes."""
+        for adapter, publisher in others:
+            if adapter.when_subscribed and publisher.get_subscription_count() == 0:
+                continue
+            if not adapter.draws_image:
+                self._publish(publisher, adapter.build(pair.image.header, results, rclpy_make))
+            elif image is not None:
+                msg = adapter.build(pair.image.header, results, rclpy_make, image=image,
+                                    attention=self.engine.attention_masks(image, boxes))
+                if self._publish(publisher, msg):
+                    self._counts["debug_images"] += 1
 
     # ------------------------------------------------------------ several cameras
     def _process_cameras(self, tick: Sequence[Tuple[str, Any]]) -> None:
@@ -434,18 +430,11 @@ class SignalLightDetector(Node):
         self._latency.add((done - pair.image_received_ns) / _NS)
         self._processing.add(
             (done - max(pair.image_received_ns, pair.detections_received_ns)) / _NS)
-        for adapter, publisher in others:
-            if not adapter.when_subscribed or publisher.get_subscription_count() > 0:
-                self._publish(publisher, adapter.build(pair.image.header, frame.results,
-                                                       rclpy_make))
-        if image is None:
-            return
-        if frame.warnings:
+        self._publish_others(others, pair, boxes, image, frame.results)
+        if image is not None and frame.warnings:
             self.get_logger().warning(
                 f"camera {camera.name}, stamp {pair.stamp_ns}: {'; '.join(frame.warnings)}",
                 throttle_duration_sec=5.0)
-        if camera.debug is not None and camera.debug.get_subscription_count() > 0:
-            self._publish_debug(image, pair, boxes, frame.results, camera.debug)
 
     def _camera_values(self) -> List[Tuple[str, str]]:
         """Per-camera ``/diagnostics`` key/values; none for the single-camera node."""

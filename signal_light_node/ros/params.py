@@ -3,8 +3,9 @@
 :class:`DetectorParams` holds the values and their defaults (the only copy of the defaults
 but ``backend`` and ``precision``, which come from ``runtime.backend`` because
 ``signal-light replay`` and ``evaluate`` default to them too; ``config/detector.yaml`` is
-tested against it), :data:`PARAM_SPECS` describes each one
-(description, range or choices, whether it may change at run time), and
+tested against it), :data:`PARAM_SPECS` describes each one (description, range or
+choices, whether it may change at run time; the backend choices are the registry's,
+``model.backends.registry.known_backends()``, plus ``auto``), and
 :func:`validate_params` checks a set of values with a reason a user can act on. Only
 :func:`declare_parameters` and :func:`read_parameters` touch rclpy, and they import it
 lazily, so the rest is usable and testable without ROS.
@@ -21,7 +22,9 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 from signal_light_node.errors import ConfigError
 from signal_light_node.io.image_codec import DEFAULT_MAX_IMAGE_PIXELS
 from signal_light_node.io.topics import camera_name_problem
-from signal_light_node.runtime.backend import DEFAULT_BACKEND, DEFAULT_PRECISION, PRECISIONS
+from signal_light_node.model.backends.registry import known_backends
+from signal_light_node.runtime.backend import (AUTO_BACKEND, DEFAULT_BACKEND, DEFAULT_PRECISION,
+                                               PRECISIONS)
 from signal_light_node.runtime.intent_filter import IntentFilterConfig
 from signal_light_node.labels import LIGHT_CODES
 
@@ -41,8 +44,8 @@ class DetectorParams:
         model_path: Model file (a ``.pt`` checkpoint for the torch backend, an ``.onnx``
             export for onnxruntime); "" means the one shipped with the package.
         device: ``cpu`` or ``cuda``.
-        backend: Model backend, ``torch`` or ``onnxruntime`` (``runtime.backend``), or
-            ``auto``: by ``model_path``'s suffix, and for the shipped model onnxruntime on
+        backend: Model backend, ``torch`` or ``onnxruntime`` (``model.backends.registry``),
+            or ``auto``: by ``model_path``'s suffix, and for the shipped model onnxruntime on
             the CPU (faster there), torch on CUDA.
         precision: Weights: ``fp32``, ``int8`` (an export with int8 convolutions, run by
             onnxruntime on the CPU) or ``auto``: a ``model_path`` as it is; of the
@@ -165,7 +168,7 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
     "backend": ParamSpec("Model backend: torch (the .pt checkpoint), onnxruntime (its ONNX "
                          "export), or auto: by model_path's suffix; for the shipped model "
                          "onnxruntime on the CPU, torch on CUDA.",
-                         choices=("torch", "onnxruntime", "auto")),
+                         choices=known_backends() + (AUTO_BACKEND,)),
     "precision": ParamSpec("Weights: fp32, int8 (an export with int8 convolutions, "
                            "onnxruntime on the CPU: 0.76x the fp32 step on one AVX2 core, the "
                            "same accuracy) or auto: a model_path as it is; of the shipped "

@@ -28,7 +28,7 @@ from signal_light_node.runtime.crops import CropConfig, clip_roi, crop_region, c
 from signal_light_node.errors import ConfigError
 from signal_light_node.runtime.intent_filter import IntentFilter, IntentFilterConfig
 from signal_light_node.labels import LIGHT_CODES, LIGHT_TASKS, Intent, LightStatus, View
-from signal_light_node.runtime.backend import ModelBackend, as_backend, check_device, create_backend
+from signal_light_node.runtime.backend import ModelBackend, check_device
 from signal_light_node.runtime.memory import retain_freed_memory
 from signal_light_node.runtime.results import LightEstimate, VehicleResult
 from signal_light_node.runtime.state_bank import StateBank, check_limits
@@ -172,9 +172,9 @@ class LightStateEngine:
 
     Args:
         model: A model backend (``runtime.backend.ModelBackend``, e.g. from
-            ``create_backend``), or a bare torch ``LightStateModel`` (``initial_state``,
-            ``step``, ``config``), which is wrapped in the ``torch`` backend on
-            ``config.device``.
+            ``model.backends.registry.create_backend``), or a bare torch
+            ``LightStateModel`` (``initial_state``, ``step``, ``config``), which is
+            wrapped in the ``torch`` backend on ``config.device``.
         config: Engine settings.
 
     Raises:
@@ -183,6 +183,10 @@ class LightStateEngine:
     """
 
     def __init__(self, model: Any, config: Optional[EngineConfig] = None) -> None:
+        # The registry is imported here, not at the top: its package (``model``) loads
+        # torch, and importing the engine loads no framework.
+        from signal_light_node.model.backends.registry import as_backend
+
         config = config or EngineConfig()
         retain_freed_memory()
         backend: ModelBackend = as_backend(model, config.device)
@@ -526,11 +530,11 @@ def engine_from_checkpoint(path: "str | Path | None" = None, device: str = "cpu"
             export (``signal-light export --onnx``) for ``"onnxruntime"``; None for the
             one shipped with the package.
         device: ``cpu``, ``cuda`` or ``cuda:N``.
-        backend: A name of ``runtime.backend.known_backends()``, or ``auto``
-            (``runtime.backend.resolve_backend``: by the file's suffix; onnxruntime on the
+        backend: A name of ``model.backends.registry.known_backends()``, or ``auto``
+            (``registry.resolve_backend``: by the file's suffix; onnxruntime on the
             CPU for the shipped model).
         threads: Intra-op CPU threads of the backend; None or 0 keeps its default.
-        precision: ``fp32``, ``int8`` or ``auto`` (``runtime.backend.create_backend``).
+        precision: ``fp32``, ``int8`` or ``auto`` (``registry.create_backend``).
         **overrides: Other ``EngineConfig`` fields (thresholds, track_timeout_s,
             intent_filter, ...). The crop (size and margin) is the checkpoint's.
 
@@ -541,6 +545,8 @@ def engine_from_checkpoint(path: "str | Path | None" = None, device: str = "cpu"
         CheckpointError: The file is missing, unreadable or incompatible.
         ConfigError: An override, the backend or the device is invalid.
     """
+    from signal_light_node.model.backends.registry import create_backend
+
     model = create_backend(backend, None if path is None else str(path), device=device,
                            threads=threads, precision=precision)
     try:

@@ -32,7 +32,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.runtime.backend import BackendState, as_backend
+from signal_light_node.runtime.backend import BackendState
 
 LOG = logging.getLogger(__name__)
 
@@ -115,6 +115,9 @@ class StateBank:
         self.track_timeout_ns = int(round(track_timeout_s * 1e9))
         self.max_gap_ns = int(round(max_gap_s * 1e9))
         self.capacity = max_tracks
+        # Imported here: the registry's package (``model``) loads torch (see the engine).
+        from signal_light_node.model.backends.registry import as_backend
+
         self.backend = as_backend(model, device)
         # Row `capacity` is a scratch row that always holds the initial state: tracks that
         # find no free row (more tracks in one frame than max_tracks) read it and are not stored.

@@ -26,11 +26,12 @@ from tqdm import tqdm
 
 from signal_light_node.io import bagio
 from signal_light_node.boxes import TrackBox
-from signal_light_node.io.conversions import boxes_to_detections, make_header, vehicle_light_array
+from signal_light_node.io.conversions import boxes_to_detections, make_header
 from signal_light_node.runtime.crops import clip_roi
 from signal_light_node.errors import ConfigError
 from signal_light_node.io.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
 from signal_light_node.labels import LIGHT_CODES, Intent, LightStatus, View
+from signal_light_node.outputs.vehicle_lights import vehicle_light_array
 from signal_light_node.runtime.results import LightEstimate, VehicleResult
 # The topics under the names the tests and tools import them by from here.
 from signal_light_node.io.topics import CAMERA_COMPRESSED_TOPIC as COMPRESSED_TOPIC

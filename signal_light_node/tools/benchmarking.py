@@ -18,7 +18,8 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence
 import numpy as np
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.runtime.backend import ModelBackend, create_backend
+from signal_light_node.model.backends.registry import create_backend
+from signal_light_node.runtime.backend import ModelBackend
 
 #: Environment variables that cap oneDNN's instruction set (torch's convolutions).
 ONEDNN_ISA_VARIABLES = ("ONEDNN_MAX_CPU_ISA", "DNNL_MAX_CPU_ISA")
@@ -75,7 +76,7 @@ def bench_backend(name: str, weights: Optional[Path], onnx: Optional[Path], thre
     """The backend ``name`` for a benchmark.
 
     Args:
-        name: ``torch`` or ``onnxruntime`` (``runtime.backend.known_backends``).
+        name: ``torch`` or ``onnxruntime`` (``model.backends.registry.known_backends``).
         weights: The ``.pt`` checkpoint (None: the shipped one).
         onnx: The ``.onnx`` export for ``onnxruntime``; None exports ``weights`` into
             ``workdir`` (or takes the shipped ``default.onnx`` when ``weights`` is None).
@@ -168,7 +169,7 @@ def require_known(names: Sequence[str]) -> List[str]:
     Raises:
         ConfigError: A name is not a known backend.
     """
-    from signal_light_node.runtime.backend import known_backends
+    from signal_light_node.model.backends.registry import known_backends
 
     out: List[str] = []
     for name in names:

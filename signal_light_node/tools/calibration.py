@@ -19,7 +19,8 @@ import numpy as np
 
 from signal_light_node.errors import ConfigError
 from signal_light_node.labels import TASKS
-from signal_light_node.runtime.backend import StepOutput, create_backend
+from signal_light_node.model.backends.registry import create_backend
+from signal_light_node.runtime.backend import StepOutput
 from signal_light_node.runtime.engine import LightStateEngine
 from signal_light_node.tools.replay import replay_bag
 

@@ -21,8 +21,9 @@ import cv2
 import numpy as np
 
 from signal_light_node.io.bagio import find_topic, open_bag
-from signal_light_node.io.conversions import (detections_to_boxes, result_row, stamp_to_ns,
-                                           truth_row, vehicle_light_array_to_results)
+from signal_light_node.io.conversions import detections_to_boxes, stamp_to_ns
+from signal_light_node.outputs.vehicle_lights import (result_row, truth_row,
+                                                      vehicle_light_array_to_results)
 from signal_light_node.errors import BagIOError, SignalLightError
 from signal_light_node.labels import Intent, LightStatus
 from signal_light_node.runtime.results import VehicleResult
@@ -288,7 +289,7 @@ def build_report(input_bag: "str | Path", output_bag: "str | Path",
         stamps = [stamp_to_ns(m.msg.header.stamp) for m in bag.messages([inputs.image_topic])]
     report.frames_in = len(stamps)
 
-    from signal_light_node.tools.metrics import MetricAccumulator
+    from signal_light_node.evaluation.metrics import MetricAccumulator
 
     accumulator = MetricAccumulator() if truth else None
     for index, stamp in enumerate(stamps):
@@ -341,7 +342,8 @@ def render_video(input_bag: "str | Path", inputs: BagInputs,
         The paths written (None where nothing could be drawn).
     """
     from signal_light_node.io.image_codec import msg_to_bgr
-    from signal_light_node.tools.visualize import VideoSink, draw_results
+    from signal_light_node.outputs.debug_image import draw_results
+    from signal_light_node.tools.visualize import VideoSink
 
     out_dir.mkdir(parents=True, exist_ok=True)
     with open_bag(input_bag) as bag:

@@ -30,8 +30,7 @@ import numpy as np
 
 from signal_light_node.io.bagio import BagWriter, find_topic, make, open_bag
 from signal_light_node.boxes import TrackBox
-from signal_light_node.io.conversions import (detections_to_boxes, result_row, stamp_to_ns,
-                                           truth_row)
+from signal_light_node.io.conversions import detections_to_boxes, stamp_to_ns
 from signal_light_node.runtime.backend import ModelRun
 from signal_light_node.runtime.engine import ENGINE_STAGES, FrameResult, LightStateEngine
 from signal_light_node.errors import ImageConversionError
@@ -40,6 +39,7 @@ from signal_light_node.runtime.results import VehicleResult
 from signal_light_node.io.topics import (DETECTIONS_TYPE, GROUND_TRUTH_TOPIC, IMAGE_TYPES,
                                       MARKERS_TOPIC, OUTPUT_TOPIC, VEHICLE_LIGHTS_TYPE)
 from signal_light_node.outputs import output_adapters
+from signal_light_node.outputs.vehicle_lights import result_row, truth_row
 from signal_light_node.runtime.pairing import (DETECTIONS, IMAGE, OrderedPairing,
                                                PairingConfig, pair_in_order)
 
@@ -268,7 +268,8 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
         BagIOError: The bag cannot be read, lacks the topics, or the output cannot be written.
         ConfigError: The video path has an unsupported suffix.
     """
-    from signal_light_node.tools.visualize import VideoSink, draw_results
+    from signal_light_node.outputs.debug_image import draw_results
+    from signal_light_node.tools.visualize import VideoSink
 
     bag_path, output = Path(bag_path), Path(output)
     adapters = output_adapters(markers=markers)
@@ -403,14 +404,14 @@ def score_summary(summary: ReplaySummary, settings: Any = None) -> Optional[Dict
     """Score the replay's output against the bag's ground truth, with the evaluation's rules.
 
     The warm-up and grace-window rules are those of ``signal-light evaluate``
-    (:class:`signal_light_node.training.evaluation.TrackScorer`); they apply from each
+    (:class:`signal_light_node.evaluation.scoring.TrackScorer`); they apply from each
     start of a track's state in the engine (``frames_observed == 1``), so a track that
     timed out and came back warms up again. Only judged boxes with a ground-truth entry
     of the same track ID are scored.
 
     Args:
         summary: A replay summary of a bag with ground truth.
-        settings: ``training.evaluation.EvalSettings`` (default: its defaults).
+        settings: ``evaluation.scoring.EvalSettings`` (default: its defaults).
 
     Returns:
         ``{"settings", "counts", "no_grace", "grace"}`` shaped like ``evaluate_tracks``'
@@ -418,8 +419,8 @@ def score_summary(summary: ReplaySummary, settings: Any = None) -> Optional[Dict
         where a track is one segment of a track's state, or None when no judged box had
         ground truth.
     """
-    from signal_light_node.training.evaluation import EvalSettings, TrackScorer
-    from signal_light_node.training.sources import TrackSequence
+    from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
+    from signal_light_node.evaluation.tracks import TrackSequence
 
     if not summary.tracks:
         return None

@@ -30,12 +30,12 @@ from typing import Any, Dict, Iterator, List, Mapping, Optional, Sequence, Tuple
 
 from signal_light_node.errors import ConfigError, ImageConversionError
 from signal_light_node.io.bagio import BagWriter, find_topic, make, open_bag
-from signal_light_node.io.conversions import truth_row
 from signal_light_node.io.image_codec import DEFAULT_MAX_IMAGE_PIXELS, msg_to_bgr
 from signal_light_node.io.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, GROUND_TRUTH_TOPIC,
                                          IMAGE_TYPES, VEHICLE_LIGHTS_TYPE, camera_name_problem,
                                          camera_topic)
 from signal_light_node.outputs import output_adapters
+from signal_light_node.outputs.vehicle_lights import truth_row
 from signal_light_node.runtime.backend import ModelRun
 from signal_light_node.runtime.camera_batch import unjudged_camera_frame
 from signal_light_node.runtime.engine import LightStateEngine

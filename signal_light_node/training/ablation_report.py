@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional, Sequence
 
 from signal_light_node.errors import SignalLightError
-from signal_light_node.tools.metrics import percent_cell
+from signal_light_node.evaluation.metrics import percent_cell
 
 # (summary key, column title) of the headline figures, in table order.
 _COLUMNS = (("intent_macro_f1", "intent macro-F1"), ("brake_accuracy", "brake accuracy"),

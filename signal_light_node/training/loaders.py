@@ -23,7 +23,8 @@ from signal_light_node.errors import ConfigError
 from signal_light_node.runtime.crops import CropConfig
 from signal_light_node.training.augment import Augment
 from signal_light_node.training.options import TrainOptions
-from signal_light_node.training.sources import TrackSequence, WindowDataset
+from signal_light_node.evaluation.tracks import TrackSequence
+from signal_light_node.training.sources import WindowDataset
 from signal_light_node.training.streams import BalancedStream, MixedStream, ReplayStream
 from signal_light_node.training.track_batches import FrameBatches, LaneBatches
 

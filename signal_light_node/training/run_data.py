@@ -13,13 +13,12 @@ import logging
 from pathlib import Path
 from typing import Any, Dict, List, Tuple
 
+from signal_light_node.evaluation.tracks import TrackSequence, item_labels
 from signal_light_node.runtime.crops import CropConfig
 from signal_light_node.training import FRAME_TARGETS
 from signal_light_node.training.options import TrainOptions
 from signal_light_node.training.sources import (
-    TrackSequence,
     WindowDataset,
-    item_labels,
     load_bag_tracks,
     load_ucm_tracks,
     split_tracks,

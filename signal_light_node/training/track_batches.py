@@ -36,7 +36,7 @@ import torch
 
 from signal_light_node.data.stream import PAD_LABEL
 from signal_light_node.errors import ConfigError
-from signal_light_node.training.sources import TrackSequence
+from signal_light_node.evaluation.tracks import TrackSequence
 
 #: ``f(item, rng) -> item`` on a sequence item (see :mod:`.sources`).
 Augment = Callable[[Dict[str, Any], np.random.Generator], Dict[str, Any]]

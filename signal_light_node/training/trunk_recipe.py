@@ -39,7 +39,7 @@ from signal_light_node.model.checkpoint import save_checkpoint
 from signal_light_node.model.config import ModelConfig, trunk_config
 from signal_light_node.model.registry import build_model
 from signal_light_node.model.trunk_network import LIT_TASKS
-from signal_light_node.tools.metrics import confusion_matrix, macro_f1, per_class_scores
+from signal_light_node.evaluation.metrics import confusion_matrix, macro_f1, per_class_scores
 from signal_light_node.training.feature_cache import (FeatureCache, collate_windows, track_logits,
                                                       trunk_fingerprint, write_cache)
 from signal_light_node.training.loss import multitask_loss, warmup_frames

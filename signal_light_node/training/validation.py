@@ -3,7 +3,7 @@
 The first ``max(warmup, warmup_seconds * fps)`` frames of each sequence are left out of
 the metrics and of the intent/left/right loss; with ``per_frame`` every frame is judged
 alone from a zero state, as ``--mode frames`` trains. The score is
-:func:`signal_light_node.tools.metrics.selection_score` (the mean of intent macro-F1 and
+:func:`signal_light_node.evaluation.metrics.selection_score` (the mean of intent macro-F1 and
 brake accuracy), by which a run keeps its best checkpoint.
 """
 
@@ -17,7 +17,7 @@ from torch import nn
 
 from signal_light_node.data.stream import collate_sequences
 from signal_light_node.labels import TASKS
-from signal_light_node.tools.metrics import MetricAccumulator, selection_score
+from signal_light_node.evaluation.metrics import MetricAccumulator, selection_score
 from signal_light_node.training.loss import multitask_loss, warmup_frames
 from signal_light_node.training.model_inputs import batch_input
 

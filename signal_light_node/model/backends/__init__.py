@@ -2,5 +2,6 @@
 ``.pt`` checkpoint) and ``onnx_backend`` (an ``.onnx`` export run by onnxruntime).
 
 Nothing is imported here: each module pulls in its own framework when it is used
-(``runtime.backend.create_backend`` picks one by name).
+(``registry.create_backend`` picks one by name; ``registry`` is the one place that names
+them).
 """

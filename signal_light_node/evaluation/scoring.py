@@ -1,14 +1,9 @@
-"""Streaming evaluation: every track stepped frame by frame, as the engine steps it.
+"""Scoring whole tracks: the warm-up and grace-window rules, breakdowns and switches.
 
-Each track starts from the model backend's initial state and is advanced one ``step`` per
-observed frame (frames with ``mask`` False, e.g. a box that could not be cropped, are
-neither stepped nor scored, as the engine never judges them). Tracks are batched only
-for speed: at frame index ``t`` every track of the batch that has a frame ``t`` is
-stepped together, which gives the same outputs as stepping each track alone. The
-model's outputs go through the same :class:`~signal_light_node.runtime.intent_filter.IntentFilter`
-as in the engine, driven by each track's own stamps, so what is scored is what the node
-publishes; with the filter disabled, the predicted class of a head is the argmax of its
-probabilities (the raw model).
+:class:`TrackScorer` is the one scoring loop: the streaming evaluation
+(:func:`signal_light_node.evaluation.streaming.evaluate_tracks`) feeds it the model's
+predictions, ``signal-light replay`` (``tools.replay.score_summary``) the engine's and the
+ideal observer (:mod:`.ideal_observer`) its own.
 
 Scoring rules (documented in the report's ``settings``):
 
@@ -22,7 +17,7 @@ Scoring rules (documented in the report's ``settings``):
   a blinker was switched on or off.
 
 Breakdowns: lighting (the track's), view (the ground-truth view of the frame), box-size
-band and occlusion band (:mod:`signal_light_node.tools.metrics`).
+band and occlusion band (:mod:`signal_light_node.evaluation.metrics`).
 
 Switches (flicker): per head and track, how often the predicted and the true class
 change from one scored frame to the next (after the warm-up, no grace window);
@@ -31,23 +26,16 @@ reported per track and summed, with their ratio (``metrics.SwitchCounter``).
 
 from __future__ import annotations
 
-import logging
 from dataclasses import asdict, dataclass
-from typing import Any, Dict, Iterable, Iterator, List, Optional, Sequence
+from typing import Any, Dict
 
 import numpy as np
-import torch
-from tqdm import tqdm
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.runtime.intent_filter import IntentFilter, IntentFilterConfig
+from signal_light_node.evaluation.metrics import (MetricAccumulator, SwitchCounter,
+                                                  box_size_band, occlusion_band)
+from signal_light_node.evaluation.tracks import TrackSequence
 from signal_light_node.labels import CLASS_NAMES, TASKS
-from signal_light_node.tools.metrics import (MetricAccumulator, SwitchCounter, box_size_band,
-                                       occlusion_band)
-from signal_light_node.runtime.backend import as_backend
-from signal_light_node.training.sources import TrackSequence
-
-logger = logging.getLogger(__name__)
 
 _VIEW = TASKS.index("view")
 
@@ -110,49 +98,6 @@ def grace_mask(track: TrackSequence, task_index: int, settings: EvalSettings) ->
     return keep
 
 
-def predict_track_batch(model: Any, tracks: Sequence[TrackSequence],
-                        device: "str | torch.device" = "cpu",
-                        intent_filter: Optional[IntentFilterConfig] = None) -> List[np.ndarray]:
-    """Step a batch of tracks frame by frame; returns int64 ``[T_i, len(TASKS)]`` each.
-
-    Args:
-        model: A model backend (``runtime.backend.ModelBackend``: torch, onnxruntime), or
-            a bare ``LightStateModel``, run through the torch backend on ``device``.
-        tracks: The tracks (crops, mask, stamps).
-        device: Where a bare model runs (a backend keeps its own).
-        intent_filter: The filter over the model's outputs, as in the engine (default:
-            its defaults; ``enabled=False`` gives the raw model's argmax).
-
-    Returns:
-        Published classes per frame; rows of frames that are not stepped (mask False)
-        are -1.
-    """
-    backend = as_backend(model, str(device))
-    n = len(tracks)
-    length = max(len(t) for t in tracks)
-    preds = [np.full((len(t), len(TASKS)), -1, np.int64) for t in tracks]
-    # Each track's state is a row of the backend's row store, as in the state bank.
-    states = backend.new_rows(n)
-    light_filter = IntentFilter(intent_filter)
-    rows = light_filter.initial_rows(n)
-    for i in range(length):
-        active = np.array([k for k, t in enumerate(tracks) if i < len(t) and bool(t.mask[i])],
-                          np.int64)
-        if not len(active):
-            continue
-        crops = np.stack([tracks[k].crop_window(i, i + 1)[0] for k in active])
-        out = backend.step(crops, backend.gather_rows(states, active))
-        backend.store_rows(states, active, out.state)
-        filtered = light_filter.step(out.probs,
-                                     np.array([tracks[k].stamps_ns[i] for k in active], np.int64),
-                                     rows[active])
-        rows[active] = filtered.rows
-        labels = np.stack([filtered.states[t] for t in TASKS], axis=1)
-        for row, k in enumerate(active):
-            preds[k][i] = labels[row]
-    return preds
-
-
 def _groups(track: TrackSequence, rows: np.ndarray) -> Dict[str, Any]:
     view = track.labels[rows, _VIEW]
     names = np.array(CLASS_NAMES["view"] + ("unknown",), dtype=object)
@@ -163,22 +108,11 @@ def _groups(track: TrackSequence, rows: np.ndarray) -> Dict[str, Any]:
             "occlusion": occlusion_band(track.occlusion[rows])}
 
 
-def _chunks(tracks: Iterable[TrackSequence], size: int) -> Iterator[List[TrackSequence]]:
-    chunk: List[TrackSequence] = []
-    for track in tracks:
-        chunk.append(track)
-        if len(chunk) == size:
-            yield chunk
-            chunk = []
-    if chunk:
-        yield chunk
-
-
 class TrackScorer:
     """Scores predicted classes of whole tracks with the warm-up and grace-window rules.
 
-    The one scoring loop: :func:`evaluate_tracks` feeds it the model's predictions and
-    ``replay.score_summary`` the engine's.
+    The one scoring loop: :func:`.streaming.evaluate_tracks` feeds it the model's
+    predictions and ``replay.score_summary`` the engine's.
 
     Args:
         settings: Scoring rules.
@@ -239,48 +173,3 @@ class TrackScorer:
         return {"settings": asdict(self.settings), "counts": self.counts,
                 "no_grace": self.strict.report(), "grace": self.graced.report(),
                 "switches": {t: c.report() for t, c in self.switches.items()}}
-
-
-def evaluate_tracks(model: Any, tracks: Iterable[TrackSequence],
-                    settings: EvalSettings = EvalSettings(),
-                    device: "str | torch.device" = "cpu", progress: bool = True,
-                    total: Optional[int] = None,
-                    intent_filter: Optional[IntentFilterConfig] = None) -> Dict[str, Any]:
-    """Score a model on tracks with and without the grace window.
-
-    Tracks are consumed lazily, ``settings.batch_tracks`` at a time, so a long test set
-    never has to sit in memory at once.
-
-    Args:
-        model: A model backend, or a bare ``LightStateModel`` (run through the torch
-            backend on ``device``, in eval mode).
-        tracks: Tracks with ground truth (any iterable).
-        settings: Scoring rules.
-        device: Where a bare model runs.
-        progress: Show a progress bar.
-        total: Number of tracks, for the progress bar.
-        intent_filter: The filter over the model's outputs (default: its defaults, as
-            the node runs; ``enabled=False`` scores the raw model).
-
-    Returns:
-        :meth:`TrackScorer.result`: ``{"settings", "counts", "no_grace": report, "grace":
-        report, "switches"}`` where ``counts`` says how many frames were stepped,
-        excluded by the warm-up and (per head) by the grace window, plus
-        ``"intent_filter"``: the filter's settings.
-
-    Raises:
-        ConfigError: There were no tracks.
-    """
-    backend = as_backend(model, str(device))
-    intent_filter = intent_filter or IntentFilterConfig()
-    scorer = TrackScorer(settings)
-    bar = tqdm(total=total, desc="evaluate", unit="track", disable=not progress)
-    for batch in _chunks(tracks, settings.batch_tracks):
-        preds = predict_track_batch(backend, batch, intent_filter=intent_filter)
-        for track, pred in zip(batch, preds):
-            scorer.add(track, pred)
-        bar.update(len(batch))
-    bar.close()
-    if scorer.counts["tracks"] == 0:
-        raise ConfigError("nothing to evaluate: no tracks")
-    return {**scorer.result(), "intent_filter": asdict(intent_filter)}

@@ -17,7 +17,7 @@ run while switched on, taken from the ground truth). Per frame and blinker it sa
 
 Brake and view are steady and copied from the ground truth; the intent follows from the
 two blinkers by :func:`signal_light_node.labels.intent_from_lights`, as the labels do.
-Scored with the evaluation's rules (:class:`.evaluation.TrackScorer`), its report is the
+Scored with the evaluation's rules (:class:`.scoring.TrackScorer`), its report is the
 ceiling of every metric; ``signal-light evaluate --ideal-observer`` writes it.
 """
 
@@ -29,8 +29,8 @@ import numpy as np
 
 from signal_light_node.errors import ConfigError
 from signal_light_node.labels import TASKS, LightStatus, intent_from_lights
-from signal_light_node.training.evaluation import EvalSettings, TrackScorer
-from signal_light_node.training.sources import item_labels, track_from_item
+from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
+from signal_light_node.evaluation.tracks import item_labels, track_from_item
 
 _BLINKERS = (TASKS.index("left"), TASKS.index("right"))
 _INTENT = TASKS.index("intent")

@@ -379,7 +379,7 @@ class SwitchCounter:
     """Changes of the predicted and of the true class along tracks (see the module docstring).
 
     The one place where switches are counted: the evaluation and the replay summary both
-    feed it through ``training.evaluation.TrackScorer``.
+    feed it through ``evaluation.scoring.TrackScorer``.
     """
 
     def __init__(self) -> None:
