@@ -100,6 +100,14 @@ def test_transitions_over_the_lifecycle_services(tmp_path: Path, rclpy_isolated_
             values = {kv.key: kv.value for kv in client.diagnostics[-1].status[0].values}
             assert int(values["active_tracks"]) == len(frames[5].track_ids) > 0
             client.feed(frames[7:])
+            # Frame 6, published while inactive, is no middleware loss (the numbers of the
+            # publishers running when it subscribed again start afresh).
+            n_diag = len(client.diagnostics)
+            assert client.spin_until(lambda: len(client.diagnostics) > n_diag, 10.0)
+            values = {kv.key: kv.value for kv in client.diagnostics[-1].status[0].values}
+            assert values["dropped_image_middleware"] == "0", values
+            assert values["dropped_detections_middleware"] == "0", values
+            assert "2 publisher(s) already running" in values["middleware_drops_counted"]
 
             assert manager.transition(Transition.TRANSITION_DEACTIVATE)
             assert manager.transition(Transition.TRANSITION_CLEANUP)

@@ -112,7 +112,8 @@ class PairerGroup:
 
 
 class GapsSum:
-    """One input's middleware drop counts over several cameras (``lost``, ``supported``).
+    """One input's middleware drop counts over several cameras (``lost``, ``supported``,
+    ``publishers_before``).
 
     Args:
         gaps: That input's :class:`SequenceGaps` of each camera.
@@ -125,6 +126,11 @@ class GapsSum:
     def lost(self) -> int:
         """Messages lost, all cameras."""
         return sum(g.lost for g in self.gaps)
+
+    @property
+    def publishers_before(self) -> int:
+        """Publishers already running when subscribed, all cameras."""
+        return sum(g.publishers_before for g in self.gaps)
 
     @property
     def supported(self) -> Optional[bool]:

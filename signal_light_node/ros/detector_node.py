@@ -246,6 +246,10 @@ class SignalLightDetector(Node):
                                      camera.topic(DETECTIONS_TOPIC), on_detections,
                                      qos(p.reliability, p.detection_queue_size))]
         camera.image_topic = camera.subscriptions[0].topic_name
+        # Publishers already on a topic may have numbered messages before we subscribed;
+        # every later one is counted from its first message (ros/gaps.py).
+        for kind, sub in zip(("image", "detections"), camera.subscriptions):
+            camera.gaps[kind].subscribed(self.count_publishers(sub.topic_name))
 
     def _new_queue(self) -> Any:
         """The work queue: drop-oldest for one camera, one per camera for several."""
@@ -489,7 +493,7 @@ class SignalLightDetector(Node):
             "track_resets": engine.get("resets", 0),
             "track_overflow": engine.get("overflow", 0),
             "boxes_over_limit": engine.get("over_limit", 0),
-            "middleware_drops_counted": _yes_no(self._gaps["image"].supported),
+            "middleware_drops_counted": _middleware_counted(self._gaps),
             "work_queue_length": len(self._queue),
             "pending_images": self._pairer.pending[0],
             "pending_detections": self._pairer.pending[1],
@@ -530,9 +534,18 @@ class SignalLightDetector(Node):
             f"{c.name}={c.value}" for c in changes))
 
 
-def _yes_no(supported: Optional[bool]) -> str:
-    return {True: "yes", False: "no (the middleware gives no sequence numbers)"}.get(
+def _middleware_counted(gaps: Dict[str, Any]) -> str:
+    """``middleware_drops_counted``: whether the RMW numbers its messages, and which losses
+    the numbers cannot show (those of publishers already running when the node
+    subscribed, before their first delivered message: ros/gaps.py)."""
+    supported = gaps["image"].supported
+    text = {True: "yes", False: "no (the middleware gives no sequence numbers)"}.get(
         supported, "not yet known")
+    running = sum(g.publishers_before for g in gaps.values())
+    if supported and running:
+        text += (f", except before the first delivered message of the {running} "
+                 "publisher(s) already running when the node subscribed")
+    return text
 
 
 def _decoder(image_transport: str) -> Any:

@@ -20,9 +20,11 @@ import numpy as np
 OK, WARN, ERROR = 0, 1, 2
 
 #: Counters whose growth means input was lost or could not be used; each is reported
-#: and raises WARN. Images and detection arrays published = received + ``*_middleware``;
-#: every image received ends as an output (bad and oversized ones published unjudged) or
-#: in one ``dropped_*`` counter (or still waiting).
+#: and raises WARN. Images and detection arrays published = received + ``*_middleware``
+#: (for a publisher already running when the node subscribed: from its first delivered
+#: message; ``ros/gaps.py``); every image received ends as an output (bad and oversized
+#: ones published unjudged) or in one ``dropped_*`` counter, every detection array
+#: received as paired or in one ``dropped_detections_*`` counter (or still waiting).
 DROP_COUNTERS: Tuple[str, ...] = (
     "dropped_image_middleware", "dropped_detections_middleware",
     "dropped_image_timeout", "dropped_detections_timeout", "dropped_image_overflow",
