@@ -6,9 +6,13 @@
 #
 #   scripts/ablations_trunk.sh
 #
-#   full           the shipped settings (ImageNet trunk, relative and frequency evidence)
+#   full           the recipe's model (ImageNet trunk, relative evidence, lamp maps at 8x8
+#                  stacked per trunk cell, a lit head with one hidden layer, blink evidence
+#                  by period only)
 #   no_relative    relative_evidence=false
-#   no_frequency   frequency_evidence=false
+#   blink_levels   blink_levels=true (the blinkers' P(lit) and peaks in the track vector)
+#   coarse_lamps   lamp_detail=1 (one lamp-map cell per trunk cell)
+#   linear_lit     lit_hidden=0 (a linear lit head)
 #   random_trunk   trunk_init=random (the same frozen architecture, random weights)
 #
 # Every variant trains from scratch on the same pools, validation split and seed for
@@ -32,10 +36,15 @@ export THREADS=${THREADS:-1}
 PARALLEL=${PARALLEL:-2}
 CNN_COMMIT=${CNN_COMMIT:-6f587f0}
 REPORT=${REPORT:-docs/results/ablations_trunk.md}
-VARIANTS=(${VARIANTS:-full no_relative no_frequency random_trunk})
-declare -A MODELS=([full]="{}" [no_relative]='{"relative_evidence": false}'
-                   [no_frequency]='{"frequency_evidence": false}'
-                   [random_trunk]='{"trunk_init": "random"}')
+VARIANTS=(${VARIANTS:-full no_relative blink_levels coarse_lamps linear_lit random_trunk})
+# The recipe's model (scripts/train_trunk.sh RECIPE_MODEL) and one change each.
+BASE='"frequency_evidence": false, "lamp_detail": 2, "lit_hidden": 128'
+declare -A MODELS=([full]="{$BASE, \"blink_levels\": false}"
+                   [no_relative]="{$BASE, \"blink_levels\": false, \"relative_evidence\": false}"
+                   [blink_levels]="{$BASE}"
+                   [coarse_lamps]='{"frequency_evidence": false, "lit_hidden": 128, "blink_levels": false}'
+                   [linear_lit]='{"frequency_evidence": false, "lamp_detail": 2, "blink_levels": false}'
+                   [random_trunk]="{$BASE, \"blink_levels\": false, \"trunk_init\": \"random\"}")
 
 mkdir -p "$OUT"
 run_variant() {

@@ -24,7 +24,9 @@
 #   4. copies the calibrated checkpoint to WEIGHTS and, with EXPORT=1, exports it to ONNX
 #      and int8 ONNX (calibrated on bags/day_street and bags/night_street);
 #   5. scores it with scripts/transfer_report.py: own split, held-out family, the
-#      independent generator's bags and the hard negatives (RUN/transfer).
+#      independent generator's two committed bags and its 12 larger renders
+#      (scripts/render_independent.sh into INDEPENDENT, default DATA/independent, once) and
+#      the hard negatives (RUN/transfer).
 #
 # Every setting can be overridden from the environment; a few-minute smoke run:
 #   RUN=runs/smoke POOL_SEEDS=31 POOL_TRACKS=24 VAL_SEQUENCES=16 TEST_TRACKS=12 \
@@ -46,7 +48,10 @@ EXPORT=${EXPORT:-$([[ "$WEIGHTS" == "$SHIPPED" ]] && echo 1 || echo 0)}
 SEED=${SEED:-1}
 POOL_SEEDS=${POOL_SEEDS:-"31 32 33"}
 # The other data settings (POOL_TRACKS, VAL_*, TEST_*, FAMILY_SEED, CAL_*): scripts/render_data.sh.
-MODEL=${MODEL:-"{}"}                 # JSON changes on model.config.trunk_config()
+# JSON changes on model.config.trunk_config(): the recipe's model (docs/model.md, "Finer lamp
+# maps, a non-linear lit head, blink evidence by period only").
+RECIPE_MODEL='{"frequency_evidence": false, "lamp_detail": 2, "lit_hidden": 128, "blink_levels": false}'
+MODEL=${MODEL:-$RECIPE_MODEL}
 LOOKS=${LOOKS:-1}
 STEPS=${STEPS:-1500}
 BATCH=${BATCH:-32}
@@ -99,6 +104,8 @@ if [[ "$EVAL" != 1 ]]; then
   exit 0
 fi
 echo "== 5/5 evaluation: own test split, held-out style family, independent generator, hard negatives"
+INDEPENDENT=${INDEPENDENT:-$DATA/independent}   # the larger independent set, rendered once
+bash scripts/render_independent.sh "$INDEPENDENT"
 python scripts/transfer_report.py --checkpoint "$WEIGHTS" --data "$DATA" --out "$RUN/transfer" \
-  --threads "$THREADS"
+  --threads "$THREADS" --independent-renders "$INDEPENDENT"/*
 echo "== done in $(( ($(date +%s) - start) / 60 )) minutes; reports: $RUN/transfer/transfer.md"
