@@ -44,7 +44,6 @@ from signal_light_node.ros.messages import rclpy_make
 from signal_light_node.errors import (ConfigError, ImageConversionError, ImageTooLargeError,
                                       SignalLightError)
 from signal_light_node.ros.cameras import CameraIO, GapsSum, PairerGroup, camera_ios
-from signal_light_node.runtime.camera_batch import unjudged_camera_frame
 from signal_light_node.runtime.camera_queue import CameraQueue
 from signal_light_node.ros.gaps import SequenceGaps
 from signal_light_node.runtime.pairing import StampPairer
@@ -401,9 +400,9 @@ class SignalLightDetector(Node):
                 self.get_logger().warning(f"camera {name}: frame published unjudged: {exc}",
                                           throttle_duration_sec=5.0)
                 msg = pair.image
-                frames.append((camera, pair, boxes, None, unjudged_camera_frame(
-                    self.engine, name, pair.stamp_ns, boxes, int(getattr(msg, "width", 0)),
-                    int(getattr(msg, "height", 0)), str(exc))))
+                frames.append((camera, pair, boxes, None, self.engine.unjudged_frame(
+                    pair.stamp_ns, boxes, int(getattr(msg, "width", 0)),
+                    int(getattr(msg, "height", 0)), str(exc), camera=name)))
                 continue
             frames.append((camera, pair, boxes, image, None))
         usable = [(c.name, image, pair.stamp_ns, boxes)

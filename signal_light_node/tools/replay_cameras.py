@@ -37,7 +37,6 @@ from signal_light_node.io.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, GROUN
 from signal_light_node.outputs import output_adapters
 from signal_light_node.outputs.vehicle_lights import truth_row
 from signal_light_node.runtime.backend import ModelRun
-from signal_light_node.runtime.camera_batch import unjudged_camera_frame
 from signal_light_node.runtime.engine import LightStateEngine
 from signal_light_node.runtime.pairing import COUNTERS, OrderedPairing, PairingConfig, pair_in_order
 from signal_light_node.tools.replay import ReplaySummary, _arrivals, _collect, _record
@@ -456,10 +455,9 @@ def _run_tick(engine: LightStateEngine, tick: Sequence[_Frame], adapters: Sequen
         name = f.camera.source.name
         if f.image is None:
             msg = f.message.msg
-            result = unjudged_camera_frame(engine, name, f.stamp_ns, f.boxes,
-                                           int(getattr(msg, "width", 0)),
+            result = engine.unjudged_frame(f.stamp_ns, f.boxes, int(getattr(msg, "width", 0)),
                                            int(getattr(msg, "height", 0)),
-                                           "image could not be decoded")
+                                           "image could not be decoded", camera=name)
         else:
             result = next(judged)
             step_s = result.latency_s
