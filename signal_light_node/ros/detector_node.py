@@ -17,7 +17,9 @@ With ``cameras: [front, rear]`` every camera has all of the above under its name
 paired frames wait per camera (:class:`~signal_light_node.runtime.camera_queue.CameraQueue`)
 and the worker judges one frame of every camera that has one in ONE engine step
 (``engine.process_many``), publishing each camera's results on its own topics with its
-image's header. Per-camera figures go to ``/diagnostics`` as ``<camera>.<figure>``.
+image's header. Per-camera figures go to ``/diagnostics`` as ``<camera>.<figure>``. The
+single-camera node is the one camera ``""`` on the unprefixed topics: its frame is a tick
+of one, through the same worker code.
 
 Every conversion is the core's (``image_codec``, ``conversions``); nothing here knows a
 message layout beyond the topic types.
@@ -29,6 +31,7 @@ import logging
 import re
 import sys
 import time
+from dataclasses import dataclass
 from functools import partial
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
@@ -67,9 +70,10 @@ DETECTIONS_TOPIC = "~/input/detections"
 
 _LEVEL_BYTES = {OK: b"\x00", WARN: b"\x01", ERROR: b"\x02"}
 
-#: Stages of the worker's frame timed for ``/diagnostics`` (``stage_<name>_mean_ms`` /
-#: ``_p95_ms``): the wait in the work queue, decoding, the engine's own stages
-#: (``engine.ENGINE_STAGES``), building the output messages and publishing them.
+#: Stages of the worker's work item (one frame; with ``cameras`` one tick) timed for
+#: ``/diagnostics`` (``stage_<name>_mean_ms`` / ``_p95_ms``): the wait in the work queue
+#: (the tick's longest), decoding, the engine's own stages (``engine.ENGINE_STAGES``),
+#: building the result arrays and publishing them.
 NODE_STAGES = ("queue", "decode", "crops", "state_gather", "step", "intent_filter",
                "state_store", "results", "outputs", "publish")
 
@@ -171,17 +175,13 @@ class SignalLightDetector(Node):
             self._queue = self._new_queue()
         for camera in self._cameras:
             self._create_camera_topics(camera)
-        # The single camera's publishers under the names the rest of the node uses.
-        self._outputs = self._cameras[0].outputs
-        self._out = self._outputs[0][1]
         self._diag = self._create_publisher(message_class(DIAGNOSTICS_TYPE), DIAGNOSTICS_TOPIC,
                                             10)
-        process = self._process_cameras if self._several else self._process
+        process = self._process_tick if self._several else self._process_pair
         self._worker = Worker(self._queue, process, name="signal_light_inference").start()
 
         for camera in self._cameras:
             self._subscribe(camera)
-        self._image_topic = self._cameras[0].image_topic
         self._last_snapshot = self._snapshot()
         self._timer = self.create_timer(p.diagnostics_period_s, self._publish_diagnostics)
         pairing = 'exact' if p.sync_slop_s == 0 else f'within {p.sync_slop_s} s'
@@ -190,10 +190,11 @@ class SignalLightDetector(Node):
                 f"{f'camera {camera.name}: ' if camera.name else ''}outputs: "
                 f"{', '.join(pub.topic_name for _, pub in camera.outputs)}")
         if not self._several:
+            camera = self._cameras[0]
             self.get_logger().info(
-                f"ready: {self._image_topic} ({p.image_transport}, {p.reliability}) + "
-                f"{self._cameras[0].subscriptions[1].topic_name} "
-                f"-> {self._out.topic_name}; model {self.model_path} "
+                f"ready: {camera.image_topic} ({p.image_transport}, {p.reliability}) + "
+                f"{camera.subscriptions[1].topic_name} "
+                f"-> {camera.outputs[0][1].topic_name}; model {self.model_path} "
                 f"({self._backend_text()}) on {p.device}, pairing {pairing}")
             return
         inputs = "; ".join(f"{c.name}: {c.image_topic} + {c.subscriptions[1].topic_name} -> "
@@ -276,7 +277,7 @@ class SignalLightDetector(Node):
         for pub in self._publishers_made:
             self.destroy_publisher(pub)
         self._publishers_made = []
-        self._outputs, self._diag = [], None
+        self._diag = None
 
     def cleanup(self) -> None:
         """Free the model and every track state (``configure`` loads them again)."""
@@ -317,52 +318,85 @@ class SignalLightDetector(Node):
             self._queue.put((camera.name, pair))
 
     # ------------------------------------------------------------------- worker
-    def _run_engine(self, pair: Any, boxes: List[Any]) -> Tuple[Any, Any, float]:
-        """``(image or None, frame, decode seconds)``: an image that cannot be used gives
-        every box unjudged."""
+    def _process_tick(self, tick: Sequence[Tuple[str, Any]]) -> None:
+        """One work item: at most one paired frame per camera (the single camera's one
+        frame), decoded, judged in ONE engine step (``process_many``), each camera's
+        results published on its own topics with its image's header."""
+        taken = time.monotonic_ns()
+        cameras = {c.name: c for c in self._cameras}
+        frames = [self._decoded(cameras[name], pair) for name, pair in tick]
+        usable = [f for f in frames if f.image is not None]
+        judged = iter(self.engine.process_many(
+            [(f.camera.name, f.image, f.pair.stamp_ns, f.boxes) for f in usable]) if usable
+            else [])
+        outputs_s = publish_s = 0.0
+        for f in frames:
+            if f.image is not None:
+                f.result = next(judged)
+            times = self._publish_frame(f)
+            if times is None:
+                return  # shutting down
+            if f.image is not None:
+                outputs_s, publish_s = outputs_s + times[0], publish_s + times[1]
+        if not usable:
+            return  # no engine step
+        step = usable[0].result
+        self._stages.add({"queue": max(taken - f.pair_ns for f in usable) / _NS,
+                          "decode": sum(f.decode_s for f in usable), **step.stages_s,
+                          "outputs": outputs_s, "publish": publish_s})
+        self._engine_time.add(step.latency_s)  # the one step of this tick
+
+    def _process_pair(self, pair: Any) -> None:
+        """The single camera's work item: a tick of one frame of the camera ``""``."""
+        self._process_tick([(self._cameras[0].name, pair)])
+
+    def _decoded(self, camera: CameraIO, pair: Any) -> "_Frame":
+        """A paired frame decoded; an image that cannot be used gives every box unjudged
+        (counted, warned about)."""
+        boxes = detections_to_boxes(pair.detections)
         start = time.perf_counter()
         try:
-            image = self._decode(pair.image, self._image_topic, pair.stamp_ns,
+            image = self._decode(pair.image, camera.image_topic, pair.stamp_ns,
                                  self.params.max_image_pixels)
         except ImageConversionError as exc:
-            self._counts["oversized_images" if isinstance(exc, ImageTooLargeError)
-                         else "bad_images"] += 1
-            self.get_logger().warning(f"frame published unjudged: {exc}",
+            kind = "oversized_images" if isinstance(exc, ImageTooLargeError) else "bad_images"
+            self._counts[kind] += 1
+            camera.counts[kind] += 1
+            where = f"camera {camera.name}: " if camera.name else ""
+            self.get_logger().warning(f"{where}frame published unjudged: {exc}",
                                       throttle_duration_sec=5.0)
             msg = pair.image
-            return None, self.engine.unjudged_frame(
+            return _Frame(camera, pair, boxes, None, self.engine.unjudged_frame(
                 pair.stamp_ns, boxes, int(getattr(msg, "width", 0)),
-                int(getattr(msg, "height", 0)), str(exc)), 0.0
-        decoded = time.perf_counter()
-        return image, self.engine.process(image, pair.stamp_ns, boxes), decoded - start
+                int(getattr(msg, "height", 0)), str(exc), camera=camera.name))
+        return _Frame(camera, pair, boxes, image, decode_s=time.perf_counter() - start)
 
-    def _process(self, pair: Any) -> None:
-        taken = time.monotonic_ns()
-        boxes = detections_to_boxes(pair.detections)
-        image, frame, decode_s = self._run_engine(pair, boxes)
-        (result_out, out), *others = self._outputs
+    def _publish_frame(self, f: "_Frame") -> Optional[Tuple[float, float]]:
+        """Publish one camera's frame on its own outputs, header = its image's.
+
+        Returns:
+            The seconds spent building and publishing the result array, or None when the
+            node is shutting down.
+        """
+        (result_out, out), *others = f.camera.outputs
         t_build = time.perf_counter()
-        message = result_out.build(pair.image.header, frame.results, rclpy_make)
+        message = result_out.build(f.pair.image.header, f.result.results, rclpy_make)
         t_publish = time.perf_counter()
         if not self._publish(out, message):
-            return
+            return None
+        published = time.perf_counter()
         done = time.monotonic_ns()
         self._counts["outputs"] += 1
-        self._latency.add((done - pair.image_received_ns) / _NS)
-        self._processing.add(
-            (done - max(pair.image_received_ns, pair.detections_received_ns)) / _NS)
-        if image is not None:
-            self._stages.add({
-                "queue": (taken - max(pair.image_received_ns, pair.detections_received_ns)) / _NS,
-                "decode": decode_s, **frame.stages_s, "outputs": t_publish - t_build,
-                "publish": time.perf_counter() - t_publish})
-        self._publish_others(others, pair, boxes, image, frame.results)
-        if image is None:
-            return  # no engine run
-        self._engine_time.add(frame.latency_s)
-        if frame.warnings:
-            self.get_logger().warning(f"stamp {pair.stamp_ns}: {'; '.join(frame.warnings)}",
-                                      throttle_duration_sec=5.0)
+        f.camera.counts["outputs"] += 1
+        self._latency.add((done - f.pair.image_received_ns) / _NS)
+        self._processing.add((done - f.pair_ns) / _NS)
+        self._publish_others(others, f.pair, f.boxes, f.image, f.result.results)
+        if f.image is not None and f.result.warnings:
+            where = f"camera {f.camera.name}, " if f.camera.name else ""
+            self.get_logger().warning(
+                f"{where}stamp {f.pair.stamp_ns}: {'; '.join(f.result.warnings)}",
+                throttle_duration_sec=5.0)
+        return t_publish - t_build, published - t_publish
 
     def _publish_others(self, others: Sequence[Tuple[Any, Any]], pair: Any, boxes: List[Any],
                         image: Any, results: List[Any]) -> None:
@@ -379,61 +413,6 @@ class SignalLightDetector(Node):
                                     attention=self.engine.attention_masks(image, boxes))
                 if self._publish(publisher, msg):
                     self._counts["debug_images"] += 1
-
-    # ------------------------------------------------------------ several cameras
-    def _process_cameras(self, tick: Sequence[Tuple[str, Any]]) -> None:
-        """One tick of several cameras: at most one paired frame per camera, decoded,
-        judged in ONE engine step, each camera's results published on its own topics."""
-        cameras = {c.name: c for c in self._cameras}
-        frames: List[Tuple[CameraIO, Any, List[Any], Any, Any]] = []
-        for name, pair in tick:
-            camera = cameras[name]
-            boxes = detections_to_boxes(pair.detections)
-            try:
-                image = self._decode(pair.image, camera.image_topic, pair.stamp_ns,
-                                     self.params.max_image_pixels)
-            except ImageConversionError as exc:
-                kind = "oversized_images" if isinstance(exc, ImageTooLargeError) \
-                    else "bad_images"
-                self._counts[kind] += 1
-                camera.counts[kind] += 1
-                self.get_logger().warning(f"camera {name}: frame published unjudged: {exc}",
-                                          throttle_duration_sec=5.0)
-                msg = pair.image
-                frames.append((camera, pair, boxes, None, self.engine.unjudged_frame(
-                    pair.stamp_ns, boxes, int(getattr(msg, "width", 0)),
-                    int(getattr(msg, "height", 0)), str(exc), camera=name)))
-                continue
-            frames.append((camera, pair, boxes, image, None))
-        usable = [(c.name, image, pair.stamp_ns, boxes)
-                  for c, pair, boxes, image, _ in frames if image is not None]
-        judged = iter(self.engine.process_many(usable) if usable else [])
-        engine_s = None
-        for camera, pair, boxes, image, frame in frames:
-            if frame is None:
-                frame = next(judged)
-                engine_s = frame.latency_s
-            self._publish_camera_frame(camera, pair, boxes, image, frame)
-        if engine_s is not None:
-            self._engine_time.add(engine_s)  # the one step of this tick
-
-    def _publish_camera_frame(self, camera: CameraIO, pair: Any, boxes: List[Any], image: Any,
-                              frame: Any) -> None:
-        """Publish one camera's frame on its own outputs, header = its image's."""
-        (result_out, out), *others = camera.outputs
-        if not self._publish(out, result_out.build(pair.image.header, frame.results, rclpy_make)):
-            return
-        done = time.monotonic_ns()
-        self._counts["outputs"] += 1
-        camera.counts["outputs"] += 1
-        self._latency.add((done - pair.image_received_ns) / _NS)
-        self._processing.add(
-            (done - max(pair.image_received_ns, pair.detections_received_ns)) / _NS)
-        self._publish_others(others, pair, boxes, image, frame.results)
-        if image is not None and frame.warnings:
-            self.get_logger().warning(
-                f"camera {camera.name}, stamp {pair.stamp_ns}: {'; '.join(frame.warnings)}",
-                throttle_duration_sec=5.0)
 
     def _camera_values(self) -> List[Tuple[str, str]]:
         """Per-camera ``/diagnostics`` key/values; none for the single-camera node."""
@@ -527,6 +506,23 @@ class SignalLightDetector(Node):
                                int(self.params.sync_timeout_s * _NS))
         self.get_logger().info("parameters changed: " + ", ".join(
             f"{c.name}={c.value}" for c in changes))
+
+
+@dataclass
+class _Frame:
+    """One camera's paired frame in the worker: decoded (or not), then judged."""
+
+    camera: CameraIO
+    pair: Any
+    boxes: List[Any]
+    image: Any = None
+    result: Any = None
+    decode_s: float = 0.0
+
+    @property
+    def pair_ns(self) -> int:
+        """When the pair was complete (the receipt of its later message)."""
+        return max(self.pair.image_received_ns, self.pair.detections_received_ns)
 
 
 def _yes_no(supported: Optional[bool]) -> str:
