@@ -293,11 +293,7 @@ def import_cycles(package: Path = PACKAGE) -> List[Tuple[FrozenSet[str], str]]:
 
 #: Circles known and scheduled to go, with the work that removes them. Only ever shrinks:
 #: the test fails on any other circle, and on an entry here that is no longer a circle.
-KNOWN_CYCLES: Dict[FrozenSet[str], str] = {
-    frozenset({"signal_light_node.runtime.engine", "signal_light_node.runtime.camera_batch"}):
-        "issue 25 item 1 (one frame path): camera_batch uses the engine's privates and "
-        "the engine imports camera_batch for process_many",
-}
+KNOWN_CYCLES: Dict[FrozenSet[str], str] = {}
 
 
 def test_no_import_circle_in_the_package() -> None:

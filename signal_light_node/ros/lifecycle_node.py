@@ -22,7 +22,8 @@ from typing import Any, Callable, List, Optional
 from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
 
 from signal_light_node.errors import SignalLightError
-from signal_light_node.ros.detector_node import SignalLightDetector, run_detector
+from signal_light_node.ros.detector_node import SignalLightDetector
+from signal_light_node.ros.node_lifecycle import run_detector
 
 
 class LifecycleSignalLightDetector(SignalLightDetector, LifecycleNode):

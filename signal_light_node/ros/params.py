@@ -135,6 +135,11 @@ class DetectorParams:
                                   hold_s=self.filter_hold_s, confirm_s=self.filter_confirm_s,
                                   brake_hold_s=self.filter_brake_hold_s)
 
+    @property
+    def pairing_ns(self) -> Tuple[int, int]:
+        """``(sync_slop_s, sync_timeout_s)`` in nanoseconds, as the pairing takes them."""
+        return int(self.sync_slop_s * 1_000_000_000), int(self.sync_timeout_s * 1_000_000_000)
+
     def as_dict(self) -> Dict[str, Any]:
         """Name -> value, in declaration order."""
         return dataclasses.asdict(self)

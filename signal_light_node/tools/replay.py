@@ -1,4 +1,4 @@
-"""Run the engine over a recorded bag without ROS and write its output to an MCAP bag.
+"""Run the engine over recorded bags without ROS and write its output to an MCAP bag.
 
 This is ``signal-light replay``: the same :class:`~signal_light_node.runtime.engine.LightStateEngine`
 as the live node, fed from a bag as fast as the CPU allows. Images and detections are
@@ -12,13 +12,21 @@ image gets one output per output adapter (:mod:`signal_light_node.outputs`; the
 image's log time, with one entry per detection paired with it, or none when the node
 would have dropped the image unpaired.
 
-The bag is read twice: a first pass collects the (small) ground-truth messages by stamp;
+:func:`run_replay` is the one pipeline, for one camera and several (each a
+:class:`CameraSource`): :func:`replay_bag` replays one bag as the single camera ``""`` (the
+node's topics), :func:`~signal_light_node.tools.replay_cameras.replay_cameras` several
+named cameras, their frames sharing engine steps as in a node with ``cameras``.
+
+Each bag is read twice: a first pass collects the (small) ground-truth messages by stamp;
 the second pass pairs images and detections in log-time order and decodes the images
 one by one, in their order.
 """
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
+import heapq
 import logging
 import math
 import time
@@ -28,26 +36,28 @@ from typing import Any, Callable, Dict, Iterator, List, Mapping, Optional, Seque
 
 import numpy as np
 
-from signal_light_node.io.bagio import BagWriter, find_topic, make, open_bag
 from signal_light_node.boxes import TrackBox
+from signal_light_node.errors import ConfigError, ImageConversionError
+from signal_light_node.io.bagio import BagWriter, find_topic, make, open_bag
 from signal_light_node.io.conversions import detections_to_boxes, stamp_to_ns
-from signal_light_node.runtime.backend import ModelRun
-from signal_light_node.runtime.engine import ENGINE_STAGES, FrameResult, LightStateEngine
-from signal_light_node.errors import ImageConversionError
 from signal_light_node.io.image_codec import DEFAULT_MAX_IMAGE_PIXELS, msg_to_bgr
-from signal_light_node.runtime.results import VehicleResult
 from signal_light_node.io.topics import (DETECTIONS_TYPE, GROUND_TRUTH_TOPIC, IMAGE_TYPES,
-                                      MARKERS_TOPIC, OUTPUT_TOPIC, VEHICLE_LIGHTS_TYPE)
+                                         MARKERS_TOPIC, OUTPUT_TOPIC, VEHICLE_LIGHTS_TYPE,
+                                         camera_topic)
 from signal_light_node.outputs import output_adapters
 from signal_light_node.outputs.vehicle_lights import result_row, truth_row
-from signal_light_node.runtime.pairing import (DETECTIONS, IMAGE, OrderedPairing,
+from signal_light_node.runtime.backend import ModelRun
+from signal_light_node.runtime.engine import ENGINE_STAGES, FrameResult, LightStateEngine
+from signal_light_node.runtime.pairing import (COUNTERS, DETECTIONS, IMAGE, OrderedPairing,
                                                PairingConfig, pair_in_order)
+from signal_light_node.runtime.results import VehicleResult
 
 LOG = logging.getLogger(__name__)
 
-#: Per-frame stages a replay times (``ReplaySummary.stages_s``), in order: decoding the
-#: image, the engine's own stages (``engine.ENGINE_STAGES``), building the output
-#: messages (every output adapter) and writing them to the bag.
+#: Per-step stages a replay times (``ReplaySummary.stages_s``), in order: decoding the
+#: images, the engine's own stages (``engine.ENGINE_STAGES``), building the output
+#: messages (every output adapter) and writing them to the bag. One camera: one frame a
+#: step.
 REPLAY_STAGES: Tuple[str, ...] = ("decode",) + ENGINE_STAGES + ("outputs", "write")
 
 
@@ -89,10 +99,11 @@ class ReplaySummary:
             converted (an image skipped so has no output: images in = outputs + skipped).
         recovered: Messages recovered from a cut MCAP file; None for an intact bag.
         elapsed_s: Wall time of the second pass (decode, engine, write).
-        engine_s: Time spent in ``engine.process``.
-        latencies_s: ``latency_s`` of every processed frame.
-        stages_s: Per stage of :data:`REPLAY_STAGES`, its wall time in every processed
-            frame (same frames and order as ``latencies_s``).
+        engine_s: Time spent in the engine's steps.
+        latencies_s: ``latency_s`` of every engine step (one camera: of every processed
+            frame).
+        stages_s: Per stage of :data:`REPLAY_STAGES`, its wall time in every step (same
+            steps and order as ``latencies_s``).
         counters: The engine's counters at the end.
         tracks: Per track (by ID), the frames with ground truth; empty without it.
         has_ground_truth: Whether the bag has the ground-truth topic.
@@ -233,6 +244,68 @@ def _arrivals(bag: Any, topics: Sequence[str], img_t: str, det_t: str,
             yield DETECTIONS, stamp, boxes, m.log_time_ns
 
 
+@dataclass(frozen=True)
+class CameraSource:
+    """Where one camera of a replay comes from.
+
+    Attributes:
+        name: The camera's name (a ROS topic token; its outputs go under it), or ``""``
+            for the single camera of :func:`replay_bag` (outputs on the node's topics).
+        bag: The bag holding its topics.
+        image_topic: Its image topic; None picks the bag's first (compressed first).
+        detections_topic: Its detections topic; None picks the bag's first.
+    """
+
+    name: str
+    bag: Path
+    image_topic: Optional[str] = None
+    detections_topic: Optional[str] = None
+
+
+@dataclass
+class CameraFigures:
+    """One camera's share of a replay.
+
+    Attributes:
+        bag: Its bag.
+        image_topic: Image topic read.
+        detections_topic: Detection topic read.
+        output_topics: Its output topics, result array first.
+        images: Images read (= outputs written).
+        entries: Vehicle entries written.
+        images_without_detections: Images the pairing left without detections.
+        detections_without_image: Detection messages the pairing left without an image.
+        bad_images: Images that could not be decoded or exceed the pixel limit.
+        has_ground_truth: Whether its ground truth was read.
+        pairing_counters: Its pairer's counters.
+    """
+
+    bag: Path
+    image_topic: str = ""
+    detections_topic: str = ""
+    output_topics: List[str] = field(default_factory=list)
+    images: int = 0
+    entries: int = 0
+    images_without_detections: int = 0
+    detections_without_image: int = 0
+    bad_images: int = 0
+    has_ground_truth: bool = False
+    pairing_counters: Dict[str, int] = field(default_factory=dict)
+
+
+@dataclass
+class ReplayRun:
+    """What :func:`run_replay` adds to its summary for a several-camera one.
+
+    Attributes:
+        cameras: Per camera name, its figures.
+        steps: Engine steps (ticks with a decoded image) run.
+    """
+
+    cameras: Dict[str, CameraFigures]
+    steps: int = 0
+
+
 def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateEngine,
                image_topic: Optional[str] = None, detections_topic: Optional[str] = None,
                with_inputs: bool = False, video: "str | Path | None" = None,
@@ -241,7 +314,8 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
                on_frame: Optional[Callable[[Any, List[TrackBox], FrameResult], None]] = None,
                pairing: PairingConfig = PairingConfig(), markers: bool = False
                ) -> ReplaySummary:
-    """Replay a bag through the engine and write the output bag.
+    """Replay a bag through the engine and write the output bag: :func:`run_replay` of
+    one camera named ``""`` (the node's topics, track IDs as they are).
 
     Args:
         bag_path: The input bag (rosbag2 directory or ``.mcap``).
@@ -268,112 +342,285 @@ def replay_bag(bag_path: "str | Path", output: "str | Path", engine: LightStateE
         BagIOError: The bag cannot be read, lacks the topics, or the output cannot be written.
         ConfigError: The video path has an unsupported suffix.
     """
+    summary = ReplaySummary(output=Path(output), pairing=pairing,
+                            model=ModelRun.of(engine.backend))
+    run_replay([CameraSource("", Path(bag_path), image_topic, detections_topic)], summary,
+               engine, with_inputs=with_inputs, video=video, video_attention=video_attention,
+               overwrite=overwrite, progress=progress, max_pixels=max_pixels,
+               on_frame=on_frame, markers=markers)
+    return summary
+
+
+def run_replay(sources: Sequence[CameraSource], summary: ReplaySummary, engine: LightStateEngine,
+               with_inputs: bool = False, video: "str | Path | None" = None,
+               video_attention: bool = False, overwrite: bool = False, progress: bool = True,
+               max_pixels: Optional[int] = DEFAULT_MAX_IMAGE_PIXELS,
+               on_frame: Optional[Callable[[Any, List[TrackBox], FrameResult], None]] = None,
+               markers: bool = False) -> ReplayRun:
+    """The one replay pipeline: the cameras' bags paired, decoded, cut into ticks, judged
+    one engine step per tick and written, as the node's worker does.
+
+    Each camera is paired on its own (the node's :class:`OrderedPairing` with
+    ``summary.pairing``, log time as receive time); the cameras' paired images are merged
+    in stamp order and cut into ticks as the node's worker takes them: consecutive frames
+    of different cameras share ONE step (``engine.process_many``), a camera that comes
+    again starts the next (one camera: one frame per step). Each camera's outputs go to
+    its own topics (:func:`~signal_light_node.io.topics.camera_topic`; the node's own for
+    the camera ``""``), header = its image's header, at its image's log time.
+
+    Args:
+        sources: The cameras; names are not checked here (``""`` only alone).
+        summary: Filled in place (``summary.output`` is the bag written).
+        engine: The engine (its track states carry over from earlier calls).
+        with_inputs: Also write every camera's image, detection and ground-truth topics.
+        video: Optional ``.mp4`` or ``.gif`` of the first camera's annotated frames.
+        video_attention: Overlay the attention masks in the video (one more model pass).
+        overwrite: Replace an existing output bag.
+        progress: Show a tqdm progress bar.
+        max_pixels: Images of more pixels are not decoded (counted as bad images).
+        on_frame: Called as ``on_frame(image_bgr_or_None, boxes, frame_result)`` per image.
+        markers: Also write each camera's results drawn as a ``MarkerArray``.
+
+    Returns:
+        The per-camera figures and the number of steps.
+
+    Raises:
+        BagIOError: A bag cannot be read or lacks a topic, or the output cannot be written.
+        ConfigError: Input topics that collide, or a video path of another suffix.
+    """
     from signal_light_node.outputs.debug_image import draw_results
     from signal_light_node.tools.visualize import VideoSink
 
-    bag_path, output = Path(bag_path), Path(output)
     adapters = output_adapters(markers=markers)
-    summary = ReplaySummary(output=output, pairing=pairing,
-                            topics_written=[a.topic for a in adapters],
-                            model=ModelRun.of(engine.backend))
-    with open_bag(bag_path) as bag:
-        topics = bag.topics()
-        img_t = find_topic(topics, IMAGE_TYPES, image_topic, "image", bag_path)
-        det_t = find_topic(topics, (DETECTIONS_TYPE,), detections_topic, "detections", bag_path)
-        gt_info = topics.get(GROUND_TRUTH_TOPIC)
-        gt_t = GROUND_TRUTH_TOPIC if gt_info is not None and \
-            gt_info.msgtype == VEHICLE_LIGHTS_TYPE else None
-        summary.image_topic, summary.detections_topic = img_t, det_t
-        summary.has_ground_truth = gt_t is not None
-        n_images = topics[img_t].count
-
-        # Pass 1: the small ground-truth messages, keyed by header stamp.
-        truth = _collect(bag, gt_t, lambda msg: {str(v.track_id): truth_row(v)
-                                                 for v in msg.vehicles})
-        skipped = dict(bag.skipped)  # pass 2 may read these topics again (with_inputs)
+    per_bag = {b: sum(s.bag == b for s in sources) for b in {s.bag for s in sources}}
+    with contextlib.ExitStack() as stack:
+        cameras = [_Camera(stack.enter_context(open_bag(s.bag)), s, per_bag[s.bag] == 1,
+                           adapters, summary.pairing) for s in sources]
+        run = ReplayRun({c.source.name: c.figures for c in cameras})
+        summary.topics_written = [t for c in cameras for t in c.figures.output_topics]
+        summary.image_topic = ", ".join(_named(c.source.name, c.image_t) for c in cameras)
+        summary.detections_topic = ", ".join(_named(c.source.name, c.det_t) for c in cameras)
+        summary.has_ground_truth = any(c.gt_t for c in cameras)
+        copied = _check_input_copies(cameras) if with_inputs else {}
         sink = None
         if video is not None:
-            duration_s = bag.duration_ns / 1e9
-            fps = (n_images - 1) / duration_s if n_images > 1 and duration_s > 0 else 10.0
-            sink = VideoSink(video, fps=min(max(fps, 1.0), 60.0))
+            sink = VideoSink(video, fps=cameras[0].fps())
 
-        # Pass 2: pair as the node would, decode each image in its order, run the engine,
-        # write.
+        def after(frame: _Frame, result: FrameResult) -> None:
+            if sink is not None and frame.image is not None and frame.camera is cameras[0]:
+                heat = engine.attention_masks(frame.image, frame.boxes) if video_attention \
+                    else None
+                sink.add(draw_results(frame.image, result.results, heat,
+                                      caption=f"{frame.stamp_ns / 1e9:.3f} s"))
+            if on_frame is not None:
+                on_frame(frame.image, frame.boxes, result)
+
         bar = None
         if progress:
             from tqdm import tqdm
 
-            bar = tqdm(total=n_images, unit="frame", desc=bag_path.name, leave=False)
-        input_topics = [img_t, det_t] + ([gt_t] if gt_t else [])
-        ordered = OrderedPairing(pairing)
+            bar = tqdm(total=sum(c.n_images for c in cameras), unit="frame", leave=False,
+                       desc=sources[0].bag.name if len(cameras) == 1 else "cameras")
         start = time.perf_counter()
-        with BagWriter(output, overwrite=overwrite) as writer:
-            for adapter in adapters:
-                writer.add_topic(adapter.topic, adapter.msgtype)
-            if with_inputs:
-                for t in input_topics:
-                    writer.add_topic(t, topics[t].msgtype)
-            arrivals = _arrivals(bag, input_topics if with_inputs else [img_t, det_t], img_t,
-                                 det_t, writer if with_inputs else None)
-            for paired in pair_in_order(arrivals, ordered):
-                m, stamp = paired.image, paired.stamp_ns
-                boxes = paired.detections if paired.paired else []
-                if not paired.paired:
-                    summary.images_without_detections += 1
-                t_decode = time.perf_counter()
-                try:
-                    image = msg_to_bgr(m.msg, img_t, stamp, max_pixels)
-                except ImageConversionError as exc:
-                    LOG.warning("%s", exc)
-                    summary.bad_images += 1
-                    image = None
-                t_decode = time.perf_counter() - t_decode
-                if image is None:
-                    frame = engine.unjudged_frame(stamp, boxes, int(getattr(m.msg, "width", 0)),
-                                                  int(getattr(m.msg, "height", 0)),
-                                                  "image could not be decoded")
-                else:
-                    frame = engine.process(image, stamp, boxes)
-                    if frame.n_judged:  # the frame ran a model step
-                        summary.model.count_step(engine.backend)
-                    summary.engine_s += frame.latency_s
-                    summary.latencies_s.append(frame.latency_s)
-                t_build = time.perf_counter()
-                messages = [adapter.build(m.msg.header, frame.results, make)
-                            for adapter in adapters]
-                t_write = time.perf_counter()
-                for adapter, message in zip(adapters, messages):
-                    writer.write(adapter.topic, m.log_time_ns, message)
-                if image is not None:
-                    _add_stages(summary.stages_s, t_decode, frame.stages_s, t_write - t_build,
-                                time.perf_counter() - t_write)
-                summary.images += 1
-                summary.outputs += 1
-                summary.detections += len(boxes)
-                summary.entries += len(frame.results)
-                gt = truth.get(stamp)
-                if gt:
-                    _record(summary.tracks, stamp, gt, frame.results)
-                if sink is not None and image is not None:
-                    heat = engine.attention_masks(image, boxes) if video_attention else None
-                    sink.add(draw_results(image, frame.results, heat,
-                                          caption=f"{stamp / 1e9:.3f} s"))
-                if on_frame is not None:
-                    on_frame(image, boxes, frame)
+        with BagWriter(summary.output, overwrite=overwrite) as writer:
+            for c in cameras:
+                for adapter, topic in zip(adapters, c.figures.output_topics):
+                    writer.add_topic(topic, adapter.msgtype)
+            for topic, msgtype in copied.items():
+                writer.add_topic(topic, msgtype)
+            streams = [c.stream(writer if with_inputs else None, max_pixels, k)
+                       for k, c in enumerate(cameras)]
+            tick: List[_Frame] = []
+            for frame in heapq.merge(*streams, key=lambda f: (f.stamp_ns, f.index)):
+                if any(f.camera is frame.camera for f in tick):
+                    run.steps += _run_tick(engine, tick, adapters, writer, summary, after)
+                    tick = []
+                tick.append(frame)
+                if len(tick) == len(cameras):  # no other frame can join: run it now
+                    run.steps += _run_tick(engine, tick, adapters, writer, summary, after)
+                    tick = []
                 if bar is not None:
                     bar.update(1)
+            if tick:
+                run.steps += _run_tick(engine, tick, adapters, writer, summary, after)
         summary.elapsed_s = time.perf_counter() - start
         if bar is not None:
             bar.close()
         if sink is not None:
             summary.video = sink.close()
-        # Pass 1's counts for the topics it read (pass 2 reads them again with_inputs).
-        summary.skipped = {**bag.skipped, **skipped}
-        summary.recovered = bag.recovered
-    summary.detections_without_image = ordered.unpaired_detections
-    summary.pairing_counters = ordered.counters
+        for c in cameras:
+            c.finish(summary)
+    summary.pairing_counters = {name: sum(c.figures.pairing_counters.get(name, 0)
+                                          for c in cameras) for name in COUNTERS}
+    summary.detections_without_image = sum(c.figures.detections_without_image for c in cameras)
+    summary.images_without_detections = sum(c.figures.images_without_detections
+                                            for c in cameras)
     summary.counters = engine.counters
-    return summary
+    return run
+
+
+def _named(camera: str, text: str) -> str:
+    """``text`` for the unnamed camera, else ``camera: text``."""
+    return f"{camera}: {text}" if camera else text
+
+
+@dataclass
+class _Frame:
+    """One paired image of one camera, decoded, on its way to a tick."""
+
+    stamp_ns: int
+    index: int
+    camera: "_Camera"
+    message: Any
+    boxes: List[Any]
+    image: Any
+    decode_s: float
+
+
+class _Camera:
+    """One camera's open bag, topics, ground truth and pairing during a replay."""
+
+    def __init__(self, reader: Any, source: CameraSource, only_camera_of_bag: bool,
+                 adapters: Sequence[Any], pairing: PairingConfig) -> None:
+        self.source = source
+        self.pairing_config = pairing
+        self.reader = reader
+        topics = reader.topics()
+        self.topics = topics
+        self.image_t = find_topic(topics, IMAGE_TYPES, source.image_topic, "image", source.bag)
+        self.det_t = find_topic(topics, (DETECTIONS_TYPE,), source.detections_topic,
+                                "detections", source.bag)
+        gt = topics.get(GROUND_TRUTH_TOPIC)
+        self.gt_t = GROUND_TRUTH_TOPIC if only_camera_of_bag and gt is not None \
+            and gt.msgtype == VEHICLE_LIGHTS_TYPE else None
+        self.n_images = topics[self.image_t].count
+        # Pass 1: the small ground-truth messages, keyed by header stamp.
+        self.truth = _collect(reader, self.gt_t, lambda msg: {str(v.track_id): truth_row(v)
+                                                             for v in msg.vehicles})
+        self.skipped_pass1 = dict(reader.skipped)  # pass 2 may read them again (with_inputs)
+        self.pairing: Optional[OrderedPairing] = None
+        self.figures = CameraFigures(
+            bag=source.bag, image_topic=self.image_t, detections_topic=self.det_t,
+            output_topics=[camera_topic(a.topic, source.name) for a in adapters],
+            has_ground_truth=self.gt_t is not None)
+
+    def input_topics(self) -> List[str]:
+        return [self.image_t, self.det_t] + ([self.gt_t] if self.gt_t else [])
+
+    def fps(self) -> float:
+        """The frame rate of its images over the bag's duration (for a video)."""
+        duration_s = self.reader.duration_ns / 1e9
+        n = self.n_images
+        fps = (n - 1) / duration_s if n > 1 and duration_s > 0 else 10.0
+        return min(max(fps, 1.0), 60.0)
+
+    def stream(self, writer: Optional[BagWriter], max_pixels: Optional[int],
+               index: int) -> Iterator[_Frame]:
+        """Pass 2: the camera's images in arrival order, paired as the node would, decoded
+        one by one; with a ``writer`` every message read is copied into it."""
+        self.pairing = OrderedPairing(self.pairing_config)
+        topics = self.input_topics() if writer is not None else [self.image_t, self.det_t]
+        arrivals = _arrivals(self.reader, topics, self.image_t, self.det_t, writer)
+        for paired in pair_in_order(arrivals, self.pairing):
+            m = paired.image
+            boxes = paired.detections if paired.paired else []
+            if not paired.paired:
+                self.figures.images_without_detections += 1
+            start = time.perf_counter()
+            try:
+                image = msg_to_bgr(m.msg, self.image_t, paired.stamp_ns, max_pixels)
+            except ImageConversionError as exc:
+                LOG.warning("%s", exc)
+                self.figures.bad_images += 1
+                image = None
+            yield _Frame(paired.stamp_ns, index, self, m, boxes, image,
+                         time.perf_counter() - start)
+
+    def finish(self, summary: ReplaySummary) -> None:
+        """Fold the camera's pairing and skip counts into the summary."""
+        assert self.pairing is not None
+        self.figures.detections_without_image = self.pairing.unpaired_detections
+        self.figures.pairing_counters = self.pairing.counters
+        for topic, n in {**self.reader.skipped, **self.skipped_pass1}.items():
+            summary.skipped[topic] = summary.skipped.get(topic, 0) + n
+        if self.reader.recovered is not None:
+            summary.recovered = (summary.recovered or 0) + self.reader.recovered
+
+
+def _check_input_copies(cameras: Sequence[_Camera]) -> Dict[str, str]:
+    """Input topic -> type of every topic ``with_inputs`` copies.
+
+    Raises:
+        ConfigError: Two cameras of different bags bring the same topic name.
+    """
+    out: Dict[str, str] = {}
+    owner: Dict[str, Path] = {}
+    for c in cameras:
+        for topic in c.input_topics():
+            if topic in owner and owner[topic] != c.source.bag:
+                raise ConfigError(f"--with-inputs: topic {topic} is in {owner[topic]} and in "
+                                  f"{c.source.bag}; the output bag cannot hold both")
+            owner[topic] = c.source.bag
+            out[topic] = c.topics[topic].msgtype
+    return out
+
+
+def _run_tick(engine: LightStateEngine, tick: Sequence[_Frame], adapters: Sequence[Any],
+              writer: BagWriter, summary: ReplaySummary,
+              after: Callable[[_Frame, FrameResult], None]) -> int:
+    """One shared engine step for the tick's frames (one per camera), then their outputs.
+
+    Returns:
+        1 when the tick ran a step (it had a decoded image), else 0.
+    """
+    usable = [f for f in tick if f.image is not None]
+    judged = iter(engine.process_many([(f.camera.source.name, f.image, f.stamp_ns, f.boxes)
+                                       for f in usable]) if usable else [])
+    results = [next(judged) if f.image is not None else
+               engine.unjudged_frame(f.stamp_ns, f.boxes,
+                                     int(getattr(f.message.msg, "width", 0)),
+                                     int(getattr(f.message.msg, "height", 0)),
+                                     "image could not be decoded", camera=f.camera.source.name)
+               for f in tick]
+    step = next((r for f, r in zip(tick, results) if f.image is not None), None)
+    if step is not None:
+        if any(r.n_judged for r in results):  # the tick ran one shared model step
+            summary.model.count_step(engine.backend)
+        summary.engine_s += step.latency_s
+        summary.latencies_s.append(step.latency_s)
+    t_build = time.perf_counter()
+    messages = [[adapter.build(f.message.msg.header, r.results, make) for adapter in adapters]
+                for f, r in zip(tick, results)]
+    t_write = time.perf_counter()
+    for f, built in zip(tick, messages):
+        for topic, message in zip(f.camera.figures.output_topics, built):
+            writer.write(topic, f.message.log_time_ns, message)
+    if step is not None:
+        _add_stages(summary.stages_s, sum(f.decode_s for f in usable), step.stages_s,
+                    t_write - t_build, time.perf_counter() - t_write)
+    for f, result in zip(tick, results):
+        name = f.camera.source.name
+        figures = f.camera.figures
+        figures.images += 1
+        figures.entries += len(result.results)
+        summary.images += 1
+        summary.outputs += 1
+        summary.detections += len(f.boxes)
+        summary.entries += len(result.results)
+        summary.bad_images += f.image is None
+        gt = f.camera.truth.get(f.stamp_ns)
+        if gt:
+            _record(summary.tracks, f.stamp_ns,
+                    {_track_key(name, tid): row for tid, row in gt.items()},
+                    [dataclasses.replace(r, track_id=_track_key(name, r.track_id))
+                     for r in result.results] if name else result.results)
+        after(f, result)
+    return int(step is not None)
+
+
+def _track_key(camera: str, track_id: str) -> str:
+    """A track's key in ``ReplaySummary.tracks``: ``<camera>/<id>``, the bare ID for ``""``."""
+    return f"{camera}/{track_id}" if camera else track_id
 
 
 def _add_stages(stages: Dict[str, List[float]], decode_s: float, engine_s: Mapping[str, float],

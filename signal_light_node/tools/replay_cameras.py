@@ -1,15 +1,14 @@
 """``signal-light replay`` of several cameras: one bag per camera, or one bag with several
 camera topic pairs, through the multi-camera engine as the node with ``cameras`` runs it.
 
-Each camera (:class:`CameraSource`: a name, a bag, its image and detection topics) is
-paired on its own, exactly as :func:`~signal_light_node.tools.replay.replay_bag` pairs one
-camera (the node's :class:`~signal_light_node.runtime.pairing.OrderedPairing`, log time as
-receive time). The cameras' paired images are merged in stamp order and cut into ticks as
-the node's worker takes them: consecutive frames of different cameras share ONE engine
-step (:meth:`~signal_light_node.runtime.engine.LightStateEngine.process_many`), a camera
-that comes again starts the next. Each camera's outputs are written to its own topics,
-the node's ``/signal_light_detector/<camera>/output/...`` (:func:`~signal_light_node.io.
-topics.camera_topic`), header = its image's header, at its image's log time.
+This module chooses the cameras (each a :class:`~signal_light_node.tools.replay.CameraSource`:
+a name, a bag, its image and detection topics) and sums up the run; the replay itself is
+:func:`~signal_light_node.tools.replay.run_replay`, the one pipeline that ``replay_bag``
+runs for its single camera: each camera paired on its own, the cameras' paired images
+merged in stamp order and cut into ticks as the node's worker takes them (consecutive
+frames of different cameras share ONE engine step, a camera that comes again starts the
+next), each camera's outputs on its own topics, the node's
+``/signal_light_detector/<camera>/output/...`` (:func:`~signal_light_node.io.topics.camera_topic`).
 
 Camera pairs of one bag are found by namespace with :func:`detect_camera_pairs`, or named
 with ``NAME=IMAGE_TOPIC,DETECTIONS_TOPIC`` (:func:`parse_camera_spec`).
@@ -17,81 +16,25 @@ with ``NAME=IMAGE_TOPIC,DETECTIONS_TOPIC`` (:func:`parse_camera_spec`).
 
 from __future__ import annotations
 
-import contextlib
-import dataclasses
-import heapq
 import itertools
-import logging
 import re
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, Iterator, List, Mapping, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
-from signal_light_node.errors import ConfigError, ImageConversionError
-from signal_light_node.io.bagio import BagWriter, find_topic, make, open_bag
-from signal_light_node.io.image_codec import DEFAULT_MAX_IMAGE_PIXELS, msg_to_bgr
-from signal_light_node.io.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, GROUND_TRUTH_TOPIC,
-                                         IMAGE_TYPES, VEHICLE_LIGHTS_TYPE, camera_name_problem,
-                                         camera_topic)
-from signal_light_node.outputs import output_adapters
-from signal_light_node.outputs.vehicle_lights import truth_row
+from signal_light_node.errors import ConfigError
+from signal_light_node.io.bagio import open_bag
+from signal_light_node.io.image_codec import DEFAULT_MAX_IMAGE_PIXELS
+from signal_light_node.io.topics import (COMPRESSED_TYPE, DETECTIONS_TYPE, IMAGE_TYPES,
+                                         camera_name_problem)
 from signal_light_node.runtime.backend import ModelRun
-from signal_light_node.runtime.camera_batch import unjudged_camera_frame
 from signal_light_node.runtime.engine import LightStateEngine
-from signal_light_node.runtime.pairing import COUNTERS, OrderedPairing, PairingConfig, pair_in_order
-from signal_light_node.tools.replay import ReplaySummary, _arrivals, _collect, _record
+from signal_light_node.runtime.pairing import PairingConfig
+from signal_light_node.tools.replay import (CameraFigures, CameraSource, ReplaySummary,
+                                            run_replay)
 
-LOG = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class CameraSource:
-    """Where one camera of a replay comes from.
-
-    Attributes:
-        name: The camera's name (a ROS topic token; its outputs go under it).
-        bag: The bag holding its topics.
-        image_topic: Its image topic; None picks the bag's first (compressed first).
-        detections_topic: Its detections topic; None picks the bag's first.
-    """
-
-    name: str
-    bag: Path
-    image_topic: Optional[str] = None
-    detections_topic: Optional[str] = None
-
-
-@dataclass
-class CameraFigures:
-    """One camera's share of a replay.
-
-    Attributes:
-        bag: Its bag.
-        image_topic: Image topic read.
-        detections_topic: Detection topic read.
-        output_topics: Its output topics, result array first.
-        images: Images read (= outputs written).
-        entries: Vehicle entries written.
-        images_without_detections: Images the pairing left without detections.
-        detections_without_image: Detection messages the pairing left without an image.
-        bad_images: Images that could not be decoded or exceed the pixel limit.
-        has_ground_truth: Whether its ground truth was read.
-        pairing_counters: Its pairer's counters.
-    """
-
-    bag: Path
-    image_topic: str = ""
-    detections_topic: str = ""
-    output_topics: List[str] = field(default_factory=list)
-    images: int = 0
-    entries: int = 0
-    images_without_detections: int = 0
-    detections_without_image: int = 0
-    bad_images: int = 0
-    has_ground_truth: bool = False
-    pairing_counters: Dict[str, int] = field(default_factory=dict)
-
+__all__ = ["CameraFigures", "CameraSource", "CamerasReplaySummary", "camera_name_of",
+           "camera_sources", "detect_camera_pairs", "parse_camera_spec", "replay_cameras"]
 
 @dataclass
 class CamerasReplaySummary(ReplaySummary):
@@ -291,196 +234,10 @@ def replay_cameras(sources: Sequence[CameraSource], output: "str | Path",
     problem = camera_name_problem([s.name for s in sources])
     if problem:
         raise ConfigError(f"cameras of the replay: {problem}")
-    output = Path(output)
-    adapters = output_adapters(markers=markers)
-    summary = CamerasReplaySummary(output=output, pairing=pairing,
+    summary = CamerasReplaySummary(output=Path(output), pairing=pairing,
                                    model=ModelRun.of(engine.backend))
-    per_bag = {b: sum(s.bag == b for s in sources) for b in {s.bag for s in sources}}
-    with contextlib.ExitStack() as stack:
-        cameras = [_open_camera(stack, s, per_bag[s.bag] == 1, adapters, pairing)
-                   for s in sources]
-        summary.topics_written = [t for c in cameras for t in c.figures.output_topics]
-        summary.image_topic = ", ".join(f"{c.source.name}: {c.image_t}" for c in cameras)
-        summary.detections_topic = ", ".join(f"{c.source.name}: {c.det_t}" for c in cameras)
-        summary.has_ground_truth = any(c.gt_t for c in cameras)
-        summary.cameras = {c.source.name: c.figures for c in cameras}
-        copied = _check_input_copies(cameras) if with_inputs else {}
-        bar = None
-        if progress:
-            from tqdm import tqdm
-
-            bar = tqdm(total=sum(c.n_images for c in cameras), unit="frame", desc="cameras",
-                       leave=False)
-        start = time.perf_counter()
-        with BagWriter(output, overwrite=overwrite) as writer:
-            for c in cameras:
-                for adapter, topic in zip(adapters, c.figures.output_topics):
-                    writer.add_topic(topic, adapter.msgtype)
-            for topic, msgtype in copied.items():
-                writer.add_topic(topic, msgtype)
-            streams = [c.stream(writer if with_inputs else None, max_pixels, k)
-                       for k, c in enumerate(cameras)]
-            tick: List[_Frame] = []
-            for frame in heapq.merge(*streams, key=lambda f: (f.stamp_ns, f.index)):
-                if any(f.camera is frame.camera for f in tick):
-                    _run_tick(engine, tick, adapters, writer, summary)
-                    tick = []
-                tick.append(frame)
-                if bar is not None:
-                    bar.update(1)
-            if tick:
-                _run_tick(engine, tick, adapters, writer, summary)
-        summary.elapsed_s = time.perf_counter() - start
-        if bar is not None:
-            bar.close()
-        for c in cameras:
-            c.finish(summary)
-    summary.pairing_counters = {name: sum(c.figures.pairing_counters.get(name, 0)
-                                          for c in cameras) for name in COUNTERS}
-    summary.detections_without_image = sum(c.figures.detections_without_image for c in cameras)
-    summary.images_without_detections = sum(c.figures.images_without_detections
-                                            for c in cameras)
-    summary.counters = engine.counters
+    run = run_replay(sources, summary, engine, with_inputs=with_inputs, overwrite=overwrite,
+                     progress=progress, max_pixels=max_pixels, markers=markers)
+    summary.cameras, summary.steps = run.cameras, run.steps
     summary.camera_counters = engine.camera_counters
     return summary
-
-
-@dataclass
-class _Frame:
-    """One paired image of one camera, decoded, on its way to a tick."""
-
-    stamp_ns: int
-    index: int
-    camera: "_Camera"
-    message: Any
-    boxes: List[Any]
-    image: Any
-
-
-class _Camera:
-    """One camera's open bag, topics, ground truth and pairing during a replay."""
-
-    def __init__(self, source: CameraSource, reader: Any, only_camera_of_bag: bool,
-                 adapters: Sequence[Any], pairing: PairingConfig) -> None:
-        self.source = source
-        self.pairing_config = pairing
-        self.reader = reader
-        topics = reader.topics()
-        self.topics = topics
-        self.image_t = find_topic(topics, IMAGE_TYPES, source.image_topic, "image", source.bag)
-        self.det_t = find_topic(topics, (DETECTIONS_TYPE,), source.detections_topic,
-                                "detections", source.bag)
-        gt = topics.get(GROUND_TRUTH_TOPIC)
-        self.gt_t = GROUND_TRUTH_TOPIC if only_camera_of_bag and gt is not None \
-            and gt.msgtype == VEHICLE_LIGHTS_TYPE else None
-        self.n_images = topics[self.image_t].count
-        self.truth = _collect(reader, self.gt_t, lambda msg: {str(v.track_id): truth_row(v)
-                                                             for v in msg.vehicles})
-        self.skipped_pass1 = dict(reader.skipped)
-        self.pairing: Optional[OrderedPairing] = None
-        self.figures = CameraFigures(
-            bag=source.bag, image_topic=self.image_t, detections_topic=self.det_t,
-            output_topics=[camera_topic(a.topic, source.name) for a in adapters],
-            has_ground_truth=self.gt_t is not None)
-
-    def input_topics(self) -> List[str]:
-        return [self.image_t, self.det_t] + ([self.gt_t] if self.gt_t else [])
-
-    def stream(self, writer: Optional[BagWriter], max_pixels: Optional[int],
-               index: int) -> Iterator[_Frame]:
-        """The camera's images in arrival order, paired as the node would, decoded."""
-        self.pairing = OrderedPairing(self.pairing_config)
-        topics = self.input_topics() if writer is not None else [self.image_t, self.det_t]
-        arrivals = _arrivals(self.reader, topics, self.image_t, self.det_t, writer)
-        for paired in pair_in_order(arrivals, self.pairing):
-            m = paired.image
-            boxes = paired.detections if paired.paired else []
-            if not paired.paired:
-                self.figures.images_without_detections += 1
-            try:
-                image = msg_to_bgr(m.msg, self.image_t, paired.stamp_ns, max_pixels)
-            except ImageConversionError as exc:
-                LOG.warning("%s", exc)
-                self.figures.bad_images += 1
-                image = None
-            yield _Frame(paired.stamp_ns, index, self, m, boxes, image)
-
-    def finish(self, summary: CamerasReplaySummary) -> None:
-        """Fold the camera's pairing and skip counts into the summary."""
-        assert self.pairing is not None
-        self.figures.detections_without_image = self.pairing.unpaired_detections
-        self.figures.pairing_counters = self.pairing.counters
-        for topic, n in {**self.reader.skipped, **self.skipped_pass1}.items():
-            summary.skipped[topic] = summary.skipped.get(topic, 0) + n
-        if self.reader.recovered is not None:
-            summary.recovered = (summary.recovered or 0) + self.reader.recovered
-
-
-def _open_camera(stack: contextlib.ExitStack, source: CameraSource, only_camera_of_bag: bool,
-                 adapters: Sequence[Any], pairing: PairingConfig) -> _Camera:
-    reader = stack.enter_context(open_bag(source.bag))
-    return _Camera(source, reader, only_camera_of_bag, adapters, pairing)
-
-
-def _check_input_copies(cameras: Sequence[_Camera]) -> Dict[str, str]:
-    """Input topic -> type of every topic ``with_inputs`` copies.
-
-    Raises:
-        ConfigError: Two cameras of different bags bring the same topic name.
-    """
-    out: Dict[str, str] = {}
-    owner: Dict[str, Path] = {}
-    for c in cameras:
-        for topic in c.input_topics():
-            if topic in owner and owner[topic] != c.source.bag:
-                raise ConfigError(f"--with-inputs: topic {topic} is in {owner[topic]} and in "
-                                  f"{c.source.bag}; the output bag cannot hold both")
-            owner[topic] = c.source.bag
-            out[topic] = c.topics[topic].msgtype
-    return out
-
-
-def _run_tick(engine: LightStateEngine, tick: Sequence[_Frame], adapters: Sequence[Any],
-              writer: BagWriter, summary: CamerasReplaySummary) -> None:
-    """One shared engine step for the tick's frames (one per camera), then their outputs."""
-    usable = [f for f in tick if f.image is not None]
-    frames = engine.process_many([(f.camera.source.name, f.image, f.stamp_ns, f.boxes)
-                                  for f in usable]) if usable else []
-    judged = iter(frames)
-    if usable:
-        summary.steps += 1
-    if any(r.n_judged for r in frames):  # the tick ran one shared model step
-        summary.model.count_step(engine.backend)
-    step_s = None
-    for f in tick:
-        name = f.camera.source.name
-        if f.image is None:
-            msg = f.message.msg
-            result = unjudged_camera_frame(engine, name, f.stamp_ns, f.boxes,
-                                           int(getattr(msg, "width", 0)),
-                                           int(getattr(msg, "height", 0)),
-                                           "image could not be decoded")
-        else:
-            result = next(judged)
-            step_s = result.latency_s
-        for adapter, topic in zip(adapters, f.camera.figures.output_topics):
-            writer.write(topic, f.message.log_time_ns,
-                         adapter.build(f.message.msg.header, result.results, make))
-        figures = f.camera.figures
-        figures.images += 1
-        figures.entries += len(result.results)
-        summary.images += 1
-        summary.outputs += 1
-        summary.detections += len(f.boxes)
-        summary.entries += len(result.results)
-        summary.bad_images += f.image is None
-        gt = f.camera.truth.get(f.stamp_ns)
-        if gt:
-            _record(summary.tracks, f.stamp_ns,
-                    {f"{name}/{tid}": row for tid, row in gt.items()},
-                    [dataclasses.replace(r, track_id=f"{name}/{r.track_id}")
-                     for r in result.results])
-    if step_s is not None:
-        summary.engine_s += step_s
-        summary.latencies_s.append(step_s)
-
