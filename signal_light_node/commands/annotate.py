@@ -13,7 +13,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from signal_light_node.commands.options import (add_intent_filter_options, add_model_options,
+from signal_light_node.commands.options import (add_input_topic_options,
+                                                add_intent_filter_options, add_model_options,
                                                 add_pairing_options, add_torch_options,
                                                 add_track_timeout_option, engine_from_args,
                                                 pairing_from_args)
@@ -52,10 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     export.add_argument("--min-box", type=float, default=0.0, metavar="PX",
                         help="leave out boxes whose shorter side, clipped to the image, is "
                              "under PX pixels (they get no ground truth)")
-    export.add_argument("--image-topic", default=None,
-                        help="image topic (default: the first CompressedImage, else Image topic)")
-    export.add_argument("--detections-topic", default=None,
-                        help="Detection2DArray topic (default: the first one)")
+    add_input_topic_options(export)
     add_model_options(export)
     add_track_timeout_option(export)
     add_pairing_options(export)

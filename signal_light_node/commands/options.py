@@ -24,6 +24,14 @@ def add_labelled_data_options(group: ArgumentContainer) -> None:
                        help="UC Merced Vehicle Rear Signal dataset roots")
 
 
+def add_input_topic_options(group: ArgumentContainer) -> None:
+    """``--image-topic`` and ``--detections-topic`` of a single-camera run over a bag."""
+    group.add_argument("--image-topic", default=None,
+                       help="image topic (default: the first CompressedImage, else Image topic)")
+    group.add_argument("--detections-topic", default=None,
+                       help="Detection2DArray topic (default: the first one)")
+
+
 def add_model_options(group: ArgumentContainer) -> None:
     """``--checkpoint``, ``--backend`` and ``--precision`` of the commands that run a model.
 

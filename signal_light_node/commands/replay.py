@@ -14,7 +14,8 @@ import logging
 from pathlib import Path
 from typing import Any, Dict
 
-from signal_light_node.commands.options import (add_intent_filter_options, add_model_options,
+from signal_light_node.commands.options import (add_input_topic_options,
+                                                add_intent_filter_options, add_model_options,
                                                 add_pairing_options, add_torch_options,
                                                 add_track_timeout_option, engine_from_args,
                                                 pairing_from_args)
@@ -44,10 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--output", type=Path, required=True,
                         help="output MCAP rosbag2 directory")
     add_model_options(parser)
-    parser.add_argument("--image-topic", default=None,
-                        help="image topic (default: the first CompressedImage, else Image topic)")
-    parser.add_argument("--detections-topic", default=None,
-                        help="Detection2DArray topic (default: the first one)")
+    add_input_topic_options(parser)
     parser.add_argument("--camera", action="append", default=[],
                         metavar="NAME[=IMAGE_TOPIC,DETECTIONS_TOPIC]",
                         help="a camera (repeatable): with several bags one per bag in order "
