@@ -20,9 +20,10 @@ see :class:`ExportOptions`):
   data, its size and its boxes with the predictions. ``annotate import`` reads it to map
   the frame numbers back to the bag.
 
-A frame whose image cannot be decoded is not exported. A Label Studio export is not
-written: its video labelling keeps per-frame choices poorly, and one format is enough for
-the round trip.
+A frame whose image cannot be decoded is not exported. No Label Studio file is written:
+its video boxes (``VideoRectangle``) carry per-region choices for a whole track, not per
+frame, so light states that change along a track would need a region per frame; left for
+later.
 
 ``signal-light annotate import FILE BAG OUT`` (:func:`import_labels`) reads the corrected
 XML (or CVAT's export ZIP holding ``annotations.xml``) and the export file beside it,
