@@ -150,9 +150,12 @@ def test_the_unedited_file_gives_the_predictions_as_ground_truth(exported, predi
     assert len(pairs) == sum(len(f["boxes"]) for f in frames)
     assert all(t == p for t, p in pairs)
     assert all(m["accuracy"] == 1.0 for m in score_summary(summary)["no_grace"]["overall"].values())
-    # training and evaluate --bags read it as a labelled bag.
+    # train --bags and evaluate --bags read it as a labelled bag (load_bag_tracks).
     tracks = load_bag_tracks(out, CropConfig(size=32))
     assert sum(len(t) for t in tracks) == len(pairs)
+    assert main(["evaluate", "--bags", str(out), "--out", str(tmp_path / "evaluated"),
+                 "--no-progress"]) == 0
+    assert (tmp_path / "evaluated" / "metrics.json").is_file()
 
 
 def _edit(exported: Path, tmp_path: Path, change) -> Path:
