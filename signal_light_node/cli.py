@@ -23,6 +23,8 @@ SUBCOMMANDS = {
     "evaluate": ("evaluate", "score a checkpoint on a synthetic split or on labelled bags"),
     "replay": ("replay", "run the detector engine over a bag without ROS, writing an output bag"),
     "export": ("export", "export a checkpoint's model step to ONNX (for the onnxruntime backend)"),
+    "annotate": ("annotate", "label a recording in CVAT: export it with the node's predictions, "
+                             "import the corrected labels as a labelled bag"),
     "play": ("play", "publish a bag's image and detection topics into a live ROS graph"),
     "record": ("record", "record topics of a live ROS graph into an MCAP bag"),
 }

@@ -27,3 +27,8 @@ class ImageConversionError(BagIOError):
 
 class ImageTooLargeError(ImageConversionError):
     """An image exceeds the configured pixel limit; refused before it is decoded."""
+
+
+class AnnotationError(SignalLightError):
+    """A labelling file does not fit the bag or the export it is checked against, or cannot
+    be read; the message names the first mismatch in one line."""

@@ -54,5 +54,5 @@ def test_cli_help_lists_every_subcommand() -> None:
     out = subprocess.run([sys.executable, "-m", "signal_light_node.cli", "--help"], capture_output=True,
                          text=True, timeout=60, env=os.environ.copy())
     assert out.returncode == 0, out.stderr
-    for name in ("info", "synth", "train", "evaluate", "replay", "play", "record"):
+    for name in ("info", "synth", "train", "evaluate", "replay", "annotate", "play", "record"):
         assert name in out.stdout

@@ -1,14 +1,16 @@
 """Command-line options that several ``signal-light`` commands share.
 
-One definition each, so that ``train``, ``evaluate`` and ``replay`` spell, default and
-explain them alike. Every helper takes an ``argparse`` parser or argument group.
+One definition each, so that ``train``, ``evaluate``, ``replay`` and ``annotate`` spell,
+default and explain them alike. Every helper takes an ``argparse`` parser or argument
+group; ``engine_from_args`` and ``pairing_from_args`` turn the options back into what
+the replay runs.
 """
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
+from typing import Any, Dict, Optional
 
 # The common base of ArgumentParser and argument groups (what add_argument lives on).
 ArgumentContainer = argparse._ActionsContainer
@@ -20,6 +22,14 @@ def add_labelled_data_options(group: ArgumentContainer) -> None:
                        help="labelled bags (/ground_truth/vehicle_lights + images + detections)")
     group.add_argument("--ucm", nargs="+", type=Path, default=[], metavar="ROOT",
                        help="UC Merced Vehicle Rear Signal dataset roots")
+
+
+def add_input_topic_options(group: ArgumentContainer) -> None:
+    """``--image-topic`` and ``--detections-topic`` of a single-camera run over a bag."""
+    group.add_argument("--image-topic", default=None,
+                       help="image topic (default: the first CompressedImage, else Image topic)")
+    group.add_argument("--detections-topic", default=None,
+                       help="Detection2DArray topic (default: the first one)")
 
 
 def add_model_options(group: ArgumentContainer) -> None:
@@ -93,3 +103,57 @@ def intent_filter_from_args(args: argparse.Namespace) -> Any:
     return IntentFilterConfig(enabled=args.intent_filter, on_threshold=args.filter_on_threshold,
                               hold_s=args.filter_hold, confirm_s=args.filter_confirm,
                               brake_hold_s=args.filter_brake_hold)
+
+
+def add_pairing_options(group: ArgumentContainer) -> None:
+    """``--sync-slop`` and ``--sync-timeout``: how images and detections are paired, as the
+    node's ``sync_slop_s`` / ``sync_timeout_s`` (defaults from ``runtime.pairing.PairingConfig``)."""
+    from signal_light_node.runtime.pairing import PairingConfig
+
+    default = PairingConfig()
+    group.add_argument("--sync-slop", type=float, default=default.slop_s, metavar="S",
+                       help="pair images and detections whose stamps are at most S seconds "
+                            "apart, as the node with sync_slop_s: S (default: exact stamps)")
+    group.add_argument("--sync-timeout", type=float, default=default.timeout_s, metavar="S",
+                       help="log-time seconds a message waits for its partner, as the node's "
+                            f"sync_timeout_s (default {default.timeout_s:g})")
+
+
+def pairing_from_args(args: argparse.Namespace) -> Any:
+    """The ``PairingConfig`` of :func:`add_pairing_options`' options.
+
+    Raises:
+        ConfigError: A negative slop, a non-positive timeout or a timeout within the slop.
+    """
+    from signal_light_node.runtime.pairing import PairingConfig
+
+    return PairingConfig(slop_s=args.sync_slop, timeout_s=args.sync_timeout)
+
+
+def add_track_timeout_option(group: ArgumentContainer) -> None:
+    """``--track-timeout``: seconds a track may stay unseen (the node's ``track_timeout_s``)."""
+    group.add_argument("--track-timeout", type=float, default=1.0, metavar="S",
+                       help="seconds a track may stay unseen before its state is dropped")
+
+
+def engine_from_args(args: argparse.Namespace,
+                     thresholds: Optional[Dict[str, float]] = None) -> Any:
+    """The engine of the model, torch, track-timeout and intent-filter options (what
+    ``signal-light replay`` runs).
+
+    Args:
+        args: Parsed options of :func:`add_model_options`, :func:`add_torch_options`,
+            :func:`add_track_timeout_option` and :func:`add_intent_filter_options`.
+        thresholds: ON-probability thresholds of the classification codes (default 0.5).
+
+    Raises:
+        CheckpointError: The model file is missing or unusable.
+        ConfigError: An option, the backend or the device is invalid.
+    """
+    from signal_light_node.runtime.engine import engine_from_checkpoint
+
+    return engine_from_checkpoint(args.checkpoint, device=args.device, backend=args.backend,
+                                  precision=args.precision,
+                                  threads=args.threads, thresholds=dict(thresholds or {}),
+                                  track_timeout_s=args.track_timeout,
+                                  intent_filter=intent_filter_from_args(args))

@@ -14,9 +14,11 @@ import logging
 from pathlib import Path
 from typing import Any, Dict
 
-from signal_light_node.commands.options import (add_intent_filter_options, add_model_options,
-                                                add_torch_options,
-                                                intent_filter_from_args)
+from signal_light_node.commands.options import (add_input_topic_options,
+                                                add_intent_filter_options, add_model_options,
+                                                add_pairing_options, add_torch_options,
+                                                add_track_timeout_option, engine_from_args,
+                                                pairing_from_args)
 from signal_light_node.errors import ConfigError
 from signal_light_node.runtime.pairing import PairingConfig
 
@@ -43,10 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--output", type=Path, required=True,
                         help="output MCAP rosbag2 directory")
     add_model_options(parser)
-    parser.add_argument("--image-topic", default=None,
-                        help="image topic (default: the first CompressedImage, else Image topic)")
-    parser.add_argument("--detections-topic", default=None,
-                        help="Detection2DArray topic (default: the first one)")
+    add_input_topic_options(parser)
     parser.add_argument("--camera", action="append", default=[],
                         metavar="NAME[=IMAGE_TOPIC,DETECTIONS_TOPIC]",
                         help="a camera (repeatable): with several bags one per bag in order "
@@ -66,34 +65,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         metavar="LIGHT=P",
                         help="ON-probability threshold of a light for the classification "
                              "codes, e.g. brake=0.6 or 101=0.4 (repeatable; default 0.5)")
-    parser.add_argument("--track-timeout", type=float, default=1.0, metavar="S",
-                        help="seconds a track may stay unseen before its state is dropped")
-    _add_output_and_pairing_options(parser)
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing output")
-    add_intent_filter_options(parser.add_argument_group("intent filter (as the node's)"))
-    add_torch_options(parser)
-
-
-def _add_output_and_pairing_options(parser: argparse.ArgumentParser) -> None:
-    default = PairingConfig()
+    add_track_timeout_option(parser)
     parser.add_argument("--markers", action="store_true",
                         help="also write the results drawn for RViz (visualization_msgs/"
                              "MarkerArray) on the node's ~/output/markers topic")
-    parser.add_argument("--sync-slop", type=float, default=default.slop_s, metavar="S",
-                        help="pair images and detections whose stamps are at most S seconds "
-                             "apart, as the node with sync_slop_s: S (default: exact stamps)")
-    parser.add_argument("--sync-timeout", type=float, default=default.timeout_s, metavar="S",
-                        help="log-time seconds a message waits for its partner, as the node's "
-                             f"sync_timeout_s (default {default.timeout_s:g})")
-
-
-def _pairing(args: argparse.Namespace) -> PairingConfig:
-    """The pairing of ``--sync-slop`` / ``--sync-timeout``.
-
-    Raises:
-        ConfigError: A negative slop, a non-positive timeout or a timeout within the slop.
-    """
-    return PairingConfig(slop_s=args.sync_slop, timeout_s=args.sync_timeout)
+    add_pairing_options(parser)
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    add_intent_filter_options(parser.add_argument_group("intent filter (as the node's)"))
+    add_torch_options(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -105,11 +84,11 @@ def run(args: argparse.Namespace) -> int:
     if args.threads is not None and args.threads < 1:
         raise ConfigError(f"--threads must be >= 1, got {args.threads}")
     thresholds: Dict[str, float] = dict(args.threshold)
-    pairing = _pairing(args)  # before loading the model: a bad option is the quicker error
+    pairing = pairing_from_args(args)  # before loading the model: a bad option is the quicker error
     if len(args.bag) > 1 or args.camera or args.all_cameras:
         return _run_cameras(args, thresholds, pairing)
     bag = args.bag[0]
-    engine = _engine(args, thresholds)
+    engine = engine_from_args(args, thresholds)
     summary = replay_bag(bag, args.output, engine, image_topic=args.image_topic,
                          detections_topic=args.detections_topic, with_inputs=args.with_inputs,
                          video=args.video, video_attention=args.attention,
@@ -131,24 +110,13 @@ def _run_cameras(args: argparse.Namespace, thresholds: Dict[str, float],
             raise ConfigError(f"{option} takes a single camera; with several cameras name "
                               "each camera's topics with --camera NAME=IMAGE,DETECTIONS")
     sources = camera_sources(args.bag, args.camera, args.all_cameras)
-    engine = _engine(args, thresholds)
+    engine = engine_from_args(args, thresholds)
     summary = replay_cameras(sources, args.output, engine, with_inputs=args.with_inputs,
                              overwrite=args.overwrite, progress=not args.no_progress,
                              pairing=pairing, markers=args.markers)
     _print_summary(summary, engine, ", ".join(
         f"{name} ({c.bag})" for name, c in summary.cameras.items() if c.has_ground_truth))
     return 0
-
-
-def _engine(args: argparse.Namespace, thresholds: Dict[str, float]) -> Any:
-    """The engine of the replay options (model file, backend, device, filter, limits)."""
-    from signal_light_node.runtime.engine import engine_from_checkpoint
-
-    return engine_from_checkpoint(args.checkpoint, device=args.device, backend=args.backend,
-                                  precision=args.precision,
-                                  threads=args.threads, thresholds=thresholds,
-                                  track_timeout_s=args.track_timeout,
-                                  intent_filter=intent_filter_from_args(args))
 
 
 def _print_summary(summary: Any, engine: Any, scored: "Path | str") -> None:

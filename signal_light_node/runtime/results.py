@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Tuple
 
-from signal_light_node.labels import Intent, LightStatus, View
+from signal_light_node.labels import LIGHT_CODES, Intent, LightStatus, View
 
 
 @dataclass(frozen=True)
@@ -68,3 +68,31 @@ class VehicleResult:
     classification: Tuple[Tuple[int, float], ...] = field(default_factory=tuple)
     frames_observed: int = 0
     judged: bool = True
+
+    @classmethod
+    def certain(cls, track_id: str, roi: Tuple[int, int, int, int], brake: int, left: int,
+                right: int, intent: int, view: int, frames_observed: int) -> "VehicleResult":
+        """A ground-truth entry: every state with probability 1, ``classification`` = the
+        lights ON (each with probability 1), judged.
+
+        Args:
+            track_id: The track ID.
+            roi: The box clipped to the image (``runtime.crops.clip_roi``).
+            brake: The brake's ``LightStatus`` value.
+            left: The vehicle's own left blinker's.
+            right: Its right blinker's.
+            intent: The ``Intent`` value.
+            view: The ``View`` value.
+            frames_observed: Frames this track has been in the detections so far, this one
+                included.
+        """
+        lights = {"brake": LightStatus(brake), "left": LightStatus(left),
+                  "right": LightStatus(right)}
+        return cls(track_id=str(track_id), roi=roi,
+                   brake=LightEstimate.certain(lights["brake"]),
+                   left=LightEstimate.certain(lights["left"]),
+                   right=LightEstimate.certain(lights["right"]), intent=Intent(intent),
+                   intent_probability=1.0, view=View(view), view_probability=1.0,
+                   classification=tuple((LIGHT_CODES[name], 1.0) for name, state
+                                        in lights.items() if state == LightStatus.ON),
+                   frames_observed=int(frames_observed), judged=True)

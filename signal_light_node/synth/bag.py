@@ -30,9 +30,9 @@ from signal_light_node.io.conversions import boxes_to_detections, make_header
 from signal_light_node.runtime.crops import clip_roi
 from signal_light_node.errors import ConfigError
 from signal_light_node.io.image_codec import bgr_to_compressed_fields, bgr_to_image_fields
-from signal_light_node.labels import LIGHT_CODES, Intent, LightStatus, View
+from signal_light_node.labels import Intent, LightStatus, View
 from signal_light_node.outputs.vehicle_lights import vehicle_light_array
-from signal_light_node.runtime.results import LightEstimate, VehicleResult
+from signal_light_node.runtime.results import VehicleResult
 # The topics under the names the tests and tools import them by from here.
 from signal_light_node.io.topics import CAMERA_COMPRESSED_TOPIC as COMPRESSED_TOPIC
 from signal_light_node.io.topics import CAMERA_IMAGE_TOPIC as IMAGE_TOPIC
@@ -82,16 +82,9 @@ def truth_result(vehicle: Any, box: TrackBox, width: int, height: int,
     Returns:
         The result: every state with probability 1, ``classification`` = the lights ON.
     """
-    lights = {"brake": LightStatus(vehicle.brake), "left": LightStatus(vehicle.left),
-              "right": LightStatus(vehicle.right)}
-    classification = tuple((LIGHT_CODES[name], 1.0) for name, state in lights.items()
-                           if state == LightStatus.ON)
-    return VehicleResult(
-        track_id=str(vehicle.track_id), roi=clip_roi(box, width, height),
-        brake=LightEstimate.certain(lights["brake"]), left=LightEstimate.certain(lights["left"]),
-        right=LightEstimate.certain(lights["right"]), intent=Intent(vehicle.intent),
-        intent_probability=1.0, view=View(vehicle.view), view_probability=1.0,
-        classification=classification, frames_observed=frames_observed, judged=True)
+    return VehicleResult.certain(str(vehicle.track_id), clip_roi(box, width, height),
+                                 vehicle.brake, vehicle.left, vehicle.right, vehicle.intent,
+                                 vehicle.view, frames_observed)
 
 
 def write_scene_bag(path: "str | os.PathLike[str]", seed: int = 0, *,
