@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
-from typing import Any, Dict, Iterator, List, Optional, Tuple
+from dataclasses import dataclass
+from typing import Any, Iterator, List, Optional, Tuple
 
 import cv2
 import numpy as np
@@ -20,14 +20,13 @@ import numpy as np
 from signal_light_node.boxes import TrackBox
 from signal_light_node.errors import ConfigError
 from signal_light_node.labels import Intent, LightStatus, View, intent_from_lights
-from signal_light_node.synth import lamps as lamp_mod
 from signal_light_node.synth.camera import Camera, sample_camera
 from signal_light_node.synth.environment import (GLOW_SCALE, LIGHTINGS, Environment, Lighting, Occluder, StreetGeometry,
-                                                 add_glow, blur_glow, ellipse, sample_lighting, shade)
-from signal_light_node.synth.lamps import (STYLE_FAMILIES, TRAIN_FAMILIES, Lamp, LampStyle, blinker_timeline, brake_timeline,
-                                           flasher_level, sample_lamp_style)
+                                                 add_glow, blur_glow, ellipse, sample_lighting)
+from signal_light_node.synth.lamps import STYLE_FAMILIES, TRAIN_FAMILIES, flasher_level
+from signal_light_node.synth.traffic import Traffic, Vehicle
 from signal_light_node.synth.truth import RenderedFrame, VehicleTruth
-from signal_light_node.synth.vehicles import CLASS_IDS, KIND_DIMS, KIND_WEIGHTS, KINDS, BodyShape, body_shape, face_size_m, sample_colour
+from signal_light_node.synth.vehicles import CLASS_IDS, KIND_DIMS
 
 LOG = logging.getLogger(__name__)
 
@@ -48,7 +47,6 @@ LAMP_MIN_PIXELS = 2.0
 MIN_LISTED_PX = 8.0
 MAX_LISTED_OCCLUSION = 0.9
 
-_VIEW_WEIGHTS = {View.BEHIND: 0.42, View.FRONT: 0.26, View.LEFT: 0.16, View.RIGHT: 0.16}
 _SCENE_KEYS = {"vehicles", "occluders", "poles", "distractors", "weather", "effects", "shake", "respawn", "horizon", "focal",
                "family"}
 #: A lit signal lamp (level 1) blends at least this far from its unlit lens to its lit
@@ -68,72 +66,11 @@ def _light_status(on: bool, visible: bool) -> LightStatus:
     return LightStatus.ON if on else LightStatus.OFF
 
 
-def _lamp_poly(lamp: Lamp) -> np.ndarray:
-    """Normalised outline polygon of a lamp."""
-    u0, v0, u1, v1 = lamp.rect
-    if lamp.shape in ("round", "ellipse"):
-        cu, cv, ru, rv = (u0 + u1) / 2, (v0 + v1) / 2, (u1 - u0) / 2, (v1 - v0) / 2
-        if lamp.shape == "ellipse":
-            a = np.linspace(0, 2 * np.pi, 12, endpoint=False)
-            return np.stack([cu + ru * np.cos(a), cv + rv * np.sin(a)], 1).astype(np.float32)
-        k = 0.35  # rounded rectangle: cut corners
-        return np.array([[u0 + ru * k, v0], [u1 - ru * k, v0], [u1, v0 + rv * k], [u1, v1 - rv * k], [u1 - ru * k, v1],
-                         [u0 + ru * k, v1], [u0, v1 - rv * k], [u0, v0 + rv * k]], np.float32)
-    return np.array([[u0, v0], [u1, v0], [u1, v1], [u0, v1]], np.float32)
-
-
-def _segment_polys(lamp: Lamp) -> List[np.ndarray]:
-    """Segments of a sequential lamp ordered from the inner end to the outer end."""
-    u0, v0, u1, v1 = lamp.rect
-    n = lamp.segments
-    edges = np.linspace(u0, u1, n + 1)
-    gap = (u1 - u0) / n * 0.15
-    polys = [np.array([[edges[i] + gap, v0], [edges[i + 1] - gap, v0], [edges[i + 1] - gap, v1], [edges[i] + gap, v1]], np.float32)
-             for i in range(n)]
-    return polys if lamp.outward > 0 else polys[::-1]
-
-
-@dataclass
-class _Vehicle:
-    track_id: str
-    kind: str
-    view: View
-    style: LampStyle
-    colour: Tuple[float, float, float]
-    face_w: float
-    face_h: float
-    shape: BodyShape
-    lamps: List[Lamp]
-    lamp_polys: List[List[np.ndarray]]
-    X: float
-    Z: float
-    vx: float
-    vz: float
-    lights_on: bool
-    blinker: lamp_mod.Timeline
-    brake: lamp_mod.Timeline
-    phase: float
-    shear: float
-    roll: float
-    spots: List[Tuple[float, float, float, float, float]]
-    paints: Dict[str, Tuple[float, float, float]]
-    part_pts: np.ndarray = field(default=None)
-    part_splits: List[Tuple[str, int, int]] = field(default_factory=list)
-    sil_splits: List[Tuple[int, int]] = field(default_factory=list)
-    tracker_bias: Tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
-    tracker_sigma: float = 0.02
-    tracker_amodal: bool = False
-    lamp_pts: np.ndarray = field(default=None)
-    lamp_ranges: List[Tuple[int, int]] = field(default_factory=list)
-    lamp_ranges_poly: List[List[Tuple[int, int]]] = field(default_factory=list)
-    lens_cols: List[Tuple[float, float, float]] = field(default_factory=list)
-
-
 @dataclass
 class _Drawn:
     """Per-frame drawing state of one vehicle."""
 
-    v: _Vehicle
+    v: Vehicle
     box: Tuple[float, float, float, float]  # full (unclipped) extent
     roi: Tuple[int, int, int, int]  # clipped integer ROI x0, y0, x1, y1
     M: np.ndarray
@@ -218,7 +155,6 @@ class SceneRenderer:
         """(Re)build the world so that every call of ``frames`` starts from the same state."""
         o = self._overrides
         rng = np.random.default_rng([self.seed, 1])
-        self._rng = rng
         W, H = self.width, self.height
         self._f = W * float(o.get("focal", rng.uniform(0.75, 1.3)))
         self._hy = H * float(o.get("horizon", rng.uniform(0.36, 0.5)))
@@ -244,227 +180,13 @@ class SceneRenderer:
         self._camera = Camera(cam_params, W, H, self._hy, self.seed * 7 + 3, enabled=bool(o.get("effects", True)))
         LOG.debug("scene seed=%d %dx%d fps=%.1f lighting=%s weather=%s focal=%.0f horizon=%.0f vehicles=%d",
                   self.seed, W, H, self.fps, self.lighting, weather, self._f, self._hy, self.n_vehicles)
-        self._next_id = int(rng.integers(1, 50))
-        self._vehicles: List[_Vehicle] = []
+        self._traffic = Traffic(self.seed, rng, W, self._geo, self._light, self.lighting, self.family)
         vo = o.get("vehicles") or []
         for i in range(self.n_vehicles):
-            self._vehicles.append(self._spawn(vo[i] if i < len(vo) else {}, entering=False))
-
-    def _place(self, vo: Dict[str, Any], view: View, face_w: float, face_h: float, entering: bool,
-               vrng: np.random.Generator, z_min: float, z_max: float) -> Tuple[float, float]:
-        """Depth and lateral position of a new vehicle.
-
-        Sizes run from ~22 px to half the frame wide; front/rear views sit in a lane,
-        crossing traffic anywhere. Random placements that would mostly hide behind (or
-        hide) a vehicle already there are drawn again, so that occlusion stays partial.
-        """
-        f, W = self._f, self.width
-        geo = self._geo
-        best = None
-        for attempt in range(8):
-            if "width_px" in vo:
-                Z = face_w * f / float(vo["width_px"])
-            elif entering and view == View.FRONT:
-                Z = z_max * vrng.uniform(0.6, 1.0)  # oncoming: appears far away
-            elif entering and view == View.BEHIND:
-                # Either far ahead (we catch up) or close, overtaking us from the image bottom.
-                Z = z_max * vrng.uniform(0.6, 1.0) if vrng.random() < 0.6 else z_min * vrng.uniform(1.0, 1.3)
-            else:
-                Z = float(math.exp(vrng.uniform(math.log(z_min), math.log(max(z_max, z_min * 1.01)))))
-            if "center_x" in vo:
-                X = (float(vo["center_x"]) - self._vx) * Z / f
-            elif view in (View.LEFT, View.RIGHT):
-                x_img = vrng.uniform(-0.1, 1.1) * W
-                if entering:
-                    x_img = -0.45 * face_w * f / Z if vrng.random() < 0.5 else W + 0.45 * face_w * f / Z
-                X = (x_img - self._vx) * Z / f
-            else:
-                n_lanes = max(1, int(round((geo.x_right - geo.x_left) / geo.lane_w)))
-                lane = int(vrng.integers(0, n_lanes))
-                X = geo.x_left + (lane + 0.5) * (geo.x_right - geo.x_left) / n_lanes + vrng.normal(0, 0.25)
-            if "width_px" in vo or "center_x" in vo:
-                return Z, X
-            overlap = self._overlap(Z, X, face_w, face_h)
-            if best is None or overlap < best[0]:
-                best = (overlap, Z, X)
-            if overlap < 0.35:
-                break
-        return best[1], best[2]
-
-    def _overlap(self, Z: float, X: float, face_w: float, face_h: float) -> float:
-        """Largest fraction of either box that a candidate and an existing vehicle share."""
-        f = self._f
-        bottom = self._hy + f * self._cam_h / Z
-        w, h = face_w * f / Z, face_h * f / Z
-        cx = self._vx + f * X / Z
-        a = (cx - w / 2, bottom - h, cx + w / 2, bottom)
-        worst = 0.0
-        for other in self._vehicles:
-            b = self._project(other)
-            iw = min(a[2], b[2]) - max(a[0], b[0])
-            ih = min(a[3], b[3]) - max(a[1], b[1])
-            if iw <= 0 or ih <= 0:
-                continue
-            inter = iw * ih
-            smaller = min((a[2] - a[0]) * (a[3] - a[1]), (b[2] - b[0]) * (b[3] - b[1]))
-            worst = max(worst, inter / max(smaller, 1e-6))
-        return worst
-
-    def _spawn(self, vo: Dict[str, Any], entering: bool) -> _Vehicle:
-        rng = self._rng
-        vrng = np.random.default_rng([self.seed, 100 + self._next_id])
-        track_id = str(self._next_id)
-        self._next_id += int(rng.integers(1, 4))
-        views = list(_VIEW_WEIGHTS)
-        view = View(vo["view"]) if "view" in vo else views[int(vrng.choice(4, p=list(_VIEW_WEIGHTS.values())))]
-        kind = vo.get("kind") or str(vrng.choice(KINDS, p=np.asarray(KIND_WEIGHTS) / sum(KIND_WEIGHTS)))
-        if kind not in KIND_DIMS:
-            raise ConfigError(f"kind must be one of {KINDS}, got {kind!r}")
-        design = vo.get("lamp_design")
-        if design is not None and design not in lamp_mod.LAMP_DESIGNS:
-            raise ConfigError(f"lamp_design must be one of {lamp_mod.LAMP_DESIGNS}, got {design!r}")
-        style = sample_lamp_style(vrng, kind, design, vo.get("tech"), vo.get("chmsl"), vo.get("blink_hz"), vo.get("duty"),
-                                  family=self.family)
-        scale = vrng.uniform(0.93, 1.07)
-        face_w, face_h = face_size_m(kind, view, scale)
-        shape = body_shape(kind, view, vrng)
-        if view == View.BEHIND:
-            lamps = lamp_mod.rear_lamps(style, kind, vrng, shape.chmsl_v)
-        elif view == View.FRONT:
-            lamps = lamp_mod.front_lamps(style, kind, vrng)
-        else:
-            lamps = lamp_mod.side_lamps(style, kind, vrng, view)
-        lamp_polys = [_segment_polys(l) if l.segments > 1 else [_lamp_poly(l)] for l in lamps]
-        W, f = self.width, self._f
-        z_min = face_w * f / (0.5 * W)
-        z_max = min(70.0, face_w * f / 22.0)
-        Z, X = self._place(vo, view, face_w, face_h, entering, vrng, z_min, z_max)
-        x_img = self._vx + f * X / Z
-        speed = vo.get("speed")
-        if view in (View.LEFT, View.RIGHT):
-            # Crossing traffic: moves towards its front (image left from the LEFT view).
-            heading = -1.0 if view == View.LEFT else 1.0
-            s = float(speed) if speed is not None else (0.0 if vrng.random() < 0.3 else vrng.uniform(1.0, 7.0))
-            if entering and s == 0.0:
-                s = vrng.uniform(1.0, 5.0)
-            if entering and speed is None:
-                heading = 1.0 if x_img < 0 else -1.0
-                view = View.RIGHT if heading > 0 else View.LEFT
-                if view != (View.LEFT if lamps[0].side == "L" else View.RIGHT):
-                    shape = body_shape(kind, view, vrng)
-                    lamps = lamp_mod.side_lamps(style, kind, vrng, view)
-                    lamp_polys = [_segment_polys(l) if l.segments > 1 else [_lamp_poly(l)] for l in lamps]
-            vx, vz = heading * s, 0.0
-        else:
-            s = float(speed) if speed is not None else None
-            if view == View.BEHIND:
-                vz = s if s is not None else vrng.uniform(-1.5, 1.5)
-                if entering and s is None:
-                    vz = -vrng.uniform(0.5, 3.0) if Z > z_max * 0.5 else vrng.uniform(1.0, 4.0)
-            else:
-                vz = -(s if s is not None else vrng.uniform(0.0, 4.0))
-            vx = 0.0 if s is not None else vrng.uniform(-0.25, 0.25)
-        fixed_intent = vo.get("intent")
-        if fixed_intent is not None and Intent(fixed_intent) == Intent.UNKNOWN:
-            raise ConfigError("intent override must be OFF, LEFT, RIGHT or HAZARD")
-        lights_on = bool(vo["lights_on"]) if "lights_on" in vo else bool(vrng.random() < self._light.lights_on)
-        colour = tuple(float(c) for c in vo["colour"]) if "colour" in vo else sample_colour(vrng)
-        paints = self._paints(vrng, colour, kind)
-        spots = []
-        if vo.get("specular", vrng.random() < (0.7 if self.lighting == "day" else 0.4)):
-            for _ in range(int(vrng.integers(1, 4))):
-                spots.append((vrng.uniform(0.1, 0.9), vrng.uniform(0.05, 0.6), vrng.uniform(0.012, 0.045), vrng.uniform(0.008, 0.03),
-                              vrng.uniform(0.4, 1.0)))
-        v = _Vehicle(track_id=track_id, kind=kind, view=view, style=style, colour=colour, face_w=face_w, face_h=face_h,
-                     shape=shape, lamps=lamps, lamp_polys=lamp_polys, X=X, Z=Z, vx=vx, vz=vz, lights_on=lights_on,
-                     blinker=blinker_timeline(np.random.default_rng([self.seed, 200 + int(track_id)]),
-                                              None if fixed_intent is None else Intent(fixed_intent)),
-                     brake=brake_timeline(np.random.default_rng([self.seed, 300 + int(track_id)]),
-                                          None if vo.get("brake") is None else bool(vo["brake"])),
-                     phase=float(vo["phase"]) if "phase" in vo else float(vrng.uniform(0, 1.0 / style.blink_hz)),
-                     shear=float(vo.get("shear", vrng.uniform(-0.05, 0.05))),
-                     roll=float(vo.get("roll", vrng.uniform(-1.5, 1.5))), spots=spots, paints=paints,
-                     tracker_bias=tuple(float(b) for b in vrng.normal(0, 0.02, 4)),
-                     tracker_sigma=float(vrng.uniform(0.008, 0.035)), tracker_amodal=bool(vrng.random() < 0.3))
-        pts, splits, sil = [], [], []
-        n = 0
-        for key, poly in shape.parts:
-            pts.append(poly)
-            splits.append((key, n, n + len(poly)))
-            n += len(poly)
-        for poly in shape.silhouette:
-            pts.append(poly)
-            sil.append((n, n + len(poly)))
-            n += len(poly)
-        v.part_pts = np.concatenate(pts, 0).astype(np.float32)
-        v.part_splits, v.sil_splits = splits, sil
-        self._prepare_lamps(v)
-        return v
-
-    def _prepare_lamps(self, v: _Vehicle) -> None:
-        """Stack all lamp outlines so that one matrix product per frame maps them to pixels."""
-        pts, ranges, ranges_poly = [], [], []
-        n = 0
-        for polys in v.lamp_polys:
-            a0 = n
-            rp = []
-            for poly in polys:
-                pts.append(poly)
-                rp.append((n, n + len(poly)))
-                n += len(poly)
-            ranges.append((a0, n))
-            ranges_poly.append(rp)
-        v.lamp_pts = np.concatenate(pts, 0).astype(np.float64)
-        v.lamp_ranges, v.lamp_ranges_poly = ranges, ranges_poly
-        lt = self._light
-        night = self.lighting != "day"
-        v.lens_cols = [shade(l.lens, lt, 1.0 / max(lt.ambient, 0.35) * (0.7 if night else 1.0)) for l in v.lamps]
-
-    def _paints(self, rng: np.random.Generator, colour, kind: str) -> Dict[str, Tuple[float, float, float]]:
-        lt = self._light
-        glass_g = rng.uniform(35, 95) if lt.name == "day" else rng.uniform(10, 35)
-        glass = (glass_g * rng.uniform(1.0, 1.25), glass_g * rng.uniform(0.95, 1.1), glass_g)
-        trim = (rng.uniform(25, 50),) * 3 if rng.random() < 0.6 else tuple(c * 0.8 for c in colour)
-        plate = (230, 230, 230) if rng.random() < 0.75 else (40, 200, 240)
-        box = colour if rng.random() < 0.4 else (rng.uniform(180, 240),) * 3
-        return {
-            "body": shade(colour, lt), "shade": shade(colour, lt, 0.55), "glass": shade(glass, lt, 1.0 / max(lt.ambient, 0.5)),
-            "dark": shade((22, 22, 24), lt), "trim": shade(trim, lt), "plate": shade(plate, lt, 1.0 if lt.name == "day" else 2.0),
-            "grille": shade((rng.uniform(20, 60),) * 3 if rng.random() < 0.8 else (160, 160, 165), lt),
-            "sign": (20, 150, 250) if lt.name != "day" else shade((20, 120, 220), lt, 1.3), "box": shade(box, lt),
-            "arch": shade((18, 18, 20), lt), "tyre": shade((rng.uniform(25, 40),) * 3, lt),
-            "hub": shade((rng.uniform(60, 190),) * 3, lt), "flank": shade(colour, lt, rng.uniform(0.6, 0.85)),
-            "flank_glass": shade(glass, lt, 0.8 / max(lt.ambient, 0.5)),
-        }
+            self._traffic.vehicles.append(self._traffic.spawn(vo[i] if i < len(vo) else {}, entering=False))
 
     # ------------------------------------------------------------------ per-frame geometry
-    def _project(self, v: _Vehicle) -> Tuple[float, float, float, float]:
-        f = self._f
-        bottom = self._hy + f * self._cam_h / v.Z
-        h = v.face_h * f / v.Z
-        w = v.face_w * f / v.Z
-        cx = self._vx + f * v.X / v.Z
-        return cx - w / 2, bottom - h, cx + w / 2, bottom
-
-    def _move(self, v: _Vehicle, dt: float) -> bool:
-        """Advance a vehicle by ``dt`` seconds; False when it left the scene."""
-        v.X += v.vx * dt
-        v.Z += v.vz * dt
-        z_min = v.face_w * self._f / (0.55 * self.width)
-        if v.Z < z_min:
-            if v.view == View.BEHIND:
-                v.vz = abs(v.vz)
-                v.Z = z_min
-            else:
-                return False
-        if v.Z > 90:
-            return False
-        x0, y0, x1, y1 = self._project(v)
-        if x1 < -2 or x0 > self.width + 2:
-            return False
-        return True
-
-    def _affine(self, v: _Vehicle, box: Tuple[float, float, float, float], ox: float, oy: float) -> np.ndarray:
+    def _affine(self, v: Vehicle, box: Tuple[float, float, float, float], ox: float, oy: float) -> np.ndarray:
         x0, y0, x1, y1 = box
         bw, bh = x1 - x0, y1 - y0
         a = math.radians(v.roll)
@@ -494,9 +216,7 @@ class SceneRenderer:
         for index in range(n_frames):
             t = index * dt
             if index > 0:
-                for i, v in enumerate(self._vehicles):
-                    if not self._move(v, dt) and self._overrides.get("respawn", True):
-                        self._vehicles[i] = self._spawn({}, entering=True)
+                self._traffic.step(dt, bool(self._overrides.get("respawn", True)))
             yield self._render(index, t)
 
     def _render(self, index: int, t: float) -> RenderedFrame:
@@ -513,7 +233,7 @@ class SceneRenderer:
 
         # Bodies first (in any order), then visibility near-to-far, then lamps, then compositing far-to-near.
         drawn: List[_Drawn] = []
-        for v in self._vehicles:
+        for v in self._traffic.vehicles:
             d = self._draw_body(v, t, ddx, ddy, layer)
             if d is not None:
                 drawn.append(d)
@@ -547,12 +267,12 @@ class SceneRenderer:
         img = cv2.add(img, blur_glow(layer, W, H, 0.5 if self.lighting == "day" else 1.0))
         img = cam.apply(img, t, frng)
         # Listing order follows the vehicle list (stable), not depth.
-        order = {v.track_id: i for i, v in enumerate(self._vehicles)}
+        order = {v.track_id: i for i, v in enumerate(self._traffic.vehicles)}
         truths.sort(key=lambda tr: order.get(tr.track_id, 0))
         stamp = self.start_ns + int(round(index * 1e9 / self.fps))
         return RenderedFrame(index=index, stamp_ns=stamp, image=img, vehicles=truths, lighting=self.lighting)
 
-    def _flank(self, v: _Vehicle, ddx: float, ddy: float) -> Optional[Tuple[np.ndarray, Optional[np.ndarray]]]:
+    def _flank(self, v: Vehicle, ddx: float, ddy: float) -> Optional[Tuple[np.ndarray, Optional[np.ndarray]]]:
         """Outline (and side windows) of the flank that a front or rear view shows when the
         vehicle is off the camera axis, in image coordinates; None when none shows."""
         if v.view in (View.LEFT, View.RIGHT):
@@ -602,9 +322,9 @@ class SceneRenderer:
         dark = tuple(float(c) * (0.45 if self.lighting == "day" else 0.7) for c in under)
         ellipse(img, cx, cy, (x1 - x0) * 0.53, max(1.0, (y1 - y0) * 0.06), dark)
 
-    def _draw_body(self, v: _Vehicle, t: float, ddx: float, ddy: float, layer: np.ndarray) -> Optional[_Drawn]:
+    def _draw_body(self, v: Vehicle, t: float, ddx: float, ddy: float, layer: np.ndarray) -> Optional[_Drawn]:
         W, H = self.width, self.height
-        box = self._project(v)
+        box = self._traffic.project(v)
         box = (box[0] - ddx, box[1] - ddy, box[2] - ddx, box[3] - ddy)
         bw, bh = box[2] - box[0], box[3] - box[1]
         if bw < 2 or bh < 2:
@@ -664,7 +384,7 @@ class SceneRenderer:
         full_area = area_in + max(0.0, full_box_area - in_box_area) * v.shape.fill_ratio
         return _Drawn(v, box, (rx0, ry0, rx1, ry1), M, canvas, alpha, full_area=max(full_area, 1.0))
 
-    def _lamp_levels(self, v: _Vehicle, t: float) -> Tuple[List[List[float]], bool, bool, bool, bool]:
+    def _lamp_levels(self, v: Vehicle, t: float) -> Tuple[List[List[float]], bool, bool, bool, bool]:
         """Brightness of every lamp segment at time ``t`` plus (brake, left active, right
         active, flasher in its lit half)."""
         st = v.style
@@ -808,7 +528,7 @@ class SceneRenderer:
                             right=right, intent=intent_from_lights(left, right), view=v.view, occlusion=occlusion, kind=v.kind,
                             lamp_design=v.style.design, class_id=class_id, left_lit=left_lit, right_lit=right_lit)
 
-    def _tracker_box(self, v: _Vehicle, box: Tuple[float, float, float, float], d: _Drawn, class_id: str,
+    def _tracker_box(self, v: Vehicle, box: Tuple[float, float, float, float], d: _Drawn, class_id: str,
                      frng: np.random.Generator) -> Optional[TrackBox]:
         """What a tracker would report: jittered, sometimes too large, cut off or missing."""
         r = frng.random()
