@@ -17,13 +17,13 @@ from typing import Any, Iterator, List, Optional, Tuple
 import cv2
 import numpy as np
 
-from signal_light_node.boxes import TrackBox
 from signal_light_node.errors import ConfigError
 from signal_light_node.labels import Intent, LightStatus, View, intent_from_lights
 from signal_light_node.synth.camera import Camera, sample_camera
 from signal_light_node.synth.environment import (GLOW_SCALE, LIGHTINGS, Environment, Lighting, Occluder, StreetGeometry,
                                                  add_glow, blur_glow, ellipse, sample_lighting)
 from signal_light_node.synth.lamps import STYLE_FAMILIES, TRAIN_FAMILIES, flasher_level
+from signal_light_node.synth.tracker import tracker_box
 from signal_light_node.synth.traffic import Traffic, Vehicle
 from signal_light_node.synth.truth import RenderedFrame, VehicleTruth
 from signal_light_node.synth.vehicles import CLASS_IDS, KIND_DIMS
@@ -523,44 +523,7 @@ class SceneRenderer:
         left_lit = _light_status(left_on and flash_lit, visible["L"])
         right_lit = _light_status(right_on and flash_lit, visible["R"])
         class_id = CLASS_IDS[v.kind]
-        tracker = self._tracker_box(v, (bx0, by0, bx1, by1), d, class_id, frng)
+        tracker = tracker_box(v, (bx0, by0, bx1, by1), d.box, self.width, self.height, class_id, frng)
         return VehicleTruth(track_id=v.track_id, box=(bx0, by0, bx1, by1), tracker_box=tracker, brake=brake_s, left=left,
                             right=right, intent=intent_from_lights(left, right), view=v.view, occlusion=occlusion, kind=v.kind,
                             lamp_design=v.style.design, class_id=class_id, left_lit=left_lit, right_lit=right_lit)
-
-    def _tracker_box(self, v: Vehicle, box: Tuple[float, float, float, float], d: _Drawn, class_id: str,
-                     frng: np.random.Generator) -> Optional[TrackBox]:
-        """What a tracker would report: jittered, sometimes too large, cut off or missing."""
-        r = frng.random()
-        jit = frng.normal(0, 1, 4)
-        mode = frng.random()
-        side = int(frng.integers(0, 4))
-        amount = frng.uniform(0.08, 0.3)
-        if r < 0.03:
-            return None
-        x0, y0, x1, y1 = box
-        if v.tracker_amodal:
-            # Amodal box: the tracker keeps the full extent behind an occluder (clipped to the image).
-            fx0, fy0, fx1, fy1 = d.box
-            x0, y0 = max(0.0, fx0), max(0.0, fy0)
-            x1, y1 = min(float(self.width), fx1), min(float(self.height), fy1)
-        w, h = x1 - x0, y1 - y0
-        b = v.tracker_bias
-        s = v.tracker_sigma
-        x0 += (b[0] + s * jit[0]) * w
-        x1 += (b[1] + s * jit[1]) * w
-        y0 += (b[2] + s * jit[2]) * h
-        y1 += (b[3] + s * jit[3]) * h
-        if mode < 0.08:  # too large
-            x0, x1 = x0 - amount * w * 0.5, x1 + amount * w * 0.5
-            y0, y1 = y0 - amount * h * 0.5, y1 + amount * h * 0.5
-        elif mode < 0.14:  # cut off on one side
-            if side == 0:
-                x0 += amount * w
-            elif side == 1:
-                x1 -= amount * w
-            elif side == 2:
-                y0 += amount * h
-            else:
-                y1 -= amount * h
-        return TrackBox(v.track_id, float(x0), float(y0), float(x1), float(y1), class_id)
