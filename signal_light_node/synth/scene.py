@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
 from typing import Any, Iterator, List, Optional, Tuple
 
 import cv2
@@ -21,17 +20,16 @@ from signal_light_node.errors import ConfigError
 from signal_light_node.labels import Intent, LightStatus, View, intent_from_lights
 from signal_light_node.synth.camera import Camera, sample_camera
 from signal_light_node.synth.environment import (GLOW_SCALE, LIGHTINGS, Environment, Lighting, Occluder, StreetGeometry,
-                                                 add_glow, blur_glow, ellipse, sample_lighting)
+                                                 blur_glow, sample_lighting)
 from signal_light_node.synth.lamps import STYLE_FAMILIES, TRAIN_FAMILIES, flasher_level
 from signal_light_node.synth.tracker import tracker_box
 from signal_light_node.synth.traffic import Traffic, Vehicle
 from signal_light_node.synth.truth import RenderedFrame, VehicleTruth
-from signal_light_node.synth.vehicles import CLASS_IDS, KIND_DIMS
+from signal_light_node.synth.vehicle_drawing import Drawn, VehiclePainter
+from signal_light_node.synth.vehicles import CLASS_IDS
 
 LOG = logging.getLogger(__name__)
 
-_SHIFT = 3
-_ONE = 1 << _SHIFT
 _MARGIN = 12
 #: A lamp counts as visible when at least this fraction of it can be seen.
 LAMP_VISIBLE_FRACTION = 0.5
@@ -49,12 +47,6 @@ MAX_LISTED_OCCLUSION = 0.9
 
 _SCENE_KEYS = {"vehicles", "occluders", "poles", "distractors", "weather", "effects", "shake", "respawn", "horizon", "focal",
                "family"}
-#: A lit signal lamp (level 1) blends at least this far from its unlit lens to its lit
-#: colour, whatever the light: a lit bulb or LED visibly brightens its lens in daylight too.
-LIT_LAMP_MIN_GAIN = 0.85
-#: Share of white in the clipped core of a lit lamp in daylight (a camera clips a lit
-#: lamp towards white even in the sun; 0.2 until 2026-11-22 left red lamps faint).
-LIT_CORE_DAY = 0.45
 _VEHICLE_KEYS = {"view", "kind", "lamp_design", "tech", "chmsl", "intent", "brake", "colour", "lights_on", "center_x",
                  "width_px", "speed", "blink_hz", "duty", "phase", "shear", "roll", "specular"}
 
@@ -64,20 +56,6 @@ def _light_status(on: bool, visible: bool) -> LightStatus:
     if not visible:
         return LightStatus.UNKNOWN
     return LightStatus.ON if on else LightStatus.OFF
-
-
-@dataclass
-class _Drawn:
-    """Per-frame drawing state of one vehicle."""
-
-    v: Vehicle
-    box: Tuple[float, float, float, float]  # full (unclipped) extent
-    roi: Tuple[int, int, int, int]  # clipped integer ROI x0, y0, x1, y1
-    M: np.ndarray
-    canvas: np.ndarray
-    alpha: np.ndarray
-    vis: Optional[np.ndarray] = None
-    full_area: float = 1.0
 
 
 class SceneRenderer:
@@ -156,13 +134,13 @@ class SceneRenderer:
         o = self._overrides
         rng = np.random.default_rng([self.seed, 1])
         W, H = self.width, self.height
-        self._f = W * float(o.get("focal", rng.uniform(0.75, 1.3)))
-        self._hy = H * float(o.get("horizon", rng.uniform(0.36, 0.5)))
-        self._vx = W * rng.uniform(0.35, 0.65)
-        self._cam_h = rng.uniform(1.2, 1.7)
+        f = W * float(o.get("focal", rng.uniform(0.75, 1.3)))
+        hy = H * float(o.get("horizon", rng.uniform(0.36, 0.5)))
+        vx = W * rng.uniform(0.35, 0.65)
+        cam_h = rng.uniform(1.2, 1.7)
         lane_w = rng.uniform(2.9, 3.7)
         n_left, n_right = int(rng.integers(1, 4)), int(rng.integers(1, 4))
-        self._geo = StreetGeometry(self._f, self._cam_h, self._hy, self._vx, -n_left * lane_w + rng.uniform(-0.5, 0.5),
+        self._geo = StreetGeometry(f, cam_h, hy, vx, -n_left * lane_w + rng.uniform(-0.5, 0.5),
                                    n_right * lane_w + rng.uniform(-0.5, 0.5), lane_w)
         self._light: Lighting = sample_lighting(rng, self.lighting)
         weather = o.get("weather") or str(rng.choice(["clear", "clear", "clear", "rain", "haze"]))
@@ -177,27 +155,14 @@ class SceneRenderer:
         cam_params = sample_camera(rng, self._light.noise, self.lighting, weather, self.family)
         if not o.get("shake", True):
             cam_params.shake = 0.0
-        self._camera = Camera(cam_params, W, H, self._hy, self.seed * 7 + 3, enabled=bool(o.get("effects", True)))
+        self._camera = Camera(cam_params, W, H, hy, self.seed * 7 + 3, enabled=bool(o.get("effects", True)))
         LOG.debug("scene seed=%d %dx%d fps=%.1f lighting=%s weather=%s focal=%.0f horizon=%.0f vehicles=%d",
-                  self.seed, W, H, self.fps, self.lighting, weather, self._f, self._hy, self.n_vehicles)
+                  self.seed, W, H, self.fps, self.lighting, weather, f, hy, self.n_vehicles)
         self._traffic = Traffic(self.seed, rng, W, self._geo, self._light, self.lighting, self.family)
         vo = o.get("vehicles") or []
         for i in range(self.n_vehicles):
             self._traffic.vehicles.append(self._traffic.spawn(vo[i] if i < len(vo) else {}, entering=False))
-
-    # ------------------------------------------------------------------ per-frame geometry
-    def _affine(self, v: Vehicle, box: Tuple[float, float, float, float], ox: float, oy: float) -> np.ndarray:
-        x0, y0, x1, y1 = box
-        bw, bh = x1 - x0, y1 - y0
-        a = math.radians(v.roll)
-        c, s = math.cos(a), math.sin(a)
-        # u,v -> local (centred, sheared) -> rotated -> ROI coordinates.
-        A = np.array([[bw, v.shear * bh], [0.0, bh]])
-        R = np.array([[c, -s], [s, c]])
-        L = R @ A
-        centre = np.array([(x0 + x1) / 2 - ox, (y0 + y1) / 2 - oy])
-        t = centre - L @ np.array([0.5, 0.5])
-        return np.hstack([L, t[:, None]]).astype(np.float64)
+        self._painter = VehiclePainter(W, H, self._geo, self._light, self.lighting, self._wet)
 
     # ------------------------------------------------------------------ rendering
     def frames(self, n_frames: int) -> Iterator[RenderedFrame]:
@@ -232,9 +197,9 @@ class SceneRenderer:
         self._env.draw_lights(img, layer, t, ddx, ddy)
 
         # Bodies first (in any order), then visibility near-to-far, then lamps, then compositing far-to-near.
-        drawn: List[_Drawn] = []
+        drawn: List[Drawn] = []
         for v in self._traffic.vehicles:
-            d = self._draw_body(v, t, ddx, ddy, layer)
+            d = self._painter.body(v, self._traffic.project(v), ddx, ddy, layer)
             if d is not None:
                 drawn.append(d)
         coverage = np.zeros((H, W), np.uint8)
@@ -253,12 +218,7 @@ class SceneRenderer:
             tr = self._lamps_and_truth(d, t, layer, frng)
             if tr is not None:
                 truths.append(tr)
-        for d in reversed(drawn):
-            x0, y0, x1, y1 = d.roi
-            self._shadow(img, d)
-            a = d.alpha.astype(np.float32) * (1.0 / 255.0)
-            roi = img[y0:y1, x0:x1]
-            img[y0:y1, x0:x1] = cv2.blendLinear(d.canvas, roi, a, 1.0 - a)
+        self._painter.composite(img, drawn)
         for o, x in zip(self._env.occluders, occ_x):
             o.draw(img, x - ddx, ddy)
         rain = self._env.rain_slice(t)
@@ -271,118 +231,6 @@ class SceneRenderer:
         truths.sort(key=lambda tr: order.get(tr.track_id, 0))
         stamp = self.start_ns + int(round(index * 1e9 / self.fps))
         return RenderedFrame(index=index, stamp_ns=stamp, image=img, vehicles=truths, lighting=self.lighting)
-
-    def _flank(self, v: Vehicle, ddx: float, ddy: float) -> Optional[Tuple[np.ndarray, Optional[np.ndarray]]]:
-        """Outline (and side windows) of the flank that a front or rear view shows when the
-        vehicle is off the camera axis, in image coordinates; None when none shows."""
-        if v.view in (View.LEFT, View.RIGHT):
-            return None
-        w_m, h_m, length = KIND_DIMS[v.kind]
-        w_m = v.face_w
-        near_x = v.X + w_m / 2 if v.X < 0 else v.X - w_m / 2
-        if near_x * v.X <= 0:
-            return None  # straight ahead: no flank visible
-        f, hy, vx, ch = self._f, self._hy - ddy, self._vx - ddx, self._cam_h
-        Zn, Zf = v.Z, v.Z + length * (v.face_h / KIND_DIMS[v.kind][1])
-        xn, xf = vx + f * near_x / Zn, vx + f * near_x / Zf
-        if abs(xn - xf) < 1.0:
-            return None
-        top_far = h_m * (0.62 if v.kind in ("car", "suv") else 1.0) * v.face_h / KIND_DIMS[v.kind][1]
-        ground = 0.2 * v.face_h / KIND_DIMS[v.kind][1]
-        yn = lambda hgt: hy + f * (ch - hgt) / Zn  # noqa: E731
-        yf = lambda hgt: hy + f * (ch - hgt) / Zf  # noqa: E731
-        top_near = v.face_h * (0.62 if v.kind in ("car", "suv") else 1.0)
-        outline = np.array([[xn, yn(top_near)], [xf, yf(top_far)], [xf, yf(ground)], [xn, yn(ground)]], np.float64)
-        glass = None
-        if v.kind in ("car", "suv", "van", "bus"):
-            # Side windows: a band under the roof line, shorter than the body.
-            g_lo, g_hi = v.face_h * 0.62, v.face_h * (0.92 if v.kind in ("car", "suv") else 0.85)
-            za, zb = Zn + (Zf - Zn) * 0.12, Zn + (Zf - Zn) * 0.8
-            xa, xb = vx + f * near_x / za, vx + f * near_x / zb
-            ya = lambda hgt: hy + f * (ch - hgt) / za  # noqa: E731
-            yb = lambda hgt: hy + f * (ch - hgt) / zb  # noqa: E731
-            glass = np.array([[xa, ya(g_hi)], [xb, yb(g_hi)], [xb, yb(g_lo)], [xa, ya(g_lo)]], np.float64)
-            if v.kind in ("car", "suv"):
-                # The cabin sits on top of the body and is narrower: its roof edge is set
-                # in from the body side, so the roof line starts inside the face outline.
-                roof_x = near_x + (v.X - near_x) * 0.3
-                xr_n, xr_b = vx + f * roof_x / Zn, vx + f * roof_x / zb
-                roof_n = np.array([[xr_n, yn(v.face_h * 0.97)], [xr_b, yb(v.face_h * 0.95)], [xb, yb(top_far)]])
-                outline = np.vstack([outline[:1], roof_n, outline[1:]])
-                glass[0, 0], glass[1, 0] = vx + f * (near_x + (v.X - near_x) * 0.2) / za, vx + f * (near_x + (v.X - near_x) * 0.2) / zb
-        return outline, glass
-
-    def _shadow(self, img: np.ndarray, d: _Drawn) -> None:
-        """Contact shadow on the road under a vehicle (darker in daylight)."""
-        x0, y0, x1, y1 = d.box
-        cx, cy = (x0 + x1) / 2, y1 - (y1 - y0) * 0.02
-        H, W = img.shape[:2]
-        sx, sy = int(min(max(cx, 0), W - 1)), int(min(max(cy + 2, 0), H - 1))
-        under = img[sy, sx].astype(np.float32)
-        dark = tuple(float(c) * (0.45 if self.lighting == "day" else 0.7) for c in under)
-        ellipse(img, cx, cy, (x1 - x0) * 0.53, max(1.0, (y1 - y0) * 0.06), dark)
-
-    def _draw_body(self, v: Vehicle, t: float, ddx: float, ddy: float, layer: np.ndarray) -> Optional[_Drawn]:
-        W, H = self.width, self.height
-        box = self._traffic.project(v)
-        box = (box[0] - ddx, box[1] - ddy, box[2] - ddx, box[3] - ddy)
-        bw, bh = box[2] - box[0], box[3] - box[1]
-        if bw < 2 or bh < 2:
-            return None
-        pad = abs(v.shear) * bh + abs(math.radians(v.roll)) * max(bw, bh) + 2
-        ext = [box[0] - pad, box[1] - pad, box[2] + pad, box[3] + pad]
-        flank = self._flank(v, ddx, ddy)
-        if flank is not None:
-            ext = [min(ext[0], flank[0][:, 0].min()), min(ext[1], flank[0][:, 1].min()),
-                   max(ext[2], flank[0][:, 0].max()), max(ext[3], flank[0][:, 1].max())]
-        rx0, ry0 = int(max(0, math.floor(ext[0]))), int(max(0, math.floor(ext[1])))
-        rx1, ry1 = int(min(W, math.ceil(ext[2]))), int(min(H, math.ceil(ext[3])))
-        if rx1 - rx0 < 1 or ry1 - ry0 < 1:
-            return None
-        M = self._affine(v, box, rx0, ry0)
-        pts = v.part_pts @ M[:, :2].T + M[:, 2]
-        ipts = np.round(pts * _ONE).astype(np.int32)
-        canvas = np.zeros((ry1 - ry0, rx1 - rx0, 3), np.uint8)
-        alpha = np.zeros((ry1 - ry0, rx1 - rx0), np.uint8)
-        if flank is not None:
-            # The flank is drawn first; the face drawn over it hides the seam.
-            outline, glass = flank
-            io = np.round((outline - (rx0, ry0)) * _ONE).astype(np.int32)
-            cv2.fillPoly(alpha, [io], 255, cv2.LINE_AA, _SHIFT)
-            cv2.fillPoly(canvas, [io], v.paints["flank"], cv2.LINE_AA, _SHIFT)
-            if glass is not None:
-                cv2.fillPoly(canvas, [np.round((glass - (rx0, ry0)) * _ONE).astype(np.int32)], v.paints["flank_glass"], cv2.LINE_AA, _SHIFT)
-        cv2.fillPoly(alpha, [ipts[a:b] for a, b in v.sil_splits], 255, cv2.LINE_AA, _SHIFT)
-        for key, a, b in v.part_splits:
-            cv2.fillPoly(canvas, [ipts[a:b]], v.paints.get(key, v.paints["body"]), cv2.LINE_AA, _SHIFT)
-        # Shading: light from above and from the sun's side, darker towards the ground.
-        hh, ww = canvas.shape[:2]
-        ys = (np.arange(hh, dtype=np.float32) + ry0 - box[1]) / bh
-        xs = (np.arange(ww, dtype=np.float32) + rx0 - box[0]) / bw
-        gy = 1.12 - 0.35 * np.clip(ys, 0, 1)
-        gx = 1.0 + 0.12 * self._light.sun_side * (np.clip(xs, 0, 1) - 0.5)
-        g = (gy[:, None] * gx[None, :]).astype(np.float32)
-        canvas = np.minimum(canvas.astype(np.float32) * g[:, :, None], 255.0).astype(np.uint8)
-        # Specular spots (sun or street-light reflections) slide over the body as the vehicle
-        # moves through the image and come and go; they are soft light, plus a sharp glint.
-        cx_img = (box[0] + box[2]) / 2
-        for (su, sv, sru, srv, strength) in v.spots:
-            u = su + 0.25 * (cx_img / W - 0.5)
-            flick = 0.5 + 0.5 * math.sin(cx_img * 0.05 + su * 10)
-            s = strength * flick * (1.0 if self.lighting == "day" else 0.6)
-            if s < 0.15:
-                continue
-            p = M @ np.array([u, sv, 1.0])
-            if sv < 0.6 and 0 <= p[0] < ww and 0 <= p[1] < hh and alpha[int(p[1]), int(p[0])] > 127:
-                add_glow(layer, p[0] + rx0, p[1] + ry0, sru * bw, (255, 255, 255), 0.6 * s)
-                if s > 0.5:
-                    ellipse(canvas, p[0], p[1], max(0.6, sru * bw * 0.35), max(0.5, srv * bh * 0.3),
-                            (235, 240, 245), angle=-12.0)
-        area_in = float(np.count_nonzero(alpha > 127))
-        full_box_area = bw * bh
-        in_box_area = max(0.0, (min(box[2], W) - max(box[0], 0))) * max(0.0, (min(box[3], H) - max(box[1], 0)))
-        full_area = area_in + max(0.0, full_box_area - in_box_area) * v.shape.fill_ratio
-        return _Drawn(v, box, (rx0, ry0, rx1, ry1), M, canvas, alpha, full_area=max(full_area, 1.0))
 
     def _lamp_levels(self, v: Vehicle, t: float) -> Tuple[List[List[float]], bool, bool, bool, bool]:
         """Brightness of every lamp segment at time ``t`` plus (brake, left active, right
@@ -439,26 +287,20 @@ class SceneRenderer:
                 levels.append([0.0])
         return levels, brake, left_on, right_on, flash_lit
 
-    def _lamps_and_truth(self, d: _Drawn, t: float, layer: np.ndarray, frng: np.random.Generator) -> Optional[VehicleTruth]:
+    def _lamp_visibility(self, d: Drawn) -> Tuple[List[float], List[Tuple[str, str, float]]]:
+        """Visible fraction of every lamp of a drawn vehicle, and (role, side, visible lamp
+        pixels) of the lamps seen well enough to be labelled by the fraction rule (the size
+        rule needs the vehicle's visible box, known after drawing)."""
         v = d.v
         rx0, ry0, rx1, ry1 = d.roi
-        levels, brake, left_on, right_on, flash_lit = self._lamp_levels(v, t)
-        lt = self._light
-        night = self.lighting != "day"
-        # (role, side, visible lamp pixels) of lamps seen well enough to be labelled by the
-        # fraction rule; the size rule needs the vehicle's visible box, known after drawing.
+        fracs: List[float] = []
         seen: List[Tuple[str, str, float]] = []
-        # All lamp outlines in one transform; per-lamp pixel counts from integral images.
-        P = v.lamp_pts @ d.M[:, :2].T + d.M[:, 2]
-        IP = np.round(P * _ONE).astype(np.int32)
-        starts = [a for a, _ in v.lamp_ranges]
-        lo = np.minimum.reduceat(P, starts, axis=0)
-        hi = np.maximum.reduceat(P, starts, axis=0)
+        # Per-lamp pixel counts from integral images.
+        P, lo, hi = d.lamp_px, d.lamp_lo, d.lamp_hi
         iv = cv2.integral(d.vis.view(np.uint8))
         ia = cv2.integral((d.alpha > 127).view(np.uint8))
         rw, rh = rx1 - rx0, ry1 - ry0
-        gain = max(LIT_LAMP_MIN_GAIN, v.style.brightness * lt.lamp_gain * (1.25 if night else 1.0))
-        for li, (lamp, polys, levs) in enumerate(zip(v.lamps, v.lamp_ranges_poly, levels)):
+        for li, (lamp, polys) in enumerate(zip(v.lamps, v.lamp_ranges_poly)):
             lx0, ly0 = lo[li]
             lx1, ly1 = hi[li]
             fx0, fy0, fx1, fy1 = math.floor(lx0), math.floor(ly0), math.ceil(lx1), math.ceil(ly1)
@@ -472,30 +314,15 @@ class SceneRenderer:
             if frac >= LAMP_VISIBLE_FRACTION:
                 area = sum(cv2.contourArea(P[a:b].astype(np.float32)) for a, b in polys)
                 seen.append((lamp.role, lamp.side, frac * area))
-            # Unlit lens, then the lit colour blended in by the level.
-            lens = v.lens_cols[li]
-            for (a, b), lev in zip(polys, levs):
-                k = min(1.0, lev * gain)
-                col = (lens[0] + (lamp.emit[0] - lens[0]) * k, lens[1] + (lamp.emit[1] - lens[1]) * k,
-                       lens[2] + (lamp.emit[2] - lens[2]) * k)
-                cv2.fillPoly(d.canvas, [IP[a:b]], col, cv2.LINE_AA, _SHIFT)
-                if k > 0.05:
-                    p = P[a:b]
-                    c = p.mean(0)
-                    size = max(hi[li][0] - lo[li][0], hi[li][1] - lo[li][1]) if len(polys) == 1 else \
-                        max(float(np.ptp(p[:, 0])), float(np.ptp(p[:, 1])))
-                    if (night and k > 0.5) or k > 0.6:
-                        # Over-exposed core: the centre of a bright lamp clips towards white.
-                        core = (p - c) * 0.55 + c
-                        hot = (0.35 + 0.4 * k) if night else LIT_CORE_DAY * v.style.brightness
-                        cc = tuple(e + (255 - e) * hot for e in lamp.emit)
-                        cv2.fillPoly(d.canvas, [np.round(core * _ONE).astype(np.int32)], cc, cv2.LINE_AA, _SHIFT)
-                    add_glow(layer, c[0] + rx0, c[1] + ry0, size * 0.5, lamp.emit, 0.5 * k * lt.glow * frac * lamp.glow)
-                    if self._wet:
-                        # Reflection on the wet road, mirrored about the vehicle's ground line.
-                        gy = d.box[3]
-                        ry = gy + (gy - (c[1] + ry0)) * 0.9
-                        add_glow(layer, c[0] + rx0, ry, size * 0.5, lamp.emit, 0.3 * k * lt.glow * frac, stretch=3.0)
+            fracs.append(frac)
+        return fracs, seen
+
+    def _lamps_and_truth(self, d: Drawn, t: float, layer: np.ndarray, frng: np.random.Generator) -> Optional[VehicleTruth]:
+        v = d.v
+        rx0, ry0, rx1, ry1 = d.roi
+        levels, brake, left_on, right_on, flash_lit = self._lamp_levels(v, t)
+        fracs, seen = self._lamp_visibility(d)
+        self._painter.lamps(d, levels, fracs, layer)
         # Labels.
         ys, xs = np.nonzero(d.vis)
         if len(xs) == 0:
