@@ -1,61 +1,47 @@
-"""The scene renderer: layout, vehicle motion, occlusion, tracker simulation and labels.
+"""The scene renderer: one camera on a street with a handful of vehicles seen from behind,
+from the front or from a side, rendered frame by frame with each vehicle's truth.
 
-A ``SceneRenderer`` owns a camera on a street and a handful of vehicles seen from behind,
-from the front or from a side. Each frame it moves the vehicles, decides which lamps are
-lit (per-vehicle blinker and brake timelines), works out which lamps are visible
-(other vehicles, poles and the image border hide them), draws everything and hands back
-the image with one ``VehicleTruth`` per vehicle that is visible enough to be listed.
+A ``SceneRenderer`` sets the scene up from its seed and runs each frame; the work is done
+by one module per concern:
+
+* ``traffic``: which vehicles there are, where they appear and how they move;
+* ``environment``: street background, lighting, distractor lights, weather, occluders;
+* ``vehicle_drawing``: bodies, flanks, lamps, shadows and compositing into the frame;
+* ``truth``: which lamps are lit and visible, which vehicles are listed, their labels;
+* ``tracker``: the box a simulated tracker reports for each listed vehicle;
+* ``camera``: exposure, haze, blur, noise and JPEG of the finished frame (and its shake).
+
+Each frame hands back the image with one ``VehicleTruth`` per vehicle that is visible
+enough to be listed.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from typing import Any, Iterator, List, Optional, Tuple
+from typing import Any, Iterator, List, Optional
 
 import cv2
 import numpy as np
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.labels import Intent, LightStatus, View, intent_from_lights
 from signal_light_node.synth.camera import Camera, sample_camera
 from signal_light_node.synth.environment import (GLOW_SCALE, LIGHTINGS, Environment, Lighting, Occluder, StreetGeometry,
                                                  blur_glow, sample_lighting)
-from signal_light_node.synth.lamps import STYLE_FAMILIES, TRAIN_FAMILIES, flasher_level
+from signal_light_node.synth.lamps import STYLE_FAMILIES, TRAIN_FAMILIES
 from signal_light_node.synth.tracker import tracker_box
-from signal_light_node.synth.traffic import Traffic, Vehicle
-from signal_light_node.synth.truth import RenderedFrame, VehicleTruth
+from signal_light_node.synth.traffic import Traffic
+from signal_light_node.synth.truth import (RenderedFrame, VehicleTruth, lamp_states, lamp_visibility, listed_box, mark_visible,
+                                          vehicle_truth)
 from signal_light_node.synth.vehicle_drawing import Drawn, VehiclePainter
-from signal_light_node.synth.vehicles import CLASS_IDS
 
 LOG = logging.getLogger(__name__)
 
 _MARGIN = 12
-#: A lamp counts as visible when at least this fraction of it can be seen.
-LAMP_VISIBLE_FRACTION = 0.5
-#: ... and when its visible part is large enough to be judged where the node looks: the
-#: node scales a square of 1.3 x the box's longer side to a 64-pixel crop, so a lamp
-#: covering less than 1/600 of (longer side)^2 spans under 4 crop pixels (a side view's
-#: wrap-around tail lamp or side repeater). Such a lamp's state is UNKNOWN, as an
-#: annotator would mark it, rather than an ON/OFF no image can show.
-LAMP_MIN_BOX_SHARE = 1.0 / 600.0
-#: Nor can a lamp be judged from fewer image pixels than this, however small the box.
-LAMP_MIN_PIXELS = 2.0
-#: Vehicles smaller than this (visible box, pixels) or more hidden than this are not listed.
-MIN_LISTED_PX = 8.0
-MAX_LISTED_OCCLUSION = 0.9
-
 _SCENE_KEYS = {"vehicles", "occluders", "poles", "distractors", "weather", "effects", "shake", "respawn", "horizon", "focal",
                "family"}
 _VEHICLE_KEYS = {"view", "kind", "lamp_design", "tech", "chmsl", "intent", "brake", "colour", "lights_on", "center_x",
                  "width_px", "speed", "blink_hz", "duty", "phase", "shear", "roll", "specular"}
-
-
-def _light_status(on: bool, visible: bool) -> LightStatus:
-    """ON or OFF for a light that can be judged, UNKNOWN for one that cannot."""
-    if not visible:
-        return LightStatus.UNKNOWN
-    return LightStatus.ON if on else LightStatus.OFF
 
 
 class SceneRenderer:
@@ -207,12 +193,7 @@ class SceneRenderer:
         for o, x in zip(self._env.occluders, occ_x):
             o.draw(coverage, x - ddx, ddy, value=255)
         drawn.sort(key=lambda d: d.v.Z)
-        for d in drawn:
-            x0, y0, x1, y1 = d.roi
-            cov = coverage[y0:y1, x0:x1]
-            sil = d.alpha > 127
-            d.vis = sil & (cov == 0)
-            cov[sil] = 255
+        mark_visible(drawn, coverage)
         truths: List[VehicleTruth] = []
         for d in drawn:
             tr = self._lamps_and_truth(d, t, layer, frng)
@@ -232,125 +213,14 @@ class SceneRenderer:
         stamp = self.start_ns + int(round(index * 1e9 / self.fps))
         return RenderedFrame(index=index, stamp_ns=stamp, image=img, vehicles=truths, lighting=self.lighting)
 
-    def _lamp_levels(self, v: Vehicle, t: float) -> Tuple[List[List[float]], bool, bool, bool, bool]:
-        """Brightness of every lamp segment at time ``t`` plus (brake, left active, right
-        active, flasher in its lit half)."""
-        st = v.style
-        state, start = v.blinker.segment(t)
-        brake = bool(v.brake.segment(t)[0])
-        left_on = state in (Intent.LEFT, Intent.HAZARD)
-        right_on = state in (Intent.RIGHT, Intent.HAZARD)
-        # A flasher starts lit when switched on; a signal held for the whole sequence
-        # (override) runs with the vehicle's phase instead.
-        t_act = t + v.phase if start < -1e8 else t - start
-        exp_s = self._light.exposure_s
-        flash_lit = flasher_level(t_act, st, exp_s) >= 0.5
-        tail = st.tail_level if v.lights_on else 0.0
-        night = self.lighting != "day"
-        levels: List[List[float]] = []
-        for lamp, polys in zip(v.lamps, v.lamp_polys):
-            active = (lamp.side == "L" and left_on) or (lamp.side == "R" and right_on)
-            role = lamp.role
-            if role == "tail":
-                lev = (1.0 if brake and lamp.side != "C" else tail)
-                levels.append([lev])
-            elif role == "chmsl":
-                levels.append([1.0 if brake else 0.0])
-            elif role == "turn":
-                if not active:
-                    levels.append([0.0] * len(polys))
-                elif len(polys) > 1:
-                    step = st.duty / st.blink_hz * st.seq_fraction / len(polys)
-                    levels.append([flasher_level(t_act, st, exp_s, delay=k * step) for k in range(len(polys))])
-                else:
-                    levels.append([flasher_level(t_act, st, exp_s)])
-            elif role == "turn_tail":
-                base = 1.0 if brake else tail
-                if active:
-                    low = st.combined_dim if brake else tail
-                    levels.append([low + (1.0 - low) * flasher_level(t_act, st, exp_s)])
-                else:
-                    levels.append([base])
-            elif role == "head":
-                levels.append([1.0 if (v.lights_on and (night or v.view == View.FRONT)) else 0.0])
-            elif role in ("drl", "position"):
-                on = v.lights_on or st.drl_day
-                lev = 0.55 if on else 0.0
-                if on and active and st.drl_dims_on_turn:
-                    lev *= 1.0 - 0.85 * flasher_level(t_act, st, exp_s)
-                levels.append([lev])
-            elif role == "marker":
-                levels.append([0.6 if v.lights_on else 0.0])
-            elif role == "reflector":
-                levels.append([0.12 if night else 0.0])  # catches other vehicles' headlights
-            else:
-                levels.append([0.0])
-        return levels, brake, left_on, right_on, flash_lit
-
-    def _lamp_visibility(self, d: Drawn) -> Tuple[List[float], List[Tuple[str, str, float]]]:
-        """Visible fraction of every lamp of a drawn vehicle, and (role, side, visible lamp
-        pixels) of the lamps seen well enough to be labelled by the fraction rule (the size
-        rule needs the vehicle's visible box, known after drawing)."""
-        v = d.v
-        rx0, ry0, rx1, ry1 = d.roi
-        fracs: List[float] = []
-        seen: List[Tuple[str, str, float]] = []
-        # Per-lamp pixel counts from integral images.
-        P, lo, hi = d.lamp_px, d.lamp_lo, d.lamp_hi
-        iv = cv2.integral(d.vis.view(np.uint8))
-        ia = cv2.integral((d.alpha > 127).view(np.uint8))
-        rw, rh = rx1 - rx0, ry1 - ry0
-        for li, (lamp, polys) in enumerate(zip(v.lamps, v.lamp_ranges_poly)):
-            lx0, ly0 = lo[li]
-            lx1, ly1 = hi[li]
-            fx0, fy0, fx1, fy1 = math.floor(lx0), math.floor(ly0), math.ceil(lx1), math.ceil(ly1)
-            ix0, iy0, ix1, iy1 = max(0, fx0), max(0, fy0), min(rw, fx1), min(rh, fy1)
-            frac = 0.0
-            if ix1 > ix0 and iy1 > iy0:
-                n_vis = float(iv[iy1, ix1] - iv[iy0, ix1] - iv[iy1, ix0] + iv[iy0, ix0])
-                n_sil = float(ia[iy1, ix1] - ia[iy0, ix1] - ia[iy1, ix0] + ia[iy0, ix0])
-                outside = max(0.0, (fx1 - fx0) * (fy1 - fy0) - (ix1 - ix0) * (iy1 - iy0))
-                frac = n_vis / max(1.0, n_sil + outside * 0.8)
-            if frac >= LAMP_VISIBLE_FRACTION:
-                area = sum(cv2.contourArea(P[a:b].astype(np.float32)) for a, b in polys)
-                seen.append((lamp.role, lamp.side, frac * area))
-            fracs.append(frac)
-        return fracs, seen
-
     def _lamps_and_truth(self, d: Drawn, t: float, layer: np.ndarray, frng: np.random.Generator) -> Optional[VehicleTruth]:
-        v = d.v
-        rx0, ry0, rx1, ry1 = d.roi
-        levels, brake, left_on, right_on, flash_lit = self._lamp_levels(v, t)
-        fracs, seen = self._lamp_visibility(d)
-        self._painter.lamps(d, levels, fracs, layer)
-        # Labels.
-        ys, xs = np.nonzero(d.vis)
-        if len(xs) == 0:
+        """Draw the lamps of a drawn vehicle and return its truth, None when it is not listed."""
+        states = lamp_states(d.v, t, self._light.exposure_s, self.lighting != "day")
+        fracs, seen = lamp_visibility(d)
+        self._painter.lamps(d, states.levels, fracs, layer)
+        listed = listed_box(d)
+        if listed is None:
             return None
-        bx0, by0 = float(xs.min() + rx0), float(ys.min() + ry0)
-        bx1, by1 = float(xs.max() + rx0 + 1), float(ys.max() + ry0 + 1)
-        occlusion = float(np.clip(1.0 - len(xs) / d.full_area, 0.0, 1.0))
-        if bx1 - bx0 < MIN_LISTED_PX or by1 - by0 < MIN_LISTED_PX or occlusion > MAX_LISTED_OCCLUSION:
-            return None
-        min_px = max(LAMP_MIN_PIXELS, LAMP_MIN_BOX_SHARE * max(bx1 - bx0, by1 - by0) ** 2)
-        visible = {"L": False, "R": False, "brake": False}
-        for role, side, pixels in seen:
-            if pixels < min_px:
-                continue
-            if role in ("turn", "turn_tail") and side in ("L", "R"):
-                visible[side] = True
-            # The centre brake lamp shows the brake on its own; a centre tail bar does not
-            # (it never brightens on braking).
-            if role == "chmsl" or (role in ("tail", "turn_tail") and side != "C"):
-                visible["brake"] = True
-        left = _light_status(left_on, visible["L"])
-        right = _light_status(right_on, visible["R"])
-        brake_s = _light_status(brake, visible["brake"])
-        # What a single frame shows: a blinker in its dark half looks like one switched off.
-        left_lit = _light_status(left_on and flash_lit, visible["L"])
-        right_lit = _light_status(right_on and flash_lit, visible["R"])
-        class_id = CLASS_IDS[v.kind]
-        tracker = tracker_box(v, (bx0, by0, bx1, by1), d.box, self.width, self.height, class_id, frng)
-        return VehicleTruth(track_id=v.track_id, box=(bx0, by0, bx1, by1), tracker_box=tracker, brake=brake_s, left=left,
-                            right=right, intent=intent_from_lights(left, right), view=v.view, occlusion=occlusion, kind=v.kind,
-                            lamp_design=v.style.design, class_id=class_id, left_lit=left_lit, right_lit=right_lit)
+        box, occlusion = listed
+        tracker = tracker_box(d.v, box, d.box, self.width, self.height, frng)
+        return vehicle_truth(d.v, box, occlusion, states, seen, tracker)

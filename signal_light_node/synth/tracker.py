@@ -5,27 +5,25 @@ off on one side or missing; an amodal tracker keeps the full extent behind an oc
 
 from __future__ import annotations
 
-from typing import Optional, Tuple
+from typing import Optional
 
 import numpy as np
 
 from signal_light_node.boxes import TrackBox
-from signal_light_node.synth.traffic import Vehicle
+from signal_light_node.synth.traffic import Box, Vehicle
+from signal_light_node.synth.vehicles import CLASS_IDS
 
-Box = Tuple[float, float, float, float]
 
-
-def tracker_box(v: Vehicle, box: Box, full_box: Box, width: int, height: int, class_id: str,
+def tracker_box(v: Vehicle, box: Box, full_box: Box, width: int, height: int,
                 frng: np.random.Generator) -> Optional[TrackBox]:
     """What a tracker would report: jittered, sometimes too large, cut off or missing.
 
     Args:
-        v: The vehicle (its track ID and tracker bias, noise and amodal flag).
+        v: The vehicle (its track ID, kind and tracker bias, noise and amodal flag).
         box: Tight box of its visible pixels (x0, y0, x1, y1).
         full_box: Its full (unclipped) extent in the image.
         width: Image width.
         height: Image height.
-        class_id: Detector class.
         frng: The frame's random stream (five draws per call, missing or not).
     """
     r = frng.random()
@@ -60,4 +58,4 @@ def tracker_box(v: Vehicle, box: Box, full_box: Box, width: int, height: int, cl
             y0 += amount * h
         else:
             y1 -= amount * h
-    return TrackBox(v.track_id, float(x0), float(y0), float(x1), float(y1), class_id)
+    return TrackBox(v.track_id, float(x0), float(y0), float(x1), float(y1), CLASS_IDS[v.kind])
