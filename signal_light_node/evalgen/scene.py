@@ -10,7 +10,7 @@ with correlated jitter and misses, and finally the sensor model (``camera.develo
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Dict, Iterator, List, Optional, Tuple
 
 import cv2
@@ -20,57 +20,16 @@ from signal_light_node.boxes import TrackBox
 from signal_light_node.errors import ConfigError
 from signal_light_node.evalgen.camera import (NEAR_M, PinholeCamera, develop, sample_camera,
                                               sample_sensor)
+from signal_light_node.evalgen.config import SceneConfig
 from signal_light_node.evalgen.draw import (Canvas, add_emission, add_glow, fill_gradient,
                                             visible_fraction)
 from signal_light_node.evalgen.models import (AMBER, CLASS_OF_KIND, FACE_NORMALS, FACES, LENS, RED,
-                                              WHITE, Lamp, Signals, Solid, VehicleModel,
-                                              lamp_points, sample_signals, sample_vehicle)
+                                              WHITE, Lamp, Solid, VehicleModel, lamp_points)
+from signal_light_node.evalgen.traffic import Actor, Traffic
 from signal_light_node.labels import Intent, LightStatus, View, intent_from_lights
 
-LIGHTINGS = ("day", "night")
-VIEW_MIXES = ("all", "behind")
-EVENTS = ("mixed", "none")
 _START_NS = 1_760_000_000 * 1_000_000_000
 _OCCLUDER = -2
-
-
-@dataclass(frozen=True)
-class SceneConfig:
-    """What to generate.
-
-    Attributes:
-        frames: Number of frames.
-        fps: Frame rate.
-        width: Image width.
-        height: Image height.
-        lighting: "day" or "night".
-        n_vehicles: Number of vehicles, or None for a random 6..9 (4..6 with ``views="behind"``).
-        views: "all" (ahead, oncoming, crossing, parked) or "behind" (a one-way road, all ahead).
-        events: "mixed" (blinks, hazards, braking, quiet stretches) or "none" (no signal at all).
-    """
-
-    frames: int = 100
-    fps: float = 10.0
-    width: int = 1280
-    height: int = 720
-    lighting: str = "day"
-    n_vehicles: Optional[int] = None
-    views: str = "all"
-    events: str = "mixed"
-
-    def __post_init__(self) -> None:
-        if self.frames < 1:
-            raise ConfigError(f"frames must be >= 1, got {self.frames}")
-        if not 1.0 <= self.fps <= 60.0:
-            raise ConfigError(f"fps must be in 1..60, got {self.fps}")
-        if self.lighting not in LIGHTINGS:
-            raise ConfigError(f"lighting must be one of {LIGHTINGS}, got {self.lighting!r}")
-        if self.views not in VIEW_MIXES:
-            raise ConfigError(f"views must be one of {VIEW_MIXES}, got {self.views!r}")
-        if self.events not in EVENTS:
-            raise ConfigError(f"events must be one of {EVENTS}, got {self.events!r}")
-        if self.n_vehicles is not None and not 1 <= self.n_vehicles <= 24:
-            raise ConfigError(f"n_vehicles must be in 1..24, got {self.n_vehicles}")
 
 
 @dataclass(frozen=True)
@@ -128,23 +87,6 @@ class EvalFrame:
 
 
 @dataclass
-class _Actor:
-    """A vehicle with its path over the frames (``x``, ``z``, ``yaw`` NaN when absent)."""
-
-    track_id: str
-    model: VehicleModel
-    signals: Signals
-    role: str
-    x: np.ndarray
-    z: np.ndarray
-    yaw: np.ndarray
-    levels: Dict[str, float]
-    glint: bool
-    jitter_rng: np.random.Generator
-    jitter: np.ndarray = field(default_factory=lambda: np.zeros(4))
-
-
-@dataclass
 class _Env:
     """Illumination of the scene."""
 
@@ -186,17 +128,6 @@ def _sample_env(rng: np.random.Generator, night: bool) -> _Env:
                 tuple(float(c) for c in rng.uniform(0.16, 0.26) * np.array([1.0, 1.0, 0.97])))
 
 
-def _levels(rng: np.random.Generator, night: bool) -> Dict[str, float]:
-    """Emission levels of one vehicle's lamps (radiance units)."""
-    if night:
-        return {"tail": float(rng.uniform(0.55, 1.1)), "brake": float(rng.uniform(3.0, 5.5)),
-                "blink": float(rng.uniform(2.5, 4.5)), "head": float(rng.uniform(9.0, 16.0)),
-                "drl": float(rng.uniform(2.5, 4.0))}
-    return {"tail": float(rng.uniform(0.25, 0.45)), "brake": float(rng.uniform(1.1, 2.2)),
-            "blink": float(rng.uniform(1.1, 2.0)), "head": float(rng.uniform(1.0, 1.8)),
-            "drl": float(rng.uniform(1.6, 2.6))}
-
-
 class EvalScene:
     """A generated scene, deterministic from ``seed`` and ``config``.
 
@@ -221,153 +152,10 @@ class EvalScene:
         self.z_int = (float(self.ego_z[-1] + rng.uniform(30.0, 40.0)) if crossing else None)
         self.sway_phase = float(rng.uniform(0, 2 * math.pi))
         self.lanes = [0.0, 3.5] if crossing else [-3.5, 0.0, 3.5]
-        self.actors = self._cast(rng)
+        self.actors = Traffic(self.seed, config, self.times, self.ego_z, self.ego_speed, self.z_int, self.lanes).cast(rng)
         self.facades = self._facades(rng)
         self.poles = self._poles(rng)
         self.noise_rng = np.random.default_rng([self.seed, 7002])
-
-    # ------------------------------------------------------------------ the cast
-
-    def _roles(self, rng: np.random.Generator) -> List[str]:
-        """The role of every vehicle: ahead, parked, oncoming, crossing_r/_l."""
-        cfg = self.config
-        if cfg.views == "behind":
-            n = cfg.n_vehicles or int(rng.integers(4, 7))
-            return ["ahead"] * n
-        n = cfg.n_vehicles or int(rng.integers(6, 10))
-        fixed = ["crossing_r", "crossing_l", "oncoming", "ahead", "ahead", "oncoming", "parked"]
-        extra = list(rng.choice(["ahead", "oncoming", "crossing_r", "crossing_l"],
-                                size=max(n - 7, 0), p=[0.45, 0.25, 0.15, 0.15]))
-        order = ("ahead", "parked", "oncoming", "crossing_r", "crossing_l")
-        return sorted((fixed + extra)[:n], key=order.index)
-
-    def _signal_mode(self, rng: np.random.Generator, role: str) -> str:
-        """Whether a vehicle signals (busy), only brakes (quiet) or does nothing."""
-        if self.config.events == "none":
-            return "none"
-        busy = 0.75 if role in ("ahead", "oncoming") else 0.6
-        return "busy" if rng.random() < busy else "quiet"
-
-    def _cast(self, rng: np.random.Generator) -> List[_Actor]:
-        """Every vehicle with its model, signals and path."""
-        actors: List[_Actor] = []
-        queue: Dict[float, List[_Actor]] = {lane: [] for lane in self.lanes}
-        for k, role in enumerate(self._roles(rng)):
-            kind = None if role != "parked" else str(rng.choice(["sedan", "suv", "van"]))
-            model = sample_vehicle(rng, kind)
-            allow = {"oncoming": ("left", "left", "hazard")}.get(role, ("left", "right", "hazard"))
-            if role == "parked":
-                sig = sample_signals(rng, self.duration, "none", self.night)
-                if self.config.events != "none":
-                    t0 = float(rng.uniform(-3.0, 2.0))
-                    sig.blink.append((max(t0, 0.0), self.duration + 1.0, "hazard"))
-            else:
-                mode = self._signal_mode(rng, role)
-                sig = sample_signals(rng, self.duration, mode, self.night, allow)
-            levels = _levels(rng, self.night)
-            actor = _Actor(f"{k + 1}", model, sig, role, *self._empty_path(), levels,
-                           bool(rng.random() < 0.5), np.random.default_rng([self.seed, 7100 + k]))
-            if role == "ahead":
-                lane = self._free_lane(queue, model.length, rng)
-                if lane is None:  # no room before the stop line: it comes the other way
-                    actor.role = "oncoming"
-                    self._place(actor, rng)
-                    actors.append(actor)
-                    continue
-                queue[lane].append(actor)
-                actor.x[:] = lane
-            else:
-                self._place(actor, rng)
-            actors.append(actor)
-        for lane, cars in queue.items():
-            self._drive_queue(cars, lane, rng)
-        return actors
-
-    def _free_lane(self, queue: Dict[float, List[_Actor]], length: float, rng: np.random.Generator
-                   ) -> Optional[float]:
-        """A lane whose queue still has room for a car of ``length`` (m), or None."""
-        lanes = list(queue)
-        rng.shuffle(lanes)
-        if self.z_int is None:
-            return lanes[0]
-        room = self.z_int - 8.0 - (self.ego_z[-1] + 9.5)
-        for lane in lanes:
-            used = sum(c.model.length + 3.0 for c in queue[lane])
-            if used + length + 3.0 <= room:
-                return lane
-        return None
-
-    def _empty_path(self) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(x, z, yaw)`` per frame, all NaN (absent)."""
-        n = self.config.frames
-        return np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
-
-    def _place(self, actor: _Actor, rng: np.random.Generator) -> None:
-        """Paths of the parked, oncoming and crossing roles."""
-        t = self.times
-        if actor.role == "parked":
-            actor.x[:] = 6.1
-            actor.z[:] = self.ego_z[0] + rng.uniform(22.0, 40.0)
-            actor.yaw[:] = 0.0
-        elif actor.role == "oncoming":
-            lane = -3.5 if rng.random() < 0.6 else -7.0
-            t0 = float(rng.uniform(-3.0, max(self.duration - 4.0, -2.0)))
-            speed = rng.uniform(4.0, 9.0)
-            z = self.ego_speed * t0 + rng.uniform(50.0, 75.0) - speed * (t - t0)
-            present = (t >= t0) & (z - self.ego_z > 1.0)
-            actor.x[present], actor.z[present], actor.yaw[present] = lane, z[present], math.pi
-        else:
-            right = actor.role == "crossing_r"
-            speed = rng.uniform(4.0, 8.0)
-            t0 = float(rng.uniform(-4.0, max(self.duration - 6.0, -3.0)))
-            x = (-32.0 + speed * (t - t0)) if right else (32.0 - speed * (t - t0))
-            present = (t >= t0) & (np.abs(x) < 34.0)
-            actor.x[present] = x[present]
-            actor.z[present] = self.z_int + (-2.6 if right else 2.6)
-            actor.yaw[present] = math.pi / 2 if right else -math.pi / 2
-
-    def _drive_queue(self, cars: List[_Actor], lane: float, rng: np.random.Generator) -> None:
-        """Integrate the speeds of one lane's cars ahead, keeping gaps and the stop line."""
-        d = float(rng.uniform(9.0, 15.0))
-        for car in cars:
-            car.z[0] = self.ego_z[0] + d + car.model.length / 2
-            d += car.model.length + float(rng.uniform(4.0, 13.0))
-        dt = 1.0 / self.config.fps
-        spread = (-1.5, 2.0) if self.z_int is not None else (-0.5, 2.5)
-        base = [max(self.ego_speed + float(rng.uniform(*spread)), 0.0) for _ in cars]
-        speed = list(base)
-        for k in range(len(self.times)):
-            t = self.times[k]
-            for i, car in enumerate(cars):
-                if k > 0:
-                    target = 0.0 if car.signals.braking(t) else base[i]
-                    rate = 2.5 if speed[i] > target else 1.0
-                    speed[i] += float(np.clip(target - speed[i], -rate * dt, rate * dt))
-                    car.z[k] = car.z[k - 1] + speed[i] * dt
-                car.yaw[k] = self._turn_yaw(car.signals, t)
-            self._keep_gaps(cars, k)
-
-    def _keep_gaps(self, cars: List[_Actor], k: int) -> None:
-        """Stop line and leaders hold cars back; then the camera pushes the queue ahead."""
-        lead_rear = self.z_int - 8.0 if self.z_int is not None else np.inf
-        for car in cars:
-            half = car.model.length / 2
-            car.z[k] = min(car.z[k], lead_rear - 2.0 - half)
-            lead_rear = car.z[k] - half
-        floor = self.ego_z[k] + 8.5
-        for car in reversed(cars):
-            half = car.model.length / 2
-            car.z[k] = max(car.z[k], floor + half)
-            floor = car.z[k] + half + 2.0
-
-    @staticmethod
-    def _turn_yaw(sig: Signals, t: float) -> float:
-        """A slight steer towards the signalled side (negative yaw heads to the left)."""
-        for t0, t1, mode in sig.blink:
-            if t0 <= t < t1 and mode in ("left", "right"):
-                ramp = min(t - t0, t1 - t, 1.0)
-                return (-0.06 if mode == "left" else 0.06) * max(ramp, 0.0)
-        return 0.0
 
     # ------------------------------------------------------------------ static world
 
@@ -575,7 +363,7 @@ class EvalScene:
 
     # ------------------------------------------------------------------ vehicles
 
-    def _lamp_emission(self, actor: _Actor, lamp: Lamp, t: float
+    def _lamp_emission(self, actor: Actor, lamp: Lamp, t: float
                        ) -> Tuple[Tuple[float, float, float], float]:
         """Colour and radiance of a lens at time ``t``."""
         sig, lv = actor.signals, actor.levels
@@ -606,7 +394,7 @@ class EvalScene:
         s, c = math.sin(yaw), math.cos(yaw)
         return np.stack([x + a * s - b * c, y, z + a * c + b * s], axis=1)
 
-    def _draw_vehicle(self, canvas: Canvas, actor: _Actor, k: int, obj_id: int) -> Optional[_Drawn]:
+    def _draw_vehicle(self, canvas: Canvas, actor: Actor, k: int, obj_id: int) -> Optional[_Drawn]:
         """Shadow, solids and lamps of one vehicle; None when too near to draw."""
         x, z, yaw = float(actor.x[k]), float(actor.z[k]), float(actor.yaw[k])
         model, t = actor.model, float(self.times[k])
@@ -643,7 +431,7 @@ class EvalScene:
 
         return [tyres] + sorted([g for g in (body, cargo) if g], key=lambda g: -distance(g))
 
-    def _draw_solid(self, canvas: Canvas, solid: Solid, actor: _Actor, x: float, z: float,
+    def _draw_solid(self, canvas: Canvas, solid: Solid, actor: Actor, x: float, z: float,
                     yaw: float, cam: np.ndarray, k: int, obj_id: int) -> None:
         """The faces of one solid that face the camera, gradient-shaded; cabins glazed."""
         verts = self._to_world(solid.vertices(), x, z, yaw)
@@ -670,7 +458,7 @@ class EvalScene:
                 self._glass(canvas, quad, fc, n, actor, k, obj_id)
 
     def _glass(self, canvas: Canvas, quad: np.ndarray, fc: np.ndarray, n: np.ndarray,
-               actor: _Actor, k: int, obj_id: int) -> None:
+               actor: Actor, k: int, obj_id: int) -> None:
         """The glazed inset of a cabin face: dark glass reflecting the sky, maybe a glint."""
         inner = fc + (quad - fc) * np.array([0.86, 0.8, 0.86])
         uv = self._project(inner, k)[0]
@@ -683,7 +471,7 @@ class EvalScene:
             r = max(np.ptp(uv[:, 0]) * 0.08, 1.0)
             add_glow(canvas, c, (r * 2.5, r * 0.6), (1.0, 1.0, 1.0), 0.5 * self.env.sun_level)
 
-    def _draw_lamps(self, canvas: Canvas, actor: _Actor, x: float, z: float, yaw: float,
+    def _draw_lamps(self, canvas: Canvas, actor: Actor, x: float, z: float, yaw: float,
                     cam: np.ndarray, k: int, obj_id: int, t: float
                     ) -> List[Tuple[Lamp, np.ndarray, float]]:
         """Housings, lenses and light of the lamps facing the camera; ``(lamp, uv, cos)``."""
@@ -723,7 +511,7 @@ class EvalScene:
 
     # ------------------------------------------------------------------ truth
 
-    def _view(self, actor: _Actor, k: int) -> View:
+    def _view(self, actor: Actor, k: int) -> View:
         """Face of the vehicle toward the camera, in 90-degree sectors."""
         yaw = float(actor.yaw[k])
         d = np.array([0.0 - actor.x[k], self.ego_z[k] - actor.z[k]])  # (X, Z) to the camera
@@ -736,7 +524,7 @@ class EvalScene:
             return View.BEHIND
         return View.LEFT if ang > 0 else View.RIGHT
 
-    def _truth(self, canvas: Canvas, actor: _Actor, drawn: _Drawn, k: int, obj_id: int
+    def _truth(self, canvas: Canvas, actor: Actor, drawn: _Drawn, k: int, obj_id: int
                ) -> Tuple[LightStatus, LightStatus, LightStatus, View]:
         """Brake, left, right and view of one vehicle from what the id buffer shows."""
         view = self._view(actor, k)
@@ -765,7 +553,7 @@ class EvalScene:
         right = status(-1, view == View.LEFT, sig.active(-1, t) is not None)
         return brake, left, right, view
 
-    def _tracker_box(self, actor: _Actor, drawn: _Drawn, occlusion: float) -> Optional[TrackBox]:
+    def _tracker_box(self, actor: Actor, drawn: _Drawn, occlusion: float) -> Optional[TrackBox]:
         """The jittered box the tracker reports, or None when it misses the vehicle."""
         x0, y0, x1, y1 = drawn.box
         w, h = x1 - x0, y1 - y0
