@@ -25,6 +25,7 @@ from signal_light_node.evalgen.draw import (Canvas, add_emission, add_glow, fill
                                             visible_fraction)
 from signal_light_node.evalgen.models import (AMBER, CLASS_OF_KIND, FACE_NORMALS, FACES, LENS, RED,
                                               WHITE, Lamp, Solid, VehicleModel, lamp_points)
+from signal_light_node.evalgen.tracker import tracker_box
 from signal_light_node.evalgen.traffic import Actor, Traffic
 from signal_light_node.labels import Intent, LightStatus, View, intent_from_lights
 
@@ -553,23 +554,6 @@ class EvalScene:
         right = status(-1, view == View.LEFT, sig.active(-1, t) is not None)
         return brake, left, right, view
 
-    def _tracker_box(self, actor: Actor, drawn: _Drawn, occlusion: float) -> Optional[TrackBox]:
-        """The jittered box the tracker reports, or None when it misses the vehicle."""
-        x0, y0, x1, y1 = drawn.box
-        w, h = x1 - x0, y1 - y0
-        rho = 0.75
-        fresh = actor.jitter_rng.standard_normal(4)
-        actor.jitter = rho * actor.jitter + math.sqrt(1 - rho ** 2) * fresh
-        drop = actor.jitter_rng.random() < 0.015
-        cw, ch = self.config.width, self.config.height
-        on_image = (min(x1, cw) - max(x0, 0)) * (min(y1, ch) - max(y0, 0)) / max(w * h, 1e-6)
-        if drop or occlusion > 0.7 or w < 12 or h < 10 or on_image < 0.45:
-            return None
-        e = actor.jitter
-        cx, cy = (x0 + x1) / 2 + e[0] * 0.03 * w, (y0 + y1) / 2 + e[1] * 0.03 * h
-        bw, bh = w * math.exp(0.045 * e[2]), h * math.exp(0.045 * e[3])
-        return TrackBox.from_center(actor.track_id, cx, cy, bw, bh, CLASS_OF_KIND[actor.model.kind])
-
     # ------------------------------------------------------------------ frames
 
     def render(self, k: int) -> EvalFrame:
@@ -625,7 +609,7 @@ class EvalScene:
             occlusion = float(np.clip(1.0 - seen / max(d.hull_area, 1.0), 0.0, 1.0))
             brake, left, right, view = self._truth(canvas, actor, d, k, i)
             out.append(VehicleTruth(
-                actor.track_id, d.box, self._tracker_box(actor, d, occlusion), brake, left, right,
+                actor.track_id, d.box, tracker_box(actor, d.box, occlusion, self.config.width, self.config.height), brake, left, right,
                 intent_from_lights(left, right), view, occlusion, actor.model.kind,
                 CLASS_OF_KIND[actor.model.kind], actor.signals.flash_level(1, t, exposure),
                 actor.signals.flash_level(-1, t, exposure)))
