@@ -13,7 +13,7 @@ from signal_light_node.errors import SignalLightError
 from signal_light_node.evalgen.bag import write_eval_bag
 from signal_light_node.evalgen.preview import write_sheet
 from signal_light_node.evalgen.config import EVENTS, LIGHTINGS, VIEW_MIXES, SceneConfig
-from signal_light_node.evalgen.scene import EvalFrame
+from signal_light_node.evalgen.truth import EvalFrame
 
 
 def build_parser() -> argparse.ArgumentParser:

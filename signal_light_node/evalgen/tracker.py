@@ -13,8 +13,8 @@ from signal_light_node.evalgen.models import CLASS_OF_KIND
 from signal_light_node.evalgen.traffic import Actor
 
 
-def tracker_box(actor: Actor, box: Tuple[float, float, float, float], occlusion: float, width: int, height: int
-                ) -> Optional[TrackBox]:
+def tracker_box(actor: Actor, box: Tuple[float, float, float, float], occlusion: float,
+                width: int, height: int) -> Optional[TrackBox]:
     """The jittered box the tracker reports for ``actor`` (true projected box ``box``, hidden
     share ``occlusion``, in an image ``width`` x ``height``), or None when it misses it.
     Draws from the actor's own jitter stream in every frame it is drawn."""

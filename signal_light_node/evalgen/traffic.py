@@ -61,8 +61,8 @@ class Traffic:
         lanes: Lateral positions of the lanes in the ego's direction.
     """
 
-    def __init__(self, seed: int, config: SceneConfig, times: np.ndarray, ego_z: np.ndarray, ego_speed: float,
-                 z_int: Optional[float], lanes: Sequence[float]) -> None:
+    def __init__(self, seed: int, config: SceneConfig, times: np.ndarray, ego_z: np.ndarray,
+                 ego_speed: float, z_int: Optional[float], lanes: Sequence[float]) -> None:
         self.seed = seed
         self.config = config
         self.night = config.lighting == "night"

@@ -16,8 +16,8 @@ import numpy as np
 
 from signal_light_node.evalgen.camera import NEAR_M, FrameView
 from signal_light_node.evalgen.draw import Canvas, add_emission, add_glow, fill_gradient
-from signal_light_node.evalgen.models import (AMBER, FACE_NORMALS, FACES, LENS, RED, WHITE, Lamp, Solid,
-                                              VehicleModel, lamp_points)
+from signal_light_node.evalgen.models import (AMBER, FACE_NORMALS, FACES, LENS, RED, WHITE, Lamp,
+                                              Solid, VehicleModel, lamp_points)
 from signal_light_node.evalgen.traffic import Actor
 from signal_light_node.evalgen.world import Env, shade
 
@@ -50,7 +50,8 @@ class VehicleDrawer:
         self.env = env
         self._exposure_s = exposure_s
 
-    def draw(self, canvas: Canvas, actor: Actor, k: int, view: FrameView, t: float, obj_id: int) -> Optional[Drawn]:
+    def draw(self, canvas: Canvas, actor: Actor, k: int, view: FrameView, t: float, obj_id: int
+             ) -> Optional[Drawn]:
         """Shadow, solids and lamps of ``actor`` in frame ``k`` at time ``t``, seen through
         ``view``, with id ``obj_id`` in the id buffer; None when too near to draw."""
         x, z, yaw = float(actor.x[k]), float(actor.z[k]), float(actor.yaw[k])

@@ -117,8 +117,8 @@ class Street:
         self.two_way = two_way
         self.poles = poles
 
-    def _ground_poly(self, view: FrameView, x0: float, x1: float, z0: float, z1: float, y: float = 0.0
-                     ) -> Optional[np.ndarray]:
+    def _ground_poly(self, view: FrameView, x0: float, x1: float, z0: float, z1: float,
+                     y: float = 0.0) -> Optional[np.ndarray]:
         """A strip of ground ``x0..x1`` by ``z0..z1`` in pixels, or None if behind the camera."""
         ez = view.ego_z
         z0, z1 = max(z0, ez + 1.0), min(z1, ez + 900.0)
