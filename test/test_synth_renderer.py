@@ -8,7 +8,7 @@ import pytest
 from signal_light_node.boxes import TrackBox
 from signal_light_node.errors import ConfigError
 from signal_light_node.labels import Intent, LightStatus, View, intent_from_lights
-from signal_light_node.synth import RenderedFrame, SceneRenderer, VehicleTruth, scene
+from signal_light_node.synth import RenderedFrame, SceneRenderer, VehicleTruth, scene, truth
 
 # A clean stage: one parked vehicle, no distractors, no camera effects, no random poles.
 CLEAN = dict(distractors=False, effects=False, poles=0, weather="clear", respawn=False, shake=False)
@@ -110,7 +110,7 @@ def test_brake_lights_the_rear_and_is_labelled():
 @pytest.mark.parametrize("view,far", [(View.LEFT, "right"), (View.RIGHT, "left")])
 def test_side_view_far_side_blinker_is_unknown(view, far, monkeypatch):
     # Side semantics only: let every visible lamp count, however small (the size rule has its own test).
-    monkeypatch.setattr(scene, "LAMP_MIN_BOX_SHARE", 0.0)
+    monkeypatch.setattr(truth, "LAMP_MIN_BOX_SHARE", 0.0)
     frames = list(_one_vehicle(view, Intent.HAZARD, width_px=300).frames(2))
     near = "left" if far == "right" else "right"
     for f in frames:
@@ -133,7 +133,7 @@ def test_lamps_too_small_for_the_crop_are_unknown():
 
 
 def test_side_view_off_blinker_gives_unknown_intent(monkeypatch):
-    monkeypatch.setattr(scene, "LAMP_MIN_BOX_SHARE", 0.0)
+    monkeypatch.setattr(truth, "LAMP_MIN_BOX_SHARE", 0.0)
     (f,) = list(_one_vehicle(View.LEFT, Intent.OFF, width_px=300).frames(1))
     (v,) = f.vehicles
     assert (v.left, v.right, v.intent) == (LightStatus.OFF, LightStatus.UNKNOWN, Intent.UNKNOWN)

@@ -17,12 +17,13 @@ How it differs from ``synth/``:
   that moves and sways. Vehicles have world positions, headings and speeds: queues
   ahead that brake and hold gaps before a stop line, oncoming traffic that passes and
   turns from a front view into a side view, traffic crossing at an intersection,
-  and a parked car with hazards (``scene.py``). Views, sizes and occlusion all come
+  and a parked car with hazards (``traffic.py``). Views, sizes and occlusion all come
   from the projection.
-* Vehicles (``models.py``): convex hexahedra (tyre slabs, body, tapered cabin or cargo
-  box) in sedan, hatch, SUV, van and box-truck proportions. Faces are culled by their
-  normals. Each face gets a gradient over a Lambert sun plus sky light, the glass
-  reflects the sky, and some glass shows a sun glint.
+* Vehicles (``models.py``, drawn by ``vehicle_drawing.py``): convex hexahedra (tyre
+  slabs, body, tapered cabin or cargo box) in sedan, hatch, SUV, van and box-truck
+  proportions. Faces are culled by their normals. Each face gets a gradient over a
+  Lambert sun plus sky light, the glass reflects the sky, and some glass shows a sun
+  glint.
 * Lamps: lenses in vehicle face coordinates, set in a dark housing, with their own
   shapes and designs. Rear designs: ``euro_amber`` (L-shaped red clusters with separate
   amber blinkers), ``us_red`` (round red combined tail/brake/turn lamps), ``led_bar``
@@ -30,29 +31,29 @@ How it differs from ``synth/``:
   (pillar strips). Front: headlights, amber blinkers, or DRL strips that switch to
   amber while blinking. Sides: wrap-around corner lamps and repeaters. Most cars also
   have a centre brake lamp on the rear glass.
-* Lighting (``draw.py``, ``camera.py``): everything renders into a LINEAR radiance buffer.
-  Lenses are emissive and have a hot core. The sensor then applies exposure, colour
-  crosstalk, a multi-scale bloom and an anamorphic glare streak, vignetting, lateral
-  chromatic aberration, shot and read noise, light ISP denoising, an exponential tone
-  curve and gamma. At night, saturated red lamps therefore turn pink-white at the core
-  by themselves. A wet road gives stretched lamp reflections. Street lamps, lit windows
-  and a red traffic signal act as distractors. Night exposure is about 4x the day's. In
-  daylight a lit lens only adds about 1-2x the sunlit albedo, so lamps have less
-  contrast, but a lit lens still clearly brightens.
+* Lighting (``draw.py``, ``camera.py``, ``world.py``): everything renders into a LINEAR
+  radiance buffer. Lenses are emissive and have a hot core. The sensor then applies
+  exposure, colour crosstalk, a multi-scale bloom and an anamorphic glare streak,
+  vignetting, lateral chromatic aberration, shot and read noise, light ISP denoising, an
+  exponential tone curve and gamma. At night, saturated red lamps therefore turn
+  pink-white at the core by themselves. A wet road gives stretched lamp reflections.
+  Street lamps, lit windows and a red traffic signal act as distractors. Night exposure
+  is about 4x the day's. In daylight a lit lens only adds about 1-2x the sunlit albedo,
+  so lamps have less contrast, but a lit lens still clearly brightens.
 * Signals: each vehicle blinks at 1.0-2.2 Hz with 30-70 % duty. A flash level is the
   lit share over the shutter time; bulbs react 60 ms slower than LEDs. Events are
   left and right turns (with a slight steer), hazards and braking episodes, and
   long quiet stretches fill the gaps. Tail lamps are always lit at night, and 30 %
   of vehicles also light them by day.
-* Ground truth (``scene.py``): every object also goes into an id buffer. A lamp counts
+* Ground truth (``truth.py``): every object also goes into an id buffer. A lamp counts
   as seen when its face points at the camera (cos >= 0.15). Its unoccluded area, summed
   over the lamps of one function, must also reach 1/600 of the box's longer side squared
   (the rule of ``synth``). The brake counts only from rear-face lamps, so it is UNKNOWN
   from the front. In a side view, the far side's blinker is UNKNOWN. Blinkers are ON for
   the whole active period, and intent comes from ``intent_from_lights``. The view is the
   face toward the camera, in 90-degree sectors.
-* Tracker: a box is the projected 3D box plus AR(1)-correlated jitter of 3 % in
-  position and 4.5 % in size. Tracks are dropped when more than 70 % occluded, too
+* Tracker (``tracker.py``): a box is the projected 3D box plus AR(1)-correlated jitter
+  of 3 % in position and 4.5 % in size. Tracks are dropped when more than 70 % occluded, too
   small or mostly off the image, and 1.5 % of boxes drop at random. IDs are stable
   strings.
 
@@ -75,7 +76,9 @@ night frames need about 120 KB each.
 """
 
 from signal_light_node.evalgen.bag import EvalBagSummary, write_eval_bag
-from signal_light_node.evalgen.scene import EvalFrame, EvalScene, SceneConfig, VehicleTruth
+from signal_light_node.evalgen.config import SceneConfig
+from signal_light_node.evalgen.scene import EvalScene
+from signal_light_node.evalgen.truth import EvalFrame, VehicleTruth
 
 __all__ = ["EvalBagSummary", "write_eval_bag", "EvalFrame", "EvalScene", "SceneConfig",
            "VehicleTruth"]

@@ -12,7 +12,8 @@ from typing import List, Optional
 from signal_light_node.errors import SignalLightError
 from signal_light_node.evalgen.bag import write_eval_bag
 from signal_light_node.evalgen.preview import write_sheet
-from signal_light_node.evalgen.scene import EVENTS, LIGHTINGS, VIEW_MIXES, EvalFrame, SceneConfig
+from signal_light_node.evalgen.config import EVENTS, LIGHTINGS, VIEW_MIXES, SceneConfig
+from signal_light_node.evalgen.truth import EvalFrame
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -21,7 +21,9 @@ from signal_light_node.io import bagio
 from signal_light_node.boxes import TrackBox
 from signal_light_node.io.conversions import boxes_to_detections, make_header
 from signal_light_node.errors import ConfigError
-from signal_light_node.evalgen.scene import EvalFrame, EvalScene, SceneConfig, VehicleTruth
+from signal_light_node.evalgen.config import SceneConfig
+from signal_light_node.evalgen.scene import EvalScene
+from signal_light_node.evalgen.truth import EvalFrame, VehicleTruth
 from signal_light_node.io.image_codec import bgr_to_compressed_fields
 from signal_light_node.labels import LIGHT_CODES, LightStatus
 from signal_light_node.outputs.vehicle_lights import vehicle_light_array

@@ -95,6 +95,31 @@ class PinholeCamera:
         return uv, cam[:, 2]
 
 
+
+@dataclass(frozen=True)
+class FrameView:
+    """The camera in one frame: where the ego car is along the road and how its ride
+    pitches the camera.
+
+    Attributes:
+        camera: The camera.
+        ego_z: Camera position along the road (m).
+        sway: Extra pitch from the ride (rad).
+    """
+
+    camera: PinholeCamera
+    ego_z: float
+    sway: float
+
+    def project(self, pts: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """``PinholeCamera.project`` in this frame: ``(uv [N, 2], depth [N])``."""
+        return self.camera.project(pts, self.ego_z, self.sway)
+
+    @property
+    def position(self) -> np.ndarray:
+        """The optical centre in world coordinates."""
+        return np.array([0.0, self.camera.mount_height, self.ego_z])
+
 def sample_camera(rng: np.random.Generator, width: int, height: int) -> PinholeCamera:
     """A random dash-cam-like camera."""
     return PinholeCamera(width=int(width), height=int(height),

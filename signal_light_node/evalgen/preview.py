@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.evalgen.scene import EvalFrame
+from signal_light_node.evalgen.truth import EvalFrame
 
 _SHORT = {0: "OFF", 1: "ON", 2: "UNK"}
 

@@ -2,6 +2,16 @@
 vehicles ahead (seen from behind), oncoming (front, then side as they pass), crossing at
 an intersection (sides) and parked with hazards; ground truth from the lamps' visibility.
 
+``EvalScene`` samples the camera, the ego's drive, the traffic and the street from its
+seed and renders each frame; one module per concern does the work:
+
+* ``traffic``: every vehicle's model, signals and path over the frames;
+* ``world``: illumination, road and markings, facades and poles;
+* ``vehicle_drawing``: shadows, solids, glass and lamps of the vehicles;
+* ``truth``: the view, lamp visibility and light states of each vehicle;
+* ``tracker``: the jittered box a tracker reports, or a miss;
+* ``camera``: the pinhole projection (``FrameView`` per frame) and the sensor model.
+
 Per frame: road and buildings, then every object far to near (painter's order) into a
 linear radiance buffer with an id buffer, lamp truth from the id buffer, tracker boxes
 with correlated jitter and misses, and finally the sensor model (``camera.develop``).
@@ -10,191 +20,22 @@ with correlated jitter and misses, and finally the sensor model (``camera.develo
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Dict, Iterator, List, Optional, Tuple
+from typing import Dict, Iterator, List, Tuple
 
-import cv2
 import numpy as np
 
-from signal_light_node.boxes import TrackBox
 from signal_light_node.errors import ConfigError
-from signal_light_node.evalgen.camera import (NEAR_M, PinholeCamera, develop, sample_camera,
+from signal_light_node.evalgen.camera import (FrameView, PinholeCamera, develop, sample_camera,
                                               sample_sensor)
-from signal_light_node.evalgen.draw import (Canvas, add_emission, add_glow, fill_gradient,
-                                            visible_fraction)
-from signal_light_node.evalgen.models import (AMBER, CLASS_OF_KIND, FACE_NORMALS, FACES, LENS, RED,
-                                              WHITE, Lamp, Signals, Solid, VehicleModel,
-                                              lamp_points, sample_signals, sample_vehicle)
-from signal_light_node.labels import Intent, LightStatus, View, intent_from_lights
+from signal_light_node.evalgen.config import SceneConfig
+from signal_light_node.evalgen.draw import Canvas
+from signal_light_node.evalgen.tracker import tracker_box
+from signal_light_node.evalgen.traffic import Traffic
+from signal_light_node.evalgen.truth import EvalFrame, VehicleTruth, occlusion_of, vehicle_truth
+from signal_light_node.evalgen.vehicle_drawing import Drawn, VehicleDrawer
+from signal_light_node.evalgen.world import Street, sample_env, sample_facades, sample_poles
 
-LIGHTINGS = ("day", "night")
-VIEW_MIXES = ("all", "behind")
-EVENTS = ("mixed", "none")
 _START_NS = 1_760_000_000 * 1_000_000_000
-_OCCLUDER = -2
-
-
-@dataclass(frozen=True)
-class SceneConfig:
-    """What to generate.
-
-    Attributes:
-        frames: Number of frames.
-        fps: Frame rate.
-        width: Image width.
-        height: Image height.
-        lighting: "day" or "night".
-        n_vehicles: Number of vehicles, or None for a random 6..9 (4..6 with ``views="behind"``).
-        views: "all" (ahead, oncoming, crossing, parked) or "behind" (a one-way road, all ahead).
-        events: "mixed" (blinks, hazards, braking, quiet stretches) or "none" (no signal at all).
-    """
-
-    frames: int = 100
-    fps: float = 10.0
-    width: int = 1280
-    height: int = 720
-    lighting: str = "day"
-    n_vehicles: Optional[int] = None
-    views: str = "all"
-    events: str = "mixed"
-
-    def __post_init__(self) -> None:
-        if self.frames < 1:
-            raise ConfigError(f"frames must be >= 1, got {self.frames}")
-        if not 1.0 <= self.fps <= 60.0:
-            raise ConfigError(f"fps must be in 1..60, got {self.fps}")
-        if self.lighting not in LIGHTINGS:
-            raise ConfigError(f"lighting must be one of {LIGHTINGS}, got {self.lighting!r}")
-        if self.views not in VIEW_MIXES:
-            raise ConfigError(f"views must be one of {VIEW_MIXES}, got {self.views!r}")
-        if self.events not in EVENTS:
-            raise ConfigError(f"events must be one of {EVENTS}, got {self.events!r}")
-        if self.n_vehicles is not None and not 1 <= self.n_vehicles <= 24:
-            raise ConfigError(f"n_vehicles must be in 1..24, got {self.n_vehicles}")
-
-
-@dataclass(frozen=True)
-class VehicleTruth:
-    """Ground truth of one vehicle in one frame.
-
-    Attributes:
-        track_id: Stable string ID.
-        box: True projected box ``(x0, y0, x1, y1)`` (pixels, unclipped).
-        tracker_box: The jittered tracker box, None when the tracker misses the vehicle.
-        brake: Brake lamp state.
-        left: The vehicle's own left blinker.
-        right: Its right blinker.
-        intent: ``intent_from_lights(left, right)``.
-        view: Face the camera sees.
-        occlusion: Hidden share of the vehicle's silhouette (0..1, off-image counts as hidden).
-        kind: Vehicle kind.
-        class_id: Detector class ("car", "truck").
-        flash_left: Lit share of the left flasher in this exposure (0..1).
-        flash_right: Lit share of the right flasher.
-    """
-
-    track_id: str
-    box: Tuple[float, float, float, float]
-    tracker_box: Optional[TrackBox]
-    brake: LightStatus
-    left: LightStatus
-    right: LightStatus
-    intent: Intent
-    view: View
-    occlusion: float
-    kind: str
-    class_id: str
-    flash_left: float = 0.0
-    flash_right: float = 0.0
-
-
-@dataclass(frozen=True)
-class EvalFrame:
-    """One generated frame.
-
-    Attributes:
-        index: Frame number.
-        stamp_ns: Time stamp.
-        image: ``uint8 [H, W, 3]`` BGR.
-        vehicles: Truth of every vehicle in view, tracked or not, far to near.
-        lighting: "day" or "night".
-    """
-
-    index: int
-    stamp_ns: int
-    image: np.ndarray
-    vehicles: List[VehicleTruth]
-    lighting: str
-
-
-@dataclass
-class _Actor:
-    """A vehicle with its path over the frames (``x``, ``z``, ``yaw`` NaN when absent)."""
-
-    track_id: str
-    model: VehicleModel
-    signals: Signals
-    role: str
-    x: np.ndarray
-    z: np.ndarray
-    yaw: np.ndarray
-    levels: Dict[str, float]
-    glint: bool
-    jitter_rng: np.random.Generator
-    jitter: np.ndarray = field(default_factory=lambda: np.zeros(4))
-
-
-@dataclass
-class _Env:
-    """Illumination of the scene."""
-
-    night: bool
-    sun: np.ndarray
-    sun_level: float
-    sky_level: float
-    wet: float
-    sky_top: Tuple[float, float, float]
-    sky_horizon: Tuple[float, float, float]
-    asphalt: Tuple[float, float, float]
-
-
-@dataclass
-class _Drawn:
-    """What drawing one vehicle produced, for the ground truth."""
-
-    box: Tuple[float, float, float, float]
-    hull_area: float
-    lamps: List[Tuple[Lamp, np.ndarray, float]]
-
-
-def _upright_rect(x: float, z: float, half: float, y0: float, y1: float) -> np.ndarray:
-    """A vertical rectangle facing the camera (constant ``z``), ``[4, 3]`` world points."""
-    return np.array([(x - half, y0, z), (x + half, y0, z), (x + half, y1, z), (x - half, y1, z)])
-
-
-def _sample_env(rng: np.random.Generator, night: bool) -> _Env:
-    """Sun, sky, road wetness and colours of a day or night scene."""
-    az = rng.uniform(-1.2, 1.2)
-    el = rng.uniform(0.35, 1.0)
-    sun = np.array([math.sin(az) * math.cos(el), math.sin(el), math.cos(az) * math.cos(el)])
-    if night:
-        return _Env(True, sun, 0.0, float(rng.uniform(0.004, 0.008)), float(rng.uniform(0.0, 1.0)),
-                    (0.003, 0.0015, 0.001), (0.012, 0.01, 0.009), (0.009, 0.009, 0.01))
-    haze = float(rng.uniform(0.0, 0.3))
-    return _Env(False, sun, float(rng.uniform(0.7, 1.0)), float(rng.uniform(0.35, 0.5)), 0.0,
-                (0.75 - 0.3 * haze, 0.45, 0.25 + 0.2 * haze), (0.85, 0.8, 0.72),
-                tuple(float(c) for c in rng.uniform(0.16, 0.26) * np.array([1.0, 1.0, 0.97])))
-
-
-def _levels(rng: np.random.Generator, night: bool) -> Dict[str, float]:
-    """Emission levels of one vehicle's lamps (radiance units)."""
-    if night:
-        return {"tail": float(rng.uniform(0.55, 1.1)), "brake": float(rng.uniform(3.0, 5.5)),
-                "blink": float(rng.uniform(2.5, 4.5)), "head": float(rng.uniform(9.0, 16.0)),
-                "drl": float(rng.uniform(2.5, 4.0))}
-    return {"tail": float(rng.uniform(0.25, 0.45)), "brake": float(rng.uniform(1.1, 2.2)),
-            "blink": float(rng.uniform(1.1, 2.0)), "head": float(rng.uniform(1.0, 1.8)),
-            "drl": float(rng.uniform(1.6, 2.6))}
 
 
 class EvalScene:
@@ -212,7 +53,7 @@ class EvalScene:
         self.night = config.lighting == "night"
         self.camera: PinholeCamera = sample_camera(rng, config.width, config.height)
         self.sensor = sample_sensor(rng, self.night)
-        self.env = _sample_env(rng, self.night)
+        self.env = sample_env(rng, self.night)
         self.duration = config.frames / config.fps
         self.times = np.arange(config.frames) / config.fps
         crossing = config.views == "all"
@@ -221,568 +62,25 @@ class EvalScene:
         self.z_int = (float(self.ego_z[-1] + rng.uniform(30.0, 40.0)) if crossing else None)
         self.sway_phase = float(rng.uniform(0, 2 * math.pi))
         self.lanes = [0.0, 3.5] if crossing else [-3.5, 0.0, 3.5]
-        self.actors = self._cast(rng)
-        self.facades = self._facades(rng)
-        self.poles = self._poles(rng)
+        traffic = Traffic(self.seed, config, self.times, self.ego_z, self.ego_speed, self.z_int,
+                          self.lanes)
+        self.actors = traffic.cast(rng)
+        self.facades = sample_facades(rng, self.ego_z[0], self.z_int)
+        self.poles = sample_poles(rng, self.ego_z[0], self.z_int)
+        self._street = Street(self.env, self.z_int, crossing, self.poles)
         self.noise_rng = np.random.default_rng([self.seed, 7002])
+        self._drawer = VehicleDrawer(self.env, self.sensor.exposure_s)
 
-    # ------------------------------------------------------------------ the cast
+    # ------------------------------------------------------------------ frames
 
-    def _roles(self, rng: np.random.Generator) -> List[str]:
-        """The role of every vehicle: ahead, parked, oncoming, crossing_r/_l."""
-        cfg = self.config
-        if cfg.views == "behind":
-            n = cfg.n_vehicles or int(rng.integers(4, 7))
-            return ["ahead"] * n
-        n = cfg.n_vehicles or int(rng.integers(6, 10))
-        fixed = ["crossing_r", "crossing_l", "oncoming", "ahead", "ahead", "oncoming", "parked"]
-        extra = list(rng.choice(["ahead", "oncoming", "crossing_r", "crossing_l"],
-                                size=max(n - 7, 0), p=[0.45, 0.25, 0.15, 0.15]))
-        order = ("ahead", "parked", "oncoming", "crossing_r", "crossing_l")
-        return sorted((fixed + extra)[:n], key=order.index)
-
-    def _signal_mode(self, rng: np.random.Generator, role: str) -> str:
-        """Whether a vehicle signals (busy), only brakes (quiet) or does nothing."""
-        if self.config.events == "none":
-            return "none"
-        busy = 0.75 if role in ("ahead", "oncoming") else 0.6
-        return "busy" if rng.random() < busy else "quiet"
-
-    def _cast(self, rng: np.random.Generator) -> List[_Actor]:
-        """Every vehicle with its model, signals and path."""
-        actors: List[_Actor] = []
-        queue: Dict[float, List[_Actor]] = {lane: [] for lane in self.lanes}
-        for k, role in enumerate(self._roles(rng)):
-            kind = None if role != "parked" else str(rng.choice(["sedan", "suv", "van"]))
-            model = sample_vehicle(rng, kind)
-            allow = {"oncoming": ("left", "left", "hazard")}.get(role, ("left", "right", "hazard"))
-            if role == "parked":
-                sig = sample_signals(rng, self.duration, "none", self.night)
-                if self.config.events != "none":
-                    t0 = float(rng.uniform(-3.0, 2.0))
-                    sig.blink.append((max(t0, 0.0), self.duration + 1.0, "hazard"))
-            else:
-                mode = self._signal_mode(rng, role)
-                sig = sample_signals(rng, self.duration, mode, self.night, allow)
-            levels = _levels(rng, self.night)
-            actor = _Actor(f"{k + 1}", model, sig, role, *self._empty_path(), levels,
-                           bool(rng.random() < 0.5), np.random.default_rng([self.seed, 7100 + k]))
-            if role == "ahead":
-                lane = self._free_lane(queue, model.length, rng)
-                if lane is None:  # no room before the stop line: it comes the other way
-                    actor.role = "oncoming"
-                    self._place(actor, rng)
-                    actors.append(actor)
-                    continue
-                queue[lane].append(actor)
-                actor.x[:] = lane
-            else:
-                self._place(actor, rng)
-            actors.append(actor)
-        for lane, cars in queue.items():
-            self._drive_queue(cars, lane, rng)
-        return actors
-
-    def _free_lane(self, queue: Dict[float, List[_Actor]], length: float, rng: np.random.Generator
-                   ) -> Optional[float]:
-        """A lane whose queue still has room for a car of ``length`` (m), or None."""
-        lanes = list(queue)
-        rng.shuffle(lanes)
-        if self.z_int is None:
-            return lanes[0]
-        room = self.z_int - 8.0 - (self.ego_z[-1] + 9.5)
-        for lane in lanes:
-            used = sum(c.model.length + 3.0 for c in queue[lane])
-            if used + length + 3.0 <= room:
-                return lane
-        return None
-
-    def _empty_path(self) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(x, z, yaw)`` per frame, all NaN (absent)."""
-        n = self.config.frames
-        return np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
-
-    def _place(self, actor: _Actor, rng: np.random.Generator) -> None:
-        """Paths of the parked, oncoming and crossing roles."""
-        t = self.times
-        if actor.role == "parked":
-            actor.x[:] = 6.1
-            actor.z[:] = self.ego_z[0] + rng.uniform(22.0, 40.0)
-            actor.yaw[:] = 0.0
-        elif actor.role == "oncoming":
-            lane = -3.5 if rng.random() < 0.6 else -7.0
-            t0 = float(rng.uniform(-3.0, max(self.duration - 4.0, -2.0)))
-            speed = rng.uniform(4.0, 9.0)
-            z = self.ego_speed * t0 + rng.uniform(50.0, 75.0) - speed * (t - t0)
-            present = (t >= t0) & (z - self.ego_z > 1.0)
-            actor.x[present], actor.z[present], actor.yaw[present] = lane, z[present], math.pi
-        else:
-            right = actor.role == "crossing_r"
-            speed = rng.uniform(4.0, 8.0)
-            t0 = float(rng.uniform(-4.0, max(self.duration - 6.0, -3.0)))
-            x = (-32.0 + speed * (t - t0)) if right else (32.0 - speed * (t - t0))
-            present = (t >= t0) & (np.abs(x) < 34.0)
-            actor.x[present] = x[present]
-            actor.z[present] = self.z_int + (-2.6 if right else 2.6)
-            actor.yaw[present] = math.pi / 2 if right else -math.pi / 2
-
-    def _drive_queue(self, cars: List[_Actor], lane: float, rng: np.random.Generator) -> None:
-        """Integrate the speeds of one lane's cars ahead, keeping gaps and the stop line."""
-        d = float(rng.uniform(9.0, 15.0))
-        for car in cars:
-            car.z[0] = self.ego_z[0] + d + car.model.length / 2
-            d += car.model.length + float(rng.uniform(4.0, 13.0))
-        dt = 1.0 / self.config.fps
-        spread = (-1.5, 2.0) if self.z_int is not None else (-0.5, 2.5)
-        base = [max(self.ego_speed + float(rng.uniform(*spread)), 0.0) for _ in cars]
-        speed = list(base)
-        for k in range(len(self.times)):
-            t = self.times[k]
-            for i, car in enumerate(cars):
-                if k > 0:
-                    target = 0.0 if car.signals.braking(t) else base[i]
-                    rate = 2.5 if speed[i] > target else 1.0
-                    speed[i] += float(np.clip(target - speed[i], -rate * dt, rate * dt))
-                    car.z[k] = car.z[k - 1] + speed[i] * dt
-                car.yaw[k] = self._turn_yaw(car.signals, t)
-            self._keep_gaps(cars, k)
-
-    def _keep_gaps(self, cars: List[_Actor], k: int) -> None:
-        """Stop line and leaders hold cars back; then the camera pushes the queue ahead."""
-        lead_rear = self.z_int - 8.0 if self.z_int is not None else np.inf
-        for car in cars:
-            half = car.model.length / 2
-            car.z[k] = min(car.z[k], lead_rear - 2.0 - half)
-            lead_rear = car.z[k] - half
-        floor = self.ego_z[k] + 8.5
-        for car in reversed(cars):
-            half = car.model.length / 2
-            car.z[k] = max(car.z[k], floor + half)
-            floor = car.z[k] + half + 2.0
-
-    @staticmethod
-    def _turn_yaw(sig: Signals, t: float) -> float:
-        """A slight steer towards the signalled side (negative yaw heads to the left)."""
-        for t0, t1, mode in sig.blink:
-            if t0 <= t < t1 and mode in ("left", "right"):
-                ramp = min(t - t0, t1 - t, 1.0)
-                return (-0.06 if mode == "left" else 0.06) * max(ramp, 0.0)
-        return 0.0
-
-    # ------------------------------------------------------------------ static world
-
-    def _facades(self, rng: np.random.Generator) -> List[Dict]:
-        """Building fronts along both sides, with a gap for the cross street."""
-        out = []
-        for x in (10.5, -13.5):
-            z = float(self.ego_z[0] - 20.0)
-            while z < self.ego_z[0] + 260.0:
-                length = float(rng.uniform(12.0, 40.0))
-                z0, z1 = z, z + length
-                if self.z_int is not None and z0 < self.z_int + 7.0 and z1 > self.z_int - 7.0:
-                    z = self.z_int + 7.0
-                    continue
-                albedo = rng.uniform(0.15, 0.55) * rng.uniform(0.8, 1.1, size=3)
-                lit = rng.random(200) < 0.3
-                out.append({"x": x, "z0": z0, "z1": z1, "h": float(rng.uniform(7.0, 24.0)),
-                            "albedo": albedo, "lit": lit, "warm": rng.uniform(0.3, 0.9, size=200)})
-                z = z1 + float(rng.uniform(0.0, 4.0))
-        return out
-
-    def _poles(self, rng: np.random.Generator) -> List[Dict]:
-        """Street lamps, sign posts and the traffic signal at the intersection."""
-        out = []
-        for x, arm in ((7.7, -1.8), (-9.4, 1.8)):
-            z = float(self.ego_z[0] + rng.uniform(4.0, 20.0))
-            while z < self.ego_z[0] + 220.0:
-                if self.z_int is None or abs(z - self.z_int) > 8.0:
-                    out.append({"x": x, "z": z, "arm": arm, "sign": bool(rng.random() < 0.3),
-                                "sodium": bool(rng.random() < 0.5), "signal": False})
-                z += float(rng.uniform(22.0, 34.0))
-        if self.z_int is not None:
-            out.append({"x": 7.7, "z": self.z_int - 7.5, "arm": 0.0, "sign": False, "sodium": False,
-                        "signal": True})
-        return out
-
-    # ------------------------------------------------------------------ rendering
-
-    def _project(self, pts: np.ndarray, k: int) -> Tuple[np.ndarray, np.ndarray]:
-        """World points to pixels and depths in frame ``k``."""
-        return self.camera.project(pts, float(self.ego_z[k]), self._sway(k))
+    def _frame_view(self, k: int) -> FrameView:
+        """The camera in frame ``k``."""
+        return FrameView(self.camera, float(self.ego_z[k]), self._sway(k))
 
     def _sway(self, k: int) -> float:
         """Pitch of the ego car's ride in frame ``k`` (rad)."""
         t = float(self.times[k])
         return 0.004 * math.sin(2 * math.pi * 0.7 * t + self.sway_phase) + 0.002 * math.sin(5.3 * t)
-
-    def _ground_poly(self, k: int, x0: float, x1: float, z0: float, z1: float, y: float = 0.0
-                     ) -> Optional[np.ndarray]:
-        """A strip of ground ``x0..x1`` by ``z0..z1`` in pixels, or None if behind the camera."""
-        ez = float(self.ego_z[k])
-        z0, z1 = max(z0, ez + 1.0), min(z1, ez + 900.0)
-        if z1 <= z0:
-            return None
-        zs = np.linspace(z0, z1, 6)
-        pts = np.array([(x0, y, z) for z in zs] + [(x1, y, z) for z in zs[::-1]])
-        uv, depth = self._project(pts, k)
-        return uv if np.all(depth > NEAR_M) else None
-
-    def _shade(self, albedo: np.ndarray, normal: np.ndarray, k: int, depth: float) -> np.ndarray:
-        """Radiance of a surface: sky and sun by day; low beams and street light by night."""
-        env = self.env
-        sky = env.sky_level * (0.55 + 0.45 * max(normal[1], 0.0))
-        sun = env.sun_level * max(float(np.dot(normal, env.sun)), 0.0)
-        light = sky + sun
-        if env.night:  # the ego car's low beams on nearby rear faces, street lamps
-            light += 0.05 * min(1.0, (12.0 / max(depth, 1.0)) ** 2) * max(-normal[2], 0.0) + 0.004
-        return np.asarray(albedo, np.float32) * np.float32(light)
-
-    def _background(self, canvas: Canvas, k: int) -> None:
-        """Sky, ground, kerbs, road, cross street, markings and light pools."""
-        env = self.env
-        far_point = np.array([[0.0, self.camera.mount_height, self.ego_z[k] + 1e5]])
-        horizon = self._project(far_point, k)[0][0, 1]
-        rows = np.clip(np.arange(canvas.height, dtype=np.float32) / max(horizon, 1.0), 0.0, 1.0)
-        top, hor = np.asarray(env.sky_top, np.float32), np.asarray(env.sky_horizon, np.float32)
-        canvas.rgb[:] = (top * (1 - rows[:, None]) + hor * rows[:, None])[:, None, :]
-        far = 900.0 + self.ego_z[k]
-        shade = 1.0 if not env.night else 0.08
-        grass = np.array([0.12, 0.2, 0.18]) * shade
-        kerb_r, kerb_l = np.array([0.38, 0.39, 0.4]) * shade, np.array([0.36, 0.37, 0.38]) * shade
-        for x0, x1, z0, z1, colour in ((-400.0, 400.0, 0.0, far, grass),
-                                       (7.0, 10.5, 0.0, far, kerb_r),
-                                       (-13.5, -8.75, 0.0, far, kerb_l),
-                                       (-8.75, 7.0, 0.0, far, np.asarray(env.asphalt))):
-            poly = self._ground_poly(k, x0, x1, z0, z1)
-            if poly is not None:
-                near = np.asarray(colour, np.float32)
-                fill_gradient(canvas, poly, near * 0.9 + hor * 0.1, near * 0.8)
-        if self.z_int is not None:
-            poly = self._ground_poly(k, -400.0, 400.0, self.z_int - 6.0, self.z_int + 6.0)
-            if poly is not None:
-                a = np.asarray(env.asphalt, np.float32)
-                fill_gradient(canvas, poly, a, a)
-        self._markings(canvas, k)
-        if env.night:
-            self._light_pools(canvas, k)
-
-    def _markings(self, canvas: Canvas, k: int) -> None:
-        """Lane lines (solid, dashed, double yellow) and the stop line."""
-        bright = 0.7 if not self.env.night else 0.12
-        white = (bright, bright, bright)
-        yellow = (0.05, bright * 0.7, bright * 0.9)
-        ez = float(self.ego_z[k])
-        stop = self.z_int - 7.0 if self.z_int is not None else np.inf
-        solid = [(5.25, white), (-8.6, white)] + ([(-1.65, yellow), (-1.85, yellow)]
-                                                  if self.config.views == "all" else [])
-        for x, colour in solid:
-            poly = self._ground_poly(k, x - 0.07, x + 0.07, ez, min(stop, ez + 400.0))
-            if poly is not None:
-                fill_gradient(canvas, poly, colour, colour)
-        dashed = [1.75, -5.25] if self.config.views == "all" else [1.75, -1.75, -5.25]
-        first = math.floor(ez / 9.0) * 9.0
-        for x in dashed:
-            for z in np.arange(first, min(ez + 130.0, stop), 9.0):
-                poly = self._ground_poly(k, x - 0.07, x + 0.07, z, z + 3.0)
-                if poly is not None:
-                    fill_gradient(canvas, poly, white, white)
-        if self.z_int is not None:
-            poly = self._ground_poly(k, -1.6, 5.2, stop, stop + 0.5)
-            if poly is not None:
-                fill_gradient(canvas, poly, white, white)
-
-    def _light_pools(self, canvas: Canvas, k: int) -> None:
-        """Pools of street light on the road at night."""
-        for pole in self.poles:
-            if pole["signal"]:
-                continue
-            x = pole["x"] + pole["arm"]
-            uv, depth = self._project(np.array([[x, 0.0, pole["z"]]]), k)
-            if depth[0] < 2.0 or depth[0] > 150.0:
-                continue
-            f = self.camera.focal
-            colour = (0.25, 0.6, 1.0) if pole["sodium"] else (0.9, 0.95, 1.0)
-            add_glow(canvas, uv[0], (f * 4.0 / depth[0], f * 1.2 / depth[0]), colour, 0.03)
-
-    def _draw_facade(self, canvas: Canvas, fac: Dict, k: int) -> None:
-        """One building front with its windows (lit at random by night)."""
-        x, h = fac["x"], fac["h"]
-        z0, z1 = max(fac["z0"], self.ego_z[k] + 1.0), fac["z1"]
-        if z1 <= z0:
-            return
-        pts = np.array([(x, 0.0, z0), (x, 0.0, z1), (x, h, z1), (x, h, z0)])
-        uv, depth = self._project(pts, k)
-        if np.any(depth < NEAR_M):
-            return
-        normal = np.array([-math.copysign(1.0, x), 0.0, 0.0])
-        c = self._shade(fac["albedo"], normal, k, 50.0)
-        fill_gradient(canvas, uv, c * 1.05, c * 0.8, obj_id=_OCCLUDER)
-        nearest = float(depth.min())
-        if nearest > 120.0:
-            return
-        glass = np.array([0.08, 0.07, 0.06]) * (1.0 if not self.env.night else 0.2)
-        i = 0
-        for floor_y in np.arange(3.0, h - 1.5, 3.2):
-            for wz in np.arange(fac["z0"] + 1.5, fac["z1"] - 1.5, 3.0):
-                i += 1
-                if wz < self.ego_z[k] + 2.0:
-                    continue
-                wp = np.array([(x, floor_y, wz), (x, floor_y, wz + 1.4),
-                               (x, floor_y + 1.5, wz + 1.4), (x, floor_y + 1.5, wz)])
-                wuv, wd = self._project(wp, k)
-                if np.any(wd < NEAR_M) or np.ptp(wuv[:, 0]) < 1.5:
-                    continue
-                sky = np.asarray(self.env.sky_horizon, np.float32) * 0.5
-                fill_gradient(canvas, wuv, glass + sky, glass, obj_id=_OCCLUDER)
-                if self.night and fac["lit"][i % 200]:
-                    warm = 0.2 * float(fac["warm"][i % 200])
-                    add_emission(canvas, wuv, (0.35, 0.65, 1.0), warm, core=0.8)
-
-    def _draw_pole(self, canvas: Canvas, pole: Dict, k: int) -> None:
-        """A pole with its arm, sign, lamp head or traffic signal."""
-        x, z = pole["x"], pole["z"]
-        height = 6.0 if pole["signal"] else 7.5
-        w = 0.09
-        grey = np.array([0.25, 0.25, 0.26]) * (1.0 if not self.night else 0.05)
-        pts = np.array([(x - w, 0.0, z), (x + w, 0.0, z), (x + w, height, z), (x - w, height, z)])
-        uv, depth = self._project(pts, k)
-        if np.any(depth < 1.5):
-            return
-        fill_gradient(canvas, uv, grey * 1.2, grey * 0.7, obj_id=_OCCLUDER)
-        ax = x + pole["arm"]
-        if pole["arm"]:
-            arm = np.array([(min(x, ax), height - 0.1, z), (max(x, ax), height - 0.1, z),
-                            (max(x, ax), height, z), (min(x, ax), height, z)])
-            fill_gradient(canvas, self._project(arm, k)[0], grey, grey, obj_id=_OCCLUDER)
-        if pole["sign"]:
-            sp = _upright_rect(x, z - 0.02, 0.45, 2.3, 3.0)
-            blue = np.array([0.55, 0.25, 0.05]) * (1.0 if not self.night else 0.15)
-            fill_gradient(canvas, self._project(sp, k)[0], blue, blue * 0.8, obj_id=_OCCLUDER)
-        if pole["signal"]:
-            box = _upright_rect(x, z - 0.05, 0.18, 4.6, 5.6)
-            buv = self._project(box, k)[0]
-            fill_gradient(canvas, buv, (0.03, 0.03, 0.03), (0.02, 0.02, 0.02), obj_id=_OCCLUDER)
-            t = np.linspace(0, 2 * math.pi, 12, endpoint=False)
-            lens = np.stack([x + 0.11 * np.cos(t), 5.38 + 0.11 * np.sin(t),
-                             np.full(12, z - 0.07)], axis=1)
-            add_emission(canvas, self._project(lens, k)[0], RED, 6.0 if self.night else 2.5)
-        elif self.night:
-            t = np.linspace(0, 2 * math.pi, 10, endpoint=False)
-            head = np.stack([ax + 0.35 * np.cos(t), height - 0.15 + 0.08 * np.sin(t),
-                             np.full(10, z)], axis=1)
-            colour = (0.25, 0.6, 1.0) if pole["sodium"] else (0.9, 0.95, 1.0)
-            add_emission(canvas, self._project(head, k)[0], colour, 5.0)
-
-    # ------------------------------------------------------------------ vehicles
-
-    def _lamp_emission(self, actor: _Actor, lamp: Lamp, t: float
-                       ) -> Tuple[Tuple[float, float, float], float]:
-        """Colour and radiance of a lens at time ``t``."""
-        sig, lv = actor.signals, actor.levels
-        tail = lv["tail"] if sig.lights_on else 0.0
-        braking = sig.braking(t)
-        active = lamp.side != 0 and sig.active(lamp.side, t) is not None
-        flash = sig.flash_level(lamp.side, t, self.sensor.exposure_s) if active else 0.0
-        blink_colour = AMBER if lamp.blink_colour == "amber" else RED
-        funcs = lamp.funcs
-        if "head" in funcs:
-            return WHITE, lv["head"] if sig.lights_on else 0.0
-        if "drl" in funcs:
-            if active:
-                return AMBER, lv["blink"] * flash
-            return WHITE, lv["drl"] if actor.model.drl else 0.0
-        steady = max(tail if "tail" in funcs else 0.0,
-                     lv["brake"] if ("brake" in funcs and braking) else 0.0)
-        if "blink" in funcs and active:
-            peak = max(lv["blink"], steady)
-            if "tail" in funcs or "brake" in funcs:  # combined red lamp: flashes over the tail
-                return RED, tail + (peak - tail) * flash
-            return blink_colour, lv["blink"] * flash
-        return RED, steady
-
-    def _to_world(self, pts: np.ndarray, x: float, z: float, yaw: float) -> np.ndarray:
-        """Vehicle-frame ``(a, b, y)`` points to world ``(X, Y, Z)``."""
-        a, b, y = pts[:, 0], pts[:, 1], pts[:, 2]
-        s, c = math.sin(yaw), math.cos(yaw)
-        return np.stack([x + a * s - b * c, y, z + a * c + b * s], axis=1)
-
-    def _draw_vehicle(self, canvas: Canvas, actor: _Actor, k: int, obj_id: int) -> Optional[_Drawn]:
-        """Shadow, solids and lamps of one vehicle; None when too near to draw."""
-        x, z, yaw = float(actor.x[k]), float(actor.z[k]), float(actor.yaw[k])
-        model, t = actor.model, float(self.times[k])
-        cam = np.array([0.0, self.camera.mount_height, self.ego_z[k]])
-        all_pts = np.concatenate([s.vertices() for s in model.solids])
-        world = self._to_world(all_pts, x, z, yaw)
-        uv, depth = self._project(world, k)
-        if np.any(depth < NEAR_M + 1.0):
-            return None
-        la, hw = model.length / 2 + 0.25, model.width / 2 + 0.2
-        footprint = np.array([(-la, -hw, 0.01), (la, -hw, 0.01), (la, hw, 0.01), (-la, hw, 0.01)])
-        shadow = self._project(self._to_world(footprint, x, z, yaw), k)[0]
-        black = (0.01, 0.01, 0.01)
-        fill_gradient(canvas, shadow, black, black, alpha=0.6)
-        for group in self._solid_groups(model, x, z, yaw, cam):
-            for solid in group:
-                self._draw_solid(canvas, solid, actor, x, z, yaw, cam, k, obj_id)
-        lamps = self._draw_lamps(canvas, actor, x, z, yaw, cam, k, obj_id, t)
-        hull = cv2.convexHull(uv.astype(np.float32))
-        lo, hi = uv.min(axis=0), uv.max(axis=0)
-        box = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
-        return _Drawn(box, float(cv2.contourArea(hull)), lamps)
-
-    def _solid_groups(self, model: VehicleModel, x: float, z: float, yaw: float,
-                      cam: np.ndarray) -> List[List[Solid]]:
-        """Solids in drawing order: tyres, then the cab/body and cargo groups far to near."""
-        tyres = [s for s in model.solids if s.part == "tyre"]
-        body = [s for s in model.solids if s.part not in ("cargo", "tyre")]
-        cargo = [s for s in model.solids if s.part == "cargo"]
-
-        def distance(group: List[Solid]) -> float:
-            centre = np.mean([s.vertices().mean(axis=0) for s in group], axis=0)[None]
-            return float(np.linalg.norm(self._to_world(centre, x, z, yaw)[0] - cam))
-
-        return [tyres] + sorted([g for g in (body, cargo) if g], key=lambda g: -distance(g))
-
-    def _draw_solid(self, canvas: Canvas, solid: Solid, actor: _Actor, x: float, z: float,
-                    yaw: float, cam: np.ndarray, k: int, obj_id: int) -> None:
-        """The faces of one solid that face the camera, gradient-shaded; cabins glazed."""
-        verts = self._to_world(solid.vertices(), x, z, yaw)
-        middle = verts.mean(axis=0)
-        paint = np.asarray(actor.model.paint, np.float32)
-        albedo = np.array([0.03, 0.03, 0.03]) if solid.part == "tyre" else paint
-        if solid.part == "cargo":
-            albedo = np.array([0.62, 0.62, 0.6])
-        for name, idx in FACES.items():
-            quad = verts[list(idx)]
-            fc = quad.mean(axis=0)
-            n = np.cross(quad[1] - quad[0], quad[3] - quad[0])
-            n /= max(np.linalg.norm(n), 1e-9)
-            if np.dot(n, fc - middle) < 0:
-                n = -n
-            to_cam = cam - fc
-            if np.dot(n, to_cam) <= 0:
-                continue
-            dist = float(np.linalg.norm(to_cam))
-            colour = self._shade(albedo, n, k, dist)
-            uv = self._project(quad, k)[0]
-            fill_gradient(canvas, uv, colour * 1.12, colour * 0.72, obj_id=obj_id)
-            if solid.part == "cabin" and name != "top":
-                self._glass(canvas, quad, fc, n, actor, k, obj_id)
-
-    def _glass(self, canvas: Canvas, quad: np.ndarray, fc: np.ndarray, n: np.ndarray,
-               actor: _Actor, k: int, obj_id: int) -> None:
-        """The glazed inset of a cabin face: dark glass reflecting the sky, maybe a glint."""
-        inner = fc + (quad - fc) * np.array([0.86, 0.8, 0.86])
-        uv = self._project(inner, k)[0]
-        sky = np.asarray(self.env.sky_horizon, np.float32)
-        refl = 0.25 * sky * (0.5 + 0.5 * max(n[1], 0.0))
-        dark = np.array([0.02, 0.02, 0.025], np.float32)
-        fill_gradient(canvas, uv, dark + refl, dark + refl * 0.15, obj_id=obj_id)
-        if not self.night and actor.glint:
-            c = uv.mean(axis=0) + np.array([0.0, -0.25]) * np.ptp(uv[:, 1])
-            r = max(np.ptp(uv[:, 0]) * 0.08, 1.0)
-            add_glow(canvas, c, (r * 2.5, r * 0.6), (1.0, 1.0, 1.0), 0.5 * self.env.sun_level)
-
-    def _draw_lamps(self, canvas: Canvas, actor: _Actor, x: float, z: float, yaw: float,
-                    cam: np.ndarray, k: int, obj_id: int, t: float
-                    ) -> List[Tuple[Lamp, np.ndarray, float]]:
-        """Housings, lenses and light of the lamps facing the camera; ``(lamp, uv, cos)``."""
-        out = []
-        model = actor.model
-        for lamp in model.lamps:
-            n_v = np.array(FACE_NORMALS[lamp.face])
-            n = self._to_world(n_v[None], 0.0, 0.0, yaw)[0]
-            pts = self._to_world(lamp_points(model, lamp), x, z, yaw)
-            centre = pts.mean(axis=0)
-            to_cam = cam - centre
-            cos = float(np.dot(n, to_cam) / max(np.linalg.norm(to_cam), 1e-9))
-            if cos <= 0.02:
-                continue
-            uv = self._project(pts, k)[0]
-            housing = uv.mean(axis=0) + (uv - uv.mean(axis=0)) * 1.18
-            fill_gradient(canvas, housing, (0.02, 0.02, 0.02), (0.01, 0.01, 0.01), obj_id=obj_id)
-            lens = self._shade(np.asarray(LENS[lamp.lens]), n, k, float(np.linalg.norm(to_cam)))
-            fill_gradient(canvas, uv, lens * 1.4, lens * 0.8, obj_id=obj_id)
-            colour, level = self._lamp_emission(actor, lamp, t)
-            if level > 0:
-                add_emission(canvas, uv, colour, level * (0.35 + 0.65 * cos))
-                if self.env.wet > 0.3 and level > 0.5:
-                    self._reflection(canvas, pts, uv, colour, level * self.env.wet, k)
-            out.append((lamp, uv, cos))
-        return out
-
-    def _reflection(self, canvas: Canvas, pts: np.ndarray, uv: np.ndarray,
-                    colour: Tuple[float, float, float], level: float, k: int) -> None:
-        """A lamp's stretched reflection on the wet road below it."""
-        mirrored = pts.mean(axis=0) * np.array([1.0, -1.0, 1.0])
-        muv, depth = self._project(mirrored[None], k)
-        if depth[0] < NEAR_M:
-            return
-        rx = max(np.ptp(uv[:, 0]) * 0.45, 1.0)
-        add_glow(canvas, muv[0], (rx, rx * 4.0), colour, 0.08 * level)
-
-    # ------------------------------------------------------------------ truth
-
-    def _view(self, actor: _Actor, k: int) -> View:
-        """Face of the vehicle toward the camera, in 90-degree sectors."""
-        yaw = float(actor.yaw[k])
-        d = np.array([0.0 - actor.x[k], self.ego_z[k] - actor.z[k]])  # (X, Z) to the camera
-        fwd = np.array([math.sin(yaw), math.cos(yaw)])
-        left = np.array([-math.cos(yaw), math.sin(yaw)])
-        ang = math.degrees(math.atan2(float(d @ left), float(d @ fwd)))
-        if abs(ang) <= 45.0:
-            return View.FRONT
-        if abs(ang) >= 135.0:
-            return View.BEHIND
-        return View.LEFT if ang > 0 else View.RIGHT
-
-    def _truth(self, canvas: Canvas, actor: _Actor, drawn: _Drawn, k: int, obj_id: int
-               ) -> Tuple[LightStatus, LightStatus, LightStatus, View]:
-        """Brake, left, right and view of one vehicle from what the id buffer shows."""
-        view = self._view(actor, k)
-        x0, y0, x1, y1 = drawn.box
-        threshold = max(x1 - x0, y1 - y0) ** 2 / 600.0
-        seen = {"brake": 0.0, 1: 0.0, -1: 0.0}
-        for lamp, uv, cos in drawn.lamps:
-            if cos < 0.15:
-                continue
-            full = abs(float(cv2.contourArea(uv.astype(np.float32))))
-            area = visible_fraction(canvas, uv, obj_id) * full
-            if "brake" in lamp.funcs and lamp.face == "rear":
-                seen["brake"] += area
-            if "blink" in lamp.funcs and lamp.side:
-                seen[lamp.side] += area
-        t = float(self.times[k])
-        sig = actor.signals
-
-        def status(key: object, hidden: bool, on: bool) -> LightStatus:
-            if hidden or seen[key] < threshold:
-                return LightStatus.UNKNOWN
-            return LightStatus.ON if on else LightStatus.OFF
-
-        brake = status("brake", view == View.FRONT, sig.braking(t))
-        left = status(1, view == View.RIGHT, sig.active(1, t) is not None)
-        right = status(-1, view == View.LEFT, sig.active(-1, t) is not None)
-        return brake, left, right, view
-
-    def _tracker_box(self, actor: _Actor, drawn: _Drawn, occlusion: float) -> Optional[TrackBox]:
-        """The jittered box the tracker reports, or None when it misses the vehicle."""
-        x0, y0, x1, y1 = drawn.box
-        w, h = x1 - x0, y1 - y0
-        rho = 0.75
-        fresh = actor.jitter_rng.standard_normal(4)
-        actor.jitter = rho * actor.jitter + math.sqrt(1 - rho ** 2) * fresh
-        drop = actor.jitter_rng.random() < 0.015
-        cw, ch = self.config.width, self.config.height
-        on_image = (min(x1, cw) - max(x0, 0)) * (min(y1, ch) - max(y0, 0)) / max(w * h, 1e-6)
-        if drop or occlusion > 0.7 or w < 12 or h < 10 or on_image < 0.45:
-            return None
-        e = actor.jitter
-        cx, cy = (x0 + x1) / 2 + e[0] * 0.03 * w, (y0 + y1) / 2 + e[1] * 0.03 * h
-        bw, bh = w * math.exp(0.045 * e[2]), h * math.exp(0.045 * e[3])
-        return TrackBox.from_center(actor.track_id, cx, cy, bw, bh, CLASS_OF_KIND[actor.model.kind])
-
-    # ------------------------------------------------------------------ frames
 
     def render(self, k: int) -> EvalFrame:
         """Render frame ``k`` (0-based) with its truth.
@@ -793,7 +91,8 @@ class EvalScene:
         if not 0 <= k < self.config.frames:
             raise ConfigError(f"frame {k} out of range 0..{self.config.frames - 1}")
         canvas = Canvas(self.config.width, self.config.height)
-        self._background(canvas, k)
+        view = self._frame_view(k)
+        self._street.background(canvas, view)
         ez = float(self.ego_z[k])
         items: List[Tuple[float, str, object]] = []
         for i, actor in enumerate(self.actors):
@@ -808,39 +107,37 @@ class EvalScene:
             if pole["z"] - ez > 1.0:
                 items.append((math.hypot(pole["x"], pole["z"] - ez), "pole", pole))
         items.sort(key=lambda it: -it[0])
-        drawn: Dict[int, _Drawn] = {}
+        drawn: Dict[int, Drawn] = {}
         for _, what, obj in items:
             if what == "vehicle":
-                out = self._draw_vehicle(canvas, self.actors[obj], k, obj)
+                out = self._drawer.draw(canvas, self.actors[obj], k, view, float(self.times[k]),
+                                        obj)
                 if out is not None:
                     drawn[obj] = out
             elif what == "facade":
-                self._draw_facade(canvas, obj, k)
+                self._street.facade(canvas, obj, view)
             else:
-                self._draw_pole(canvas, obj, k)
+                self._street.pole(canvas, obj, view)
         truths = self._truths(canvas, drawn, k)
         image = develop(canvas.rgb, self.sensor, self.noise_rng)
         stamp = _START_NS + self.seed % 1000 * 1_000_000_000 + int(round(k * 1e9 / self.config.fps))
         return EvalFrame(k, stamp, image, truths, self.config.lighting)
 
-    def _truths(self, canvas: Canvas, drawn: Dict[int, _Drawn], k: int) -> List[VehicleTruth]:
+    def _truths(self, canvas: Canvas, drawn: Dict[int, Drawn], k: int) -> List[VehicleTruth]:
         """Truth of every drawn vehicle, far to near."""
         out = []
         t = float(self.times[k])
         exposure = self.sensor.exposure_s
+
         def distance(j: int) -> float:
             return math.hypot(self.actors[j].x[k], self.actors[j].z[k] - self.ego_z[k])
 
         for i in sorted(drawn, key=lambda j: -distance(j)):
             actor, d = self.actors[i], drawn[i]
-            seen = float((canvas.ids == i).sum())
-            occlusion = float(np.clip(1.0 - seen / max(d.hull_area, 1.0), 0.0, 1.0))
-            brake, left, right, view = self._truth(canvas, actor, d, k, i)
-            out.append(VehicleTruth(
-                actor.track_id, d.box, self._tracker_box(actor, d, occlusion), brake, left, right,
-                intent_from_lights(left, right), view, occlusion, actor.model.kind,
-                CLASS_OF_KIND[actor.model.kind], actor.signals.flash_level(1, t, exposure),
-                actor.signals.flash_level(-1, t, exposure)))
+            occlusion = occlusion_of(canvas, i, d)
+            tracker = tracker_box(actor, d.box, occlusion, self.config.width, self.config.height)
+            out.append(vehicle_truth(canvas, actor, d, k, self.ego_z[k], t, exposure, i, occlusion,
+                                     tracker))
         return out
 
     def frames(self) -> Iterator[EvalFrame]:

@@ -311,6 +311,37 @@ def side_lamps(style: LampStyle, kind: str, rng: np.random.Generator, view: View
 
 # --------------------------------------------------------------------------- timing
 
+def lamp_outlines(lamp: Lamp) -> List[np.ndarray]:
+    """Normalised outline polygons of a lamp: one, or one per segment of a sequential lamp
+    ordered from the inner end to the outer end."""
+    return _segment_polys(lamp) if lamp.segments > 1 else [_lamp_poly(lamp)]
+
+
+def _lamp_poly(lamp: Lamp) -> np.ndarray:
+    """Normalised outline polygon of a lamp."""
+    u0, v0, u1, v1 = lamp.rect
+    if lamp.shape in ("round", "ellipse"):
+        cu, cv, ru, rv = (u0 + u1) / 2, (v0 + v1) / 2, (u1 - u0) / 2, (v1 - v0) / 2
+        if lamp.shape == "ellipse":
+            a = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+            return np.stack([cu + ru * np.cos(a), cv + rv * np.sin(a)], 1).astype(np.float32)
+        k = 0.35  # rounded rectangle: cut corners
+        return np.array([[u0 + ru * k, v0], [u1 - ru * k, v0], [u1, v0 + rv * k], [u1, v1 - rv * k], [u1 - ru * k, v1],
+                         [u0 + ru * k, v1], [u0, v1 - rv * k], [u0, v0 + rv * k]], np.float32)
+    return np.array([[u0, v0], [u1, v0], [u1, v1], [u0, v1]], np.float32)
+
+
+def _segment_polys(lamp: Lamp) -> List[np.ndarray]:
+    """Segments of a sequential lamp ordered from the inner end to the outer end."""
+    u0, v0, u1, v1 = lamp.rect
+    n = lamp.segments
+    edges = np.linspace(u0, u1, n + 1)
+    gap = (u1 - u0) / n * 0.15
+    polys = [np.array([[edges[i] + gap, v0], [edges[i + 1] - gap, v0], [edges[i + 1] - gap, v1], [edges[i] + gap, v1]], np.float32)
+             for i in range(n)]
+    return polys if lamp.outward > 0 else polys[::-1]
+
+
 @dataclass
 class _Segment:
     start: float

@@ -1,146 +1,47 @@
-"""The scene renderer: layout, vehicle motion, occlusion, tracker simulation and labels.
+"""The scene renderer: one camera on a street with a handful of vehicles seen from behind,
+from the front or from a side, rendered frame by frame with each vehicle's truth.
 
-A ``SceneRenderer`` owns a camera on a street and a handful of vehicles seen from behind,
-from the front or from a side. Each frame it moves the vehicles, decides which lamps are
-lit (per-vehicle blinker and brake timelines), works out which lamps are visible
-(other vehicles, poles and the image border hide them), draws everything and hands back
-the image with one ``VehicleTruth`` per vehicle that is visible enough to be listed.
+A ``SceneRenderer`` sets the scene up from its seed and runs each frame; the work is done
+by one module per concern:
+
+* ``traffic``: which vehicles there are, where they appear and how they move;
+* ``environment``: street background, lighting, distractor lights, weather, occluders;
+* ``vehicle_drawing``: bodies, flanks, lamps, shadows and compositing into the frame;
+* ``truth``: which lamps are lit and visible, which vehicles are listed, their labels;
+* ``tracker``: the box a simulated tracker reports for each listed vehicle;
+* ``camera``: exposure, haze, blur, noise and JPEG of the finished frame (and its shake).
+
+Each frame hands back the image with one ``VehicleTruth`` per vehicle that is visible
+enough to be listed.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
-from typing import Any, Dict, Iterator, List, Optional, Tuple
+from typing import Any, Iterator, List, Optional
 
 import cv2
 import numpy as np
 
-from signal_light_node.boxes import TrackBox
 from signal_light_node.errors import ConfigError
-from signal_light_node.labels import Intent, LightStatus, View, intent_from_lights
-from signal_light_node.synth import lamps as lamp_mod
 from signal_light_node.synth.camera import Camera, sample_camera
 from signal_light_node.synth.environment import (GLOW_SCALE, LIGHTINGS, Environment, Lighting, Occluder, StreetGeometry,
-                                                 add_glow, blur_glow, ellipse, sample_lighting, shade)
-from signal_light_node.synth.lamps import (STYLE_FAMILIES, TRAIN_FAMILIES, Lamp, LampStyle, blinker_timeline, brake_timeline,
-                                           flasher_level, sample_lamp_style)
-from signal_light_node.synth.truth import RenderedFrame, VehicleTruth
-from signal_light_node.synth.vehicles import CLASS_IDS, KIND_DIMS, KIND_WEIGHTS, KINDS, BodyShape, body_shape, face_size_m, sample_colour
+                                                 blur_glow, sample_lighting)
+from signal_light_node.synth.lamps import STYLE_FAMILIES, TRAIN_FAMILIES
+from signal_light_node.synth.tracker import tracker_box
+from signal_light_node.synth.traffic import Traffic
+from signal_light_node.synth.truth import (RenderedFrame, VehicleTruth, lamp_states, lamp_visibility, listed_box, mark_visible,
+                                          vehicle_truth)
+from signal_light_node.synth.vehicle_drawing import Drawn, VehiclePainter
 
 LOG = logging.getLogger(__name__)
 
-_SHIFT = 3
-_ONE = 1 << _SHIFT
 _MARGIN = 12
-#: A lamp counts as visible when at least this fraction of it can be seen.
-LAMP_VISIBLE_FRACTION = 0.5
-#: ... and when its visible part is large enough to be judged where the node looks: the
-#: node scales a square of 1.3 x the box's longer side to a 64-pixel crop, so a lamp
-#: covering less than 1/600 of (longer side)^2 spans under 4 crop pixels (a side view's
-#: wrap-around tail lamp or side repeater). Such a lamp's state is UNKNOWN, as an
-#: annotator would mark it, rather than an ON/OFF no image can show.
-LAMP_MIN_BOX_SHARE = 1.0 / 600.0
-#: Nor can a lamp be judged from fewer image pixels than this, however small the box.
-LAMP_MIN_PIXELS = 2.0
-#: Vehicles smaller than this (visible box, pixels) or more hidden than this are not listed.
-MIN_LISTED_PX = 8.0
-MAX_LISTED_OCCLUSION = 0.9
-
-_VIEW_WEIGHTS = {View.BEHIND: 0.42, View.FRONT: 0.26, View.LEFT: 0.16, View.RIGHT: 0.16}
 _SCENE_KEYS = {"vehicles", "occluders", "poles", "distractors", "weather", "effects", "shake", "respawn", "horizon", "focal",
                "family"}
-#: A lit signal lamp (level 1) blends at least this far from its unlit lens to its lit
-#: colour, whatever the light: a lit bulb or LED visibly brightens its lens in daylight too.
-LIT_LAMP_MIN_GAIN = 0.85
-#: Share of white in the clipped core of a lit lamp in daylight (a camera clips a lit
-#: lamp towards white even in the sun; 0.2 until 2026-11-22 left red lamps faint).
-LIT_CORE_DAY = 0.45
 _VEHICLE_KEYS = {"view", "kind", "lamp_design", "tech", "chmsl", "intent", "brake", "colour", "lights_on", "center_x",
                  "width_px", "speed", "blink_hz", "duty", "phase", "shear", "roll", "specular"}
-
-
-def _light_status(on: bool, visible: bool) -> LightStatus:
-    """ON or OFF for a light that can be judged, UNKNOWN for one that cannot."""
-    if not visible:
-        return LightStatus.UNKNOWN
-    return LightStatus.ON if on else LightStatus.OFF
-
-
-def _lamp_poly(lamp: Lamp) -> np.ndarray:
-    """Normalised outline polygon of a lamp."""
-    u0, v0, u1, v1 = lamp.rect
-    if lamp.shape in ("round", "ellipse"):
-        cu, cv, ru, rv = (u0 + u1) / 2, (v0 + v1) / 2, (u1 - u0) / 2, (v1 - v0) / 2
-        if lamp.shape == "ellipse":
-            a = np.linspace(0, 2 * np.pi, 12, endpoint=False)
-            return np.stack([cu + ru * np.cos(a), cv + rv * np.sin(a)], 1).astype(np.float32)
-        k = 0.35  # rounded rectangle: cut corners
-        return np.array([[u0 + ru * k, v0], [u1 - ru * k, v0], [u1, v0 + rv * k], [u1, v1 - rv * k], [u1 - ru * k, v1],
-                         [u0 + ru * k, v1], [u0, v1 - rv * k], [u0, v0 + rv * k]], np.float32)
-    return np.array([[u0, v0], [u1, v0], [u1, v1], [u0, v1]], np.float32)
-
-
-def _segment_polys(lamp: Lamp) -> List[np.ndarray]:
-    """Segments of a sequential lamp ordered from the inner end to the outer end."""
-    u0, v0, u1, v1 = lamp.rect
-    n = lamp.segments
-    edges = np.linspace(u0, u1, n + 1)
-    gap = (u1 - u0) / n * 0.15
-    polys = [np.array([[edges[i] + gap, v0], [edges[i + 1] - gap, v0], [edges[i + 1] - gap, v1], [edges[i] + gap, v1]], np.float32)
-             for i in range(n)]
-    return polys if lamp.outward > 0 else polys[::-1]
-
-
-@dataclass
-class _Vehicle:
-    track_id: str
-    kind: str
-    view: View
-    style: LampStyle
-    colour: Tuple[float, float, float]
-    face_w: float
-    face_h: float
-    shape: BodyShape
-    lamps: List[Lamp]
-    lamp_polys: List[List[np.ndarray]]
-    X: float
-    Z: float
-    vx: float
-    vz: float
-    lights_on: bool
-    blinker: lamp_mod.Timeline
-    brake: lamp_mod.Timeline
-    phase: float
-    shear: float
-    roll: float
-    spots: List[Tuple[float, float, float, float, float]]
-    paints: Dict[str, Tuple[float, float, float]]
-    part_pts: np.ndarray = field(default=None)
-    part_splits: List[Tuple[str, int, int]] = field(default_factory=list)
-    sil_splits: List[Tuple[int, int]] = field(default_factory=list)
-    tracker_bias: Tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
-    tracker_sigma: float = 0.02
-    tracker_amodal: bool = False
-    lamp_pts: np.ndarray = field(default=None)
-    lamp_ranges: List[Tuple[int, int]] = field(default_factory=list)
-    lamp_ranges_poly: List[List[Tuple[int, int]]] = field(default_factory=list)
-    lens_cols: List[Tuple[float, float, float]] = field(default_factory=list)
-
-
-@dataclass
-class _Drawn:
-    """Per-frame drawing state of one vehicle."""
-
-    v: _Vehicle
-    box: Tuple[float, float, float, float]  # full (unclipped) extent
-    roi: Tuple[int, int, int, int]  # clipped integer ROI x0, y0, x1, y1
-    M: np.ndarray
-    canvas: np.ndarray
-    alpha: np.ndarray
-    vis: Optional[np.ndarray] = None
-    full_area: float = 1.0
 
 
 class SceneRenderer:
@@ -218,15 +119,14 @@ class SceneRenderer:
         """(Re)build the world so that every call of ``frames`` starts from the same state."""
         o = self._overrides
         rng = np.random.default_rng([self.seed, 1])
-        self._rng = rng
         W, H = self.width, self.height
-        self._f = W * float(o.get("focal", rng.uniform(0.75, 1.3)))
-        self._hy = H * float(o.get("horizon", rng.uniform(0.36, 0.5)))
-        self._vx = W * rng.uniform(0.35, 0.65)
-        self._cam_h = rng.uniform(1.2, 1.7)
+        f = W * float(o.get("focal", rng.uniform(0.75, 1.3)))
+        hy = H * float(o.get("horizon", rng.uniform(0.36, 0.5)))
+        vx = W * rng.uniform(0.35, 0.65)
+        cam_h = rng.uniform(1.2, 1.7)
         lane_w = rng.uniform(2.9, 3.7)
         n_left, n_right = int(rng.integers(1, 4)), int(rng.integers(1, 4))
-        self._geo = StreetGeometry(self._f, self._cam_h, self._hy, self._vx, -n_left * lane_w + rng.uniform(-0.5, 0.5),
+        self._geo = StreetGeometry(f, cam_h, hy, vx, -n_left * lane_w + rng.uniform(-0.5, 0.5),
                                    n_right * lane_w + rng.uniform(-0.5, 0.5), lane_w)
         self._light: Lighting = sample_lighting(rng, self.lighting)
         weather = o.get("weather") or str(rng.choice(["clear", "clear", "clear", "rain", "haze"]))
@@ -241,241 +141,14 @@ class SceneRenderer:
         cam_params = sample_camera(rng, self._light.noise, self.lighting, weather, self.family)
         if not o.get("shake", True):
             cam_params.shake = 0.0
-        self._camera = Camera(cam_params, W, H, self._hy, self.seed * 7 + 3, enabled=bool(o.get("effects", True)))
+        self._camera = Camera(cam_params, W, H, hy, self.seed * 7 + 3, enabled=bool(o.get("effects", True)))
         LOG.debug("scene seed=%d %dx%d fps=%.1f lighting=%s weather=%s focal=%.0f horizon=%.0f vehicles=%d",
-                  self.seed, W, H, self.fps, self.lighting, weather, self._f, self._hy, self.n_vehicles)
-        self._next_id = int(rng.integers(1, 50))
-        self._vehicles: List[_Vehicle] = []
+                  self.seed, W, H, self.fps, self.lighting, weather, f, hy, self.n_vehicles)
+        self._traffic = Traffic(self.seed, rng, W, self._geo, self._light, self.lighting, self.family)
         vo = o.get("vehicles") or []
         for i in range(self.n_vehicles):
-            self._vehicles.append(self._spawn(vo[i] if i < len(vo) else {}, entering=False))
-
-    def _place(self, vo: Dict[str, Any], view: View, face_w: float, face_h: float, entering: bool,
-               vrng: np.random.Generator, z_min: float, z_max: float) -> Tuple[float, float]:
-        """Depth and lateral position of a new vehicle.
-
-        Sizes run from ~22 px to half the frame wide; front/rear views sit in a lane,
-        crossing traffic anywhere. Random placements that would mostly hide behind (or
-        hide) a vehicle already there are drawn again, so that occlusion stays partial.
-        """
-        f, W = self._f, self.width
-        geo = self._geo
-        best = None
-        for attempt in range(8):
-            if "width_px" in vo:
-                Z = face_w * f / float(vo["width_px"])
-            elif entering and view == View.FRONT:
-                Z = z_max * vrng.uniform(0.6, 1.0)  # oncoming: appears far away
-            elif entering and view == View.BEHIND:
-                # Either far ahead (we catch up) or close, overtaking us from the image bottom.
-                Z = z_max * vrng.uniform(0.6, 1.0) if vrng.random() < 0.6 else z_min * vrng.uniform(1.0, 1.3)
-            else:
-                Z = float(math.exp(vrng.uniform(math.log(z_min), math.log(max(z_max, z_min * 1.01)))))
-            if "center_x" in vo:
-                X = (float(vo["center_x"]) - self._vx) * Z / f
-            elif view in (View.LEFT, View.RIGHT):
-                x_img = vrng.uniform(-0.1, 1.1) * W
-                if entering:
-                    x_img = -0.45 * face_w * f / Z if vrng.random() < 0.5 else W + 0.45 * face_w * f / Z
-                X = (x_img - self._vx) * Z / f
-            else:
-                n_lanes = max(1, int(round((geo.x_right - geo.x_left) / geo.lane_w)))
-                lane = int(vrng.integers(0, n_lanes))
-                X = geo.x_left + (lane + 0.5) * (geo.x_right - geo.x_left) / n_lanes + vrng.normal(0, 0.25)
-            if "width_px" in vo or "center_x" in vo:
-                return Z, X
-            overlap = self._overlap(Z, X, face_w, face_h)
-            if best is None or overlap < best[0]:
-                best = (overlap, Z, X)
-            if overlap < 0.35:
-                break
-        return best[1], best[2]
-
-    def _overlap(self, Z: float, X: float, face_w: float, face_h: float) -> float:
-        """Largest fraction of either box that a candidate and an existing vehicle share."""
-        f = self._f
-        bottom = self._hy + f * self._cam_h / Z
-        w, h = face_w * f / Z, face_h * f / Z
-        cx = self._vx + f * X / Z
-        a = (cx - w / 2, bottom - h, cx + w / 2, bottom)
-        worst = 0.0
-        for other in self._vehicles:
-            b = self._project(other)
-            iw = min(a[2], b[2]) - max(a[0], b[0])
-            ih = min(a[3], b[3]) - max(a[1], b[1])
-            if iw <= 0 or ih <= 0:
-                continue
-            inter = iw * ih
-            smaller = min((a[2] - a[0]) * (a[3] - a[1]), (b[2] - b[0]) * (b[3] - b[1]))
-            worst = max(worst, inter / max(smaller, 1e-6))
-        return worst
-
-    def _spawn(self, vo: Dict[str, Any], entering: bool) -> _Vehicle:
-        rng = self._rng
-        vrng = np.random.default_rng([self.seed, 100 + self._next_id])
-        track_id = str(self._next_id)
-        self._next_id += int(rng.integers(1, 4))
-        views = list(_VIEW_WEIGHTS)
-        view = View(vo["view"]) if "view" in vo else views[int(vrng.choice(4, p=list(_VIEW_WEIGHTS.values())))]
-        kind = vo.get("kind") or str(vrng.choice(KINDS, p=np.asarray(KIND_WEIGHTS) / sum(KIND_WEIGHTS)))
-        if kind not in KIND_DIMS:
-            raise ConfigError(f"kind must be one of {KINDS}, got {kind!r}")
-        design = vo.get("lamp_design")
-        if design is not None and design not in lamp_mod.LAMP_DESIGNS:
-            raise ConfigError(f"lamp_design must be one of {lamp_mod.LAMP_DESIGNS}, got {design!r}")
-        style = sample_lamp_style(vrng, kind, design, vo.get("tech"), vo.get("chmsl"), vo.get("blink_hz"), vo.get("duty"),
-                                  family=self.family)
-        scale = vrng.uniform(0.93, 1.07)
-        face_w, face_h = face_size_m(kind, view, scale)
-        shape = body_shape(kind, view, vrng)
-        if view == View.BEHIND:
-            lamps = lamp_mod.rear_lamps(style, kind, vrng, shape.chmsl_v)
-        elif view == View.FRONT:
-            lamps = lamp_mod.front_lamps(style, kind, vrng)
-        else:
-            lamps = lamp_mod.side_lamps(style, kind, vrng, view)
-        lamp_polys = [_segment_polys(l) if l.segments > 1 else [_lamp_poly(l)] for l in lamps]
-        W, f = self.width, self._f
-        z_min = face_w * f / (0.5 * W)
-        z_max = min(70.0, face_w * f / 22.0)
-        Z, X = self._place(vo, view, face_w, face_h, entering, vrng, z_min, z_max)
-        x_img = self._vx + f * X / Z
-        speed = vo.get("speed")
-        if view in (View.LEFT, View.RIGHT):
-            # Crossing traffic: moves towards its front (image left from the LEFT view).
-            heading = -1.0 if view == View.LEFT else 1.0
-            s = float(speed) if speed is not None else (0.0 if vrng.random() < 0.3 else vrng.uniform(1.0, 7.0))
-            if entering and s == 0.0:
-                s = vrng.uniform(1.0, 5.0)
-            if entering and speed is None:
-                heading = 1.0 if x_img < 0 else -1.0
-                view = View.RIGHT if heading > 0 else View.LEFT
-                if view != (View.LEFT if lamps[0].side == "L" else View.RIGHT):
-                    shape = body_shape(kind, view, vrng)
-                    lamps = lamp_mod.side_lamps(style, kind, vrng, view)
-                    lamp_polys = [_segment_polys(l) if l.segments > 1 else [_lamp_poly(l)] for l in lamps]
-            vx, vz = heading * s, 0.0
-        else:
-            s = float(speed) if speed is not None else None
-            if view == View.BEHIND:
-                vz = s if s is not None else vrng.uniform(-1.5, 1.5)
-                if entering and s is None:
-                    vz = -vrng.uniform(0.5, 3.0) if Z > z_max * 0.5 else vrng.uniform(1.0, 4.0)
-            else:
-                vz = -(s if s is not None else vrng.uniform(0.0, 4.0))
-            vx = 0.0 if s is not None else vrng.uniform(-0.25, 0.25)
-        fixed_intent = vo.get("intent")
-        if fixed_intent is not None and Intent(fixed_intent) == Intent.UNKNOWN:
-            raise ConfigError("intent override must be OFF, LEFT, RIGHT or HAZARD")
-        lights_on = bool(vo["lights_on"]) if "lights_on" in vo else bool(vrng.random() < self._light.lights_on)
-        colour = tuple(float(c) for c in vo["colour"]) if "colour" in vo else sample_colour(vrng)
-        paints = self._paints(vrng, colour, kind)
-        spots = []
-        if vo.get("specular", vrng.random() < (0.7 if self.lighting == "day" else 0.4)):
-            for _ in range(int(vrng.integers(1, 4))):
-                spots.append((vrng.uniform(0.1, 0.9), vrng.uniform(0.05, 0.6), vrng.uniform(0.012, 0.045), vrng.uniform(0.008, 0.03),
-                              vrng.uniform(0.4, 1.0)))
-        v = _Vehicle(track_id=track_id, kind=kind, view=view, style=style, colour=colour, face_w=face_w, face_h=face_h,
-                     shape=shape, lamps=lamps, lamp_polys=lamp_polys, X=X, Z=Z, vx=vx, vz=vz, lights_on=lights_on,
-                     blinker=blinker_timeline(np.random.default_rng([self.seed, 200 + int(track_id)]),
-                                              None if fixed_intent is None else Intent(fixed_intent)),
-                     brake=brake_timeline(np.random.default_rng([self.seed, 300 + int(track_id)]),
-                                          None if vo.get("brake") is None else bool(vo["brake"])),
-                     phase=float(vo["phase"]) if "phase" in vo else float(vrng.uniform(0, 1.0 / style.blink_hz)),
-                     shear=float(vo.get("shear", vrng.uniform(-0.05, 0.05))),
-                     roll=float(vo.get("roll", vrng.uniform(-1.5, 1.5))), spots=spots, paints=paints,
-                     tracker_bias=tuple(float(b) for b in vrng.normal(0, 0.02, 4)),
-                     tracker_sigma=float(vrng.uniform(0.008, 0.035)), tracker_amodal=bool(vrng.random() < 0.3))
-        pts, splits, sil = [], [], []
-        n = 0
-        for key, poly in shape.parts:
-            pts.append(poly)
-            splits.append((key, n, n + len(poly)))
-            n += len(poly)
-        for poly in shape.silhouette:
-            pts.append(poly)
-            sil.append((n, n + len(poly)))
-            n += len(poly)
-        v.part_pts = np.concatenate(pts, 0).astype(np.float32)
-        v.part_splits, v.sil_splits = splits, sil
-        self._prepare_lamps(v)
-        return v
-
-    def _prepare_lamps(self, v: _Vehicle) -> None:
-        """Stack all lamp outlines so that one matrix product per frame maps them to pixels."""
-        pts, ranges, ranges_poly = [], [], []
-        n = 0
-        for polys in v.lamp_polys:
-            a0 = n
-            rp = []
-            for poly in polys:
-                pts.append(poly)
-                rp.append((n, n + len(poly)))
-                n += len(poly)
-            ranges.append((a0, n))
-            ranges_poly.append(rp)
-        v.lamp_pts = np.concatenate(pts, 0).astype(np.float64)
-        v.lamp_ranges, v.lamp_ranges_poly = ranges, ranges_poly
-        lt = self._light
-        night = self.lighting != "day"
-        v.lens_cols = [shade(l.lens, lt, 1.0 / max(lt.ambient, 0.35) * (0.7 if night else 1.0)) for l in v.lamps]
-
-    def _paints(self, rng: np.random.Generator, colour, kind: str) -> Dict[str, Tuple[float, float, float]]:
-        lt = self._light
-        glass_g = rng.uniform(35, 95) if lt.name == "day" else rng.uniform(10, 35)
-        glass = (glass_g * rng.uniform(1.0, 1.25), glass_g * rng.uniform(0.95, 1.1), glass_g)
-        trim = (rng.uniform(25, 50),) * 3 if rng.random() < 0.6 else tuple(c * 0.8 for c in colour)
-        plate = (230, 230, 230) if rng.random() < 0.75 else (40, 200, 240)
-        box = colour if rng.random() < 0.4 else (rng.uniform(180, 240),) * 3
-        return {
-            "body": shade(colour, lt), "shade": shade(colour, lt, 0.55), "glass": shade(glass, lt, 1.0 / max(lt.ambient, 0.5)),
-            "dark": shade((22, 22, 24), lt), "trim": shade(trim, lt), "plate": shade(plate, lt, 1.0 if lt.name == "day" else 2.0),
-            "grille": shade((rng.uniform(20, 60),) * 3 if rng.random() < 0.8 else (160, 160, 165), lt),
-            "sign": (20, 150, 250) if lt.name != "day" else shade((20, 120, 220), lt, 1.3), "box": shade(box, lt),
-            "arch": shade((18, 18, 20), lt), "tyre": shade((rng.uniform(25, 40),) * 3, lt),
-            "hub": shade((rng.uniform(60, 190),) * 3, lt), "flank": shade(colour, lt, rng.uniform(0.6, 0.85)),
-            "flank_glass": shade(glass, lt, 0.8 / max(lt.ambient, 0.5)),
-        }
-
-    # ------------------------------------------------------------------ per-frame geometry
-    def _project(self, v: _Vehicle) -> Tuple[float, float, float, float]:
-        f = self._f
-        bottom = self._hy + f * self._cam_h / v.Z
-        h = v.face_h * f / v.Z
-        w = v.face_w * f / v.Z
-        cx = self._vx + f * v.X / v.Z
-        return cx - w / 2, bottom - h, cx + w / 2, bottom
-
-    def _move(self, v: _Vehicle, dt: float) -> bool:
-        """Advance a vehicle by ``dt`` seconds; False when it left the scene."""
-        v.X += v.vx * dt
-        v.Z += v.vz * dt
-        z_min = v.face_w * self._f / (0.55 * self.width)
-        if v.Z < z_min:
-            if v.view == View.BEHIND:
-                v.vz = abs(v.vz)
-                v.Z = z_min
-            else:
-                return False
-        if v.Z > 90:
-            return False
-        x0, y0, x1, y1 = self._project(v)
-        if x1 < -2 or x0 > self.width + 2:
-            return False
-        return True
-
-    def _affine(self, v: _Vehicle, box: Tuple[float, float, float, float], ox: float, oy: float) -> np.ndarray:
-        x0, y0, x1, y1 = box
-        bw, bh = x1 - x0, y1 - y0
-        a = math.radians(v.roll)
-        c, s = math.cos(a), math.sin(a)
-        # u,v -> local (centred, sheared) -> rotated -> ROI coordinates.
-        A = np.array([[bw, v.shear * bh], [0.0, bh]])
-        R = np.array([[c, -s], [s, c]])
-        L = R @ A
-        centre = np.array([(x0 + x1) / 2 - ox, (y0 + y1) / 2 - oy])
-        t = centre - L @ np.array([0.5, 0.5])
-        return np.hstack([L, t[:, None]]).astype(np.float64)
+            self._traffic.vehicles.append(self._traffic.spawn(vo[i] if i < len(vo) else {}, entering=False))
+        self._painter = VehiclePainter(W, H, self._geo, self._light, self.lighting, self._wet)
 
     # ------------------------------------------------------------------ rendering
     def frames(self, n_frames: int) -> Iterator[RenderedFrame]:
@@ -494,9 +167,7 @@ class SceneRenderer:
         for index in range(n_frames):
             t = index * dt
             if index > 0:
-                for i, v in enumerate(self._vehicles):
-                    if not self._move(v, dt) and self._overrides.get("respawn", True):
-                        self._vehicles[i] = self._spawn({}, entering=True)
+                self._traffic.step(dt, bool(self._overrides.get("respawn", True)))
             yield self._render(index, t)
 
     def _render(self, index: int, t: float) -> RenderedFrame:
@@ -512,9 +183,9 @@ class SceneRenderer:
         self._env.draw_lights(img, layer, t, ddx, ddy)
 
         # Bodies first (in any order), then visibility near-to-far, then lamps, then compositing far-to-near.
-        drawn: List[_Drawn] = []
-        for v in self._vehicles:
-            d = self._draw_body(v, t, ddx, ddy, layer)
+        drawn: List[Drawn] = []
+        for v in self._traffic.vehicles:
+            d = self._painter.body(v, self._traffic.project(v), ddx, ddy, layer)
             if d is not None:
                 drawn.append(d)
         coverage = np.zeros((H, W), np.uint8)
@@ -522,23 +193,13 @@ class SceneRenderer:
         for o, x in zip(self._env.occluders, occ_x):
             o.draw(coverage, x - ddx, ddy, value=255)
         drawn.sort(key=lambda d: d.v.Z)
-        for d in drawn:
-            x0, y0, x1, y1 = d.roi
-            cov = coverage[y0:y1, x0:x1]
-            sil = d.alpha > 127
-            d.vis = sil & (cov == 0)
-            cov[sil] = 255
+        mark_visible(drawn, coverage)
         truths: List[VehicleTruth] = []
         for d in drawn:
             tr = self._lamps_and_truth(d, t, layer, frng)
             if tr is not None:
                 truths.append(tr)
-        for d in reversed(drawn):
-            x0, y0, x1, y1 = d.roi
-            self._shadow(img, d)
-            a = d.alpha.astype(np.float32) * (1.0 / 255.0)
-            roi = img[y0:y1, x0:x1]
-            img[y0:y1, x0:x1] = cv2.blendLinear(d.canvas, roi, a, 1.0 - a)
+        self._painter.composite(img, drawn)
         for o, x in zip(self._env.occluders, occ_x):
             o.draw(img, x - ddx, ddy)
         rain = self._env.rain_slice(t)
@@ -547,300 +208,19 @@ class SceneRenderer:
         img = cv2.add(img, blur_glow(layer, W, H, 0.5 if self.lighting == "day" else 1.0))
         img = cam.apply(img, t, frng)
         # Listing order follows the vehicle list (stable), not depth.
-        order = {v.track_id: i for i, v in enumerate(self._vehicles)}
+        order = {v.track_id: i for i, v in enumerate(self._traffic.vehicles)}
         truths.sort(key=lambda tr: order.get(tr.track_id, 0))
         stamp = self.start_ns + int(round(index * 1e9 / self.fps))
         return RenderedFrame(index=index, stamp_ns=stamp, image=img, vehicles=truths, lighting=self.lighting)
 
-    def _flank(self, v: _Vehicle, ddx: float, ddy: float) -> Optional[Tuple[np.ndarray, Optional[np.ndarray]]]:
-        """Outline (and side windows) of the flank that a front or rear view shows when the
-        vehicle is off the camera axis, in image coordinates; None when none shows."""
-        if v.view in (View.LEFT, View.RIGHT):
+    def _lamps_and_truth(self, d: Drawn, t: float, layer: np.ndarray, frng: np.random.Generator) -> Optional[VehicleTruth]:
+        """Draw the lamps of a drawn vehicle and return its truth, None when it is not listed."""
+        states = lamp_states(d.v, t, self._light.exposure_s, self.lighting != "day")
+        fracs, seen = lamp_visibility(d)
+        self._painter.lamps(d, states.levels, fracs, layer)
+        listed = listed_box(d)
+        if listed is None:
             return None
-        w_m, h_m, length = KIND_DIMS[v.kind]
-        w_m = v.face_w
-        near_x = v.X + w_m / 2 if v.X < 0 else v.X - w_m / 2
-        if near_x * v.X <= 0:
-            return None  # straight ahead: no flank visible
-        f, hy, vx, ch = self._f, self._hy - ddy, self._vx - ddx, self._cam_h
-        Zn, Zf = v.Z, v.Z + length * (v.face_h / KIND_DIMS[v.kind][1])
-        xn, xf = vx + f * near_x / Zn, vx + f * near_x / Zf
-        if abs(xn - xf) < 1.0:
-            return None
-        top_far = h_m * (0.62 if v.kind in ("car", "suv") else 1.0) * v.face_h / KIND_DIMS[v.kind][1]
-        ground = 0.2 * v.face_h / KIND_DIMS[v.kind][1]
-        yn = lambda hgt: hy + f * (ch - hgt) / Zn  # noqa: E731
-        yf = lambda hgt: hy + f * (ch - hgt) / Zf  # noqa: E731
-        top_near = v.face_h * (0.62 if v.kind in ("car", "suv") else 1.0)
-        outline = np.array([[xn, yn(top_near)], [xf, yf(top_far)], [xf, yf(ground)], [xn, yn(ground)]], np.float64)
-        glass = None
-        if v.kind in ("car", "suv", "van", "bus"):
-            # Side windows: a band under the roof line, shorter than the body.
-            g_lo, g_hi = v.face_h * 0.62, v.face_h * (0.92 if v.kind in ("car", "suv") else 0.85)
-            za, zb = Zn + (Zf - Zn) * 0.12, Zn + (Zf - Zn) * 0.8
-            xa, xb = vx + f * near_x / za, vx + f * near_x / zb
-            ya = lambda hgt: hy + f * (ch - hgt) / za  # noqa: E731
-            yb = lambda hgt: hy + f * (ch - hgt) / zb  # noqa: E731
-            glass = np.array([[xa, ya(g_hi)], [xb, yb(g_hi)], [xb, yb(g_lo)], [xa, ya(g_lo)]], np.float64)
-            if v.kind in ("car", "suv"):
-                # The cabin sits on top of the body and is narrower: its roof edge is set
-                # in from the body side, so the roof line starts inside the face outline.
-                roof_x = near_x + (v.X - near_x) * 0.3
-                xr_n, xr_b = vx + f * roof_x / Zn, vx + f * roof_x / zb
-                roof_n = np.array([[xr_n, yn(v.face_h * 0.97)], [xr_b, yb(v.face_h * 0.95)], [xb, yb(top_far)]])
-                outline = np.vstack([outline[:1], roof_n, outline[1:]])
-                glass[0, 0], glass[1, 0] = vx + f * (near_x + (v.X - near_x) * 0.2) / za, vx + f * (near_x + (v.X - near_x) * 0.2) / zb
-        return outline, glass
-
-    def _shadow(self, img: np.ndarray, d: _Drawn) -> None:
-        """Contact shadow on the road under a vehicle (darker in daylight)."""
-        x0, y0, x1, y1 = d.box
-        cx, cy = (x0 + x1) / 2, y1 - (y1 - y0) * 0.02
-        H, W = img.shape[:2]
-        sx, sy = int(min(max(cx, 0), W - 1)), int(min(max(cy + 2, 0), H - 1))
-        under = img[sy, sx].astype(np.float32)
-        dark = tuple(float(c) * (0.45 if self.lighting == "day" else 0.7) for c in under)
-        ellipse(img, cx, cy, (x1 - x0) * 0.53, max(1.0, (y1 - y0) * 0.06), dark)
-
-    def _draw_body(self, v: _Vehicle, t: float, ddx: float, ddy: float, layer: np.ndarray) -> Optional[_Drawn]:
-        W, H = self.width, self.height
-        box = self._project(v)
-        box = (box[0] - ddx, box[1] - ddy, box[2] - ddx, box[3] - ddy)
-        bw, bh = box[2] - box[0], box[3] - box[1]
-        if bw < 2 or bh < 2:
-            return None
-        pad = abs(v.shear) * bh + abs(math.radians(v.roll)) * max(bw, bh) + 2
-        ext = [box[0] - pad, box[1] - pad, box[2] + pad, box[3] + pad]
-        flank = self._flank(v, ddx, ddy)
-        if flank is not None:
-            ext = [min(ext[0], flank[0][:, 0].min()), min(ext[1], flank[0][:, 1].min()),
-                   max(ext[2], flank[0][:, 0].max()), max(ext[3], flank[0][:, 1].max())]
-        rx0, ry0 = int(max(0, math.floor(ext[0]))), int(max(0, math.floor(ext[1])))
-        rx1, ry1 = int(min(W, math.ceil(ext[2]))), int(min(H, math.ceil(ext[3])))
-        if rx1 - rx0 < 1 or ry1 - ry0 < 1:
-            return None
-        M = self._affine(v, box, rx0, ry0)
-        pts = v.part_pts @ M[:, :2].T + M[:, 2]
-        ipts = np.round(pts * _ONE).astype(np.int32)
-        canvas = np.zeros((ry1 - ry0, rx1 - rx0, 3), np.uint8)
-        alpha = np.zeros((ry1 - ry0, rx1 - rx0), np.uint8)
-        if flank is not None:
-            # The flank is drawn first; the face drawn over it hides the seam.
-            outline, glass = flank
-            io = np.round((outline - (rx0, ry0)) * _ONE).astype(np.int32)
-            cv2.fillPoly(alpha, [io], 255, cv2.LINE_AA, _SHIFT)
-            cv2.fillPoly(canvas, [io], v.paints["flank"], cv2.LINE_AA, _SHIFT)
-            if glass is not None:
-                cv2.fillPoly(canvas, [np.round((glass - (rx0, ry0)) * _ONE).astype(np.int32)], v.paints["flank_glass"], cv2.LINE_AA, _SHIFT)
-        cv2.fillPoly(alpha, [ipts[a:b] for a, b in v.sil_splits], 255, cv2.LINE_AA, _SHIFT)
-        for key, a, b in v.part_splits:
-            cv2.fillPoly(canvas, [ipts[a:b]], v.paints.get(key, v.paints["body"]), cv2.LINE_AA, _SHIFT)
-        # Shading: light from above and from the sun's side, darker towards the ground.
-        hh, ww = canvas.shape[:2]
-        ys = (np.arange(hh, dtype=np.float32) + ry0 - box[1]) / bh
-        xs = (np.arange(ww, dtype=np.float32) + rx0 - box[0]) / bw
-        gy = 1.12 - 0.35 * np.clip(ys, 0, 1)
-        gx = 1.0 + 0.12 * self._light.sun_side * (np.clip(xs, 0, 1) - 0.5)
-        g = (gy[:, None] * gx[None, :]).astype(np.float32)
-        canvas = np.minimum(canvas.astype(np.float32) * g[:, :, None], 255.0).astype(np.uint8)
-        # Specular spots (sun or street-light reflections) slide over the body as the vehicle
-        # moves through the image and come and go; they are soft light, plus a sharp glint.
-        cx_img = (box[0] + box[2]) / 2
-        for (su, sv, sru, srv, strength) in v.spots:
-            u = su + 0.25 * (cx_img / W - 0.5)
-            flick = 0.5 + 0.5 * math.sin(cx_img * 0.05 + su * 10)
-            s = strength * flick * (1.0 if self.lighting == "day" else 0.6)
-            if s < 0.15:
-                continue
-            p = M @ np.array([u, sv, 1.0])
-            if sv < 0.6 and 0 <= p[0] < ww and 0 <= p[1] < hh and alpha[int(p[1]), int(p[0])] > 127:
-                add_glow(layer, p[0] + rx0, p[1] + ry0, sru * bw, (255, 255, 255), 0.6 * s)
-                if s > 0.5:
-                    ellipse(canvas, p[0], p[1], max(0.6, sru * bw * 0.35), max(0.5, srv * bh * 0.3),
-                            (235, 240, 245), angle=-12.0)
-        area_in = float(np.count_nonzero(alpha > 127))
-        full_box_area = bw * bh
-        in_box_area = max(0.0, (min(box[2], W) - max(box[0], 0))) * max(0.0, (min(box[3], H) - max(box[1], 0)))
-        full_area = area_in + max(0.0, full_box_area - in_box_area) * v.shape.fill_ratio
-        return _Drawn(v, box, (rx0, ry0, rx1, ry1), M, canvas, alpha, full_area=max(full_area, 1.0))
-
-    def _lamp_levels(self, v: _Vehicle, t: float) -> Tuple[List[List[float]], bool, bool, bool, bool]:
-        """Brightness of every lamp segment at time ``t`` plus (brake, left active, right
-        active, flasher in its lit half)."""
-        st = v.style
-        state, start = v.blinker.segment(t)
-        brake = bool(v.brake.segment(t)[0])
-        left_on = state in (Intent.LEFT, Intent.HAZARD)
-        right_on = state in (Intent.RIGHT, Intent.HAZARD)
-        # A flasher starts lit when switched on; a signal held for the whole sequence
-        # (override) runs with the vehicle's phase instead.
-        t_act = t + v.phase if start < -1e8 else t - start
-        exp_s = self._light.exposure_s
-        flash_lit = flasher_level(t_act, st, exp_s) >= 0.5
-        tail = st.tail_level if v.lights_on else 0.0
-        night = self.lighting != "day"
-        levels: List[List[float]] = []
-        for lamp, polys in zip(v.lamps, v.lamp_polys):
-            active = (lamp.side == "L" and left_on) or (lamp.side == "R" and right_on)
-            role = lamp.role
-            if role == "tail":
-                lev = (1.0 if brake and lamp.side != "C" else tail)
-                levels.append([lev])
-            elif role == "chmsl":
-                levels.append([1.0 if brake else 0.0])
-            elif role == "turn":
-                if not active:
-                    levels.append([0.0] * len(polys))
-                elif len(polys) > 1:
-                    step = st.duty / st.blink_hz * st.seq_fraction / len(polys)
-                    levels.append([flasher_level(t_act, st, exp_s, delay=k * step) for k in range(len(polys))])
-                else:
-                    levels.append([flasher_level(t_act, st, exp_s)])
-            elif role == "turn_tail":
-                base = 1.0 if brake else tail
-                if active:
-                    low = st.combined_dim if brake else tail
-                    levels.append([low + (1.0 - low) * flasher_level(t_act, st, exp_s)])
-                else:
-                    levels.append([base])
-            elif role == "head":
-                levels.append([1.0 if (v.lights_on and (night or v.view == View.FRONT)) else 0.0])
-            elif role in ("drl", "position"):
-                on = v.lights_on or st.drl_day
-                lev = 0.55 if on else 0.0
-                if on and active and st.drl_dims_on_turn:
-                    lev *= 1.0 - 0.85 * flasher_level(t_act, st, exp_s)
-                levels.append([lev])
-            elif role == "marker":
-                levels.append([0.6 if v.lights_on else 0.0])
-            elif role == "reflector":
-                levels.append([0.12 if night else 0.0])  # catches other vehicles' headlights
-            else:
-                levels.append([0.0])
-        return levels, brake, left_on, right_on, flash_lit
-
-    def _lamps_and_truth(self, d: _Drawn, t: float, layer: np.ndarray, frng: np.random.Generator) -> Optional[VehicleTruth]:
-        v = d.v
-        rx0, ry0, rx1, ry1 = d.roi
-        levels, brake, left_on, right_on, flash_lit = self._lamp_levels(v, t)
-        lt = self._light
-        night = self.lighting != "day"
-        # (role, side, visible lamp pixels) of lamps seen well enough to be labelled by the
-        # fraction rule; the size rule needs the vehicle's visible box, known after drawing.
-        seen: List[Tuple[str, str, float]] = []
-        # All lamp outlines in one transform; per-lamp pixel counts from integral images.
-        P = v.lamp_pts @ d.M[:, :2].T + d.M[:, 2]
-        IP = np.round(P * _ONE).astype(np.int32)
-        starts = [a for a, _ in v.lamp_ranges]
-        lo = np.minimum.reduceat(P, starts, axis=0)
-        hi = np.maximum.reduceat(P, starts, axis=0)
-        iv = cv2.integral(d.vis.view(np.uint8))
-        ia = cv2.integral((d.alpha > 127).view(np.uint8))
-        rw, rh = rx1 - rx0, ry1 - ry0
-        gain = max(LIT_LAMP_MIN_GAIN, v.style.brightness * lt.lamp_gain * (1.25 if night else 1.0))
-        for li, (lamp, polys, levs) in enumerate(zip(v.lamps, v.lamp_ranges_poly, levels)):
-            lx0, ly0 = lo[li]
-            lx1, ly1 = hi[li]
-            fx0, fy0, fx1, fy1 = math.floor(lx0), math.floor(ly0), math.ceil(lx1), math.ceil(ly1)
-            ix0, iy0, ix1, iy1 = max(0, fx0), max(0, fy0), min(rw, fx1), min(rh, fy1)
-            frac = 0.0
-            if ix1 > ix0 and iy1 > iy0:
-                n_vis = float(iv[iy1, ix1] - iv[iy0, ix1] - iv[iy1, ix0] + iv[iy0, ix0])
-                n_sil = float(ia[iy1, ix1] - ia[iy0, ix1] - ia[iy1, ix0] + ia[iy0, ix0])
-                outside = max(0.0, (fx1 - fx0) * (fy1 - fy0) - (ix1 - ix0) * (iy1 - iy0))
-                frac = n_vis / max(1.0, n_sil + outside * 0.8)
-            if frac >= LAMP_VISIBLE_FRACTION:
-                area = sum(cv2.contourArea(P[a:b].astype(np.float32)) for a, b in polys)
-                seen.append((lamp.role, lamp.side, frac * area))
-            # Unlit lens, then the lit colour blended in by the level.
-            lens = v.lens_cols[li]
-            for (a, b), lev in zip(polys, levs):
-                k = min(1.0, lev * gain)
-                col = (lens[0] + (lamp.emit[0] - lens[0]) * k, lens[1] + (lamp.emit[1] - lens[1]) * k,
-                       lens[2] + (lamp.emit[2] - lens[2]) * k)
-                cv2.fillPoly(d.canvas, [IP[a:b]], col, cv2.LINE_AA, _SHIFT)
-                if k > 0.05:
-                    p = P[a:b]
-                    c = p.mean(0)
-                    size = max(hi[li][0] - lo[li][0], hi[li][1] - lo[li][1]) if len(polys) == 1 else \
-                        max(float(np.ptp(p[:, 0])), float(np.ptp(p[:, 1])))
-                    if (night and k > 0.5) or k > 0.6:
-                        # Over-exposed core: the centre of a bright lamp clips towards white.
-                        core = (p - c) * 0.55 + c
-                        hot = (0.35 + 0.4 * k) if night else LIT_CORE_DAY * v.style.brightness
-                        cc = tuple(e + (255 - e) * hot for e in lamp.emit)
-                        cv2.fillPoly(d.canvas, [np.round(core * _ONE).astype(np.int32)], cc, cv2.LINE_AA, _SHIFT)
-                    add_glow(layer, c[0] + rx0, c[1] + ry0, size * 0.5, lamp.emit, 0.5 * k * lt.glow * frac * lamp.glow)
-                    if self._wet:
-                        # Reflection on the wet road, mirrored about the vehicle's ground line.
-                        gy = d.box[3]
-                        ry = gy + (gy - (c[1] + ry0)) * 0.9
-                        add_glow(layer, c[0] + rx0, ry, size * 0.5, lamp.emit, 0.3 * k * lt.glow * frac, stretch=3.0)
-        # Labels.
-        ys, xs = np.nonzero(d.vis)
-        if len(xs) == 0:
-            return None
-        bx0, by0 = float(xs.min() + rx0), float(ys.min() + ry0)
-        bx1, by1 = float(xs.max() + rx0 + 1), float(ys.max() + ry0 + 1)
-        occlusion = float(np.clip(1.0 - len(xs) / d.full_area, 0.0, 1.0))
-        if bx1 - bx0 < MIN_LISTED_PX or by1 - by0 < MIN_LISTED_PX or occlusion > MAX_LISTED_OCCLUSION:
-            return None
-        min_px = max(LAMP_MIN_PIXELS, LAMP_MIN_BOX_SHARE * max(bx1 - bx0, by1 - by0) ** 2)
-        visible = {"L": False, "R": False, "brake": False}
-        for role, side, pixels in seen:
-            if pixels < min_px:
-                continue
-            if role in ("turn", "turn_tail") and side in ("L", "R"):
-                visible[side] = True
-            # The centre brake lamp shows the brake on its own; a centre tail bar does not
-            # (it never brightens on braking).
-            if role == "chmsl" or (role in ("tail", "turn_tail") and side != "C"):
-                visible["brake"] = True
-        left = _light_status(left_on, visible["L"])
-        right = _light_status(right_on, visible["R"])
-        brake_s = _light_status(brake, visible["brake"])
-        # What a single frame shows: a blinker in its dark half looks like one switched off.
-        left_lit = _light_status(left_on and flash_lit, visible["L"])
-        right_lit = _light_status(right_on and flash_lit, visible["R"])
-        class_id = CLASS_IDS[v.kind]
-        tracker = self._tracker_box(v, (bx0, by0, bx1, by1), d, class_id, frng)
-        return VehicleTruth(track_id=v.track_id, box=(bx0, by0, bx1, by1), tracker_box=tracker, brake=brake_s, left=left,
-                            right=right, intent=intent_from_lights(left, right), view=v.view, occlusion=occlusion, kind=v.kind,
-                            lamp_design=v.style.design, class_id=class_id, left_lit=left_lit, right_lit=right_lit)
-
-    def _tracker_box(self, v: _Vehicle, box: Tuple[float, float, float, float], d: _Drawn, class_id: str,
-                     frng: np.random.Generator) -> Optional[TrackBox]:
-        """What a tracker would report: jittered, sometimes too large, cut off or missing."""
-        r = frng.random()
-        jit = frng.normal(0, 1, 4)
-        mode = frng.random()
-        side = int(frng.integers(0, 4))
-        amount = frng.uniform(0.08, 0.3)
-        if r < 0.03:
-            return None
-        x0, y0, x1, y1 = box
-        if v.tracker_amodal:
-            # Amodal box: the tracker keeps the full extent behind an occluder (clipped to the image).
-            fx0, fy0, fx1, fy1 = d.box
-            x0, y0 = max(0.0, fx0), max(0.0, fy0)
-            x1, y1 = min(float(self.width), fx1), min(float(self.height), fy1)
-        w, h = x1 - x0, y1 - y0
-        b = v.tracker_bias
-        s = v.tracker_sigma
-        x0 += (b[0] + s * jit[0]) * w
-        x1 += (b[1] + s * jit[1]) * w
-        y0 += (b[2] + s * jit[2]) * h
-        y1 += (b[3] + s * jit[3]) * h
-        if mode < 0.08:  # too large
-            x0, x1 = x0 - amount * w * 0.5, x1 + amount * w * 0.5
-            y0, y1 = y0 - amount * h * 0.5, y1 + amount * h * 0.5
-        elif mode < 0.14:  # cut off on one side
-            if side == 0:
-                x0 += amount * w
-            elif side == 1:
-                x1 -= amount * w
-            elif side == 2:
-                y0 += amount * h
-            else:
-                y1 -= amount * h
-        return TrackBox(v.track_id, float(x0), float(y0), float(x1), float(y1), class_id)
+        box, occlusion = listed
+        tracker = tracker_box(d.v, box, d.box, self.width, self.height, frng)
+        return vehicle_truth(d.v, box, occlusion, states, seen, tracker)

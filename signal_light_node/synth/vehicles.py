@@ -13,6 +13,7 @@ from typing import Dict, List, Tuple
 import numpy as np
 
 from signal_light_node.labels import View
+from signal_light_node.synth.environment import Lighting, shade
 
 #: Body kinds with (width, height, length) in metres.
 KIND_DIMS: Dict[str, Tuple[float, float, float]] = {
@@ -75,6 +76,25 @@ def sample_colour(rng: np.random.Generator) -> Tuple[float, float, float]:
     base = base * rng.uniform(0.85, 1.12) + rng.normal(0, 6, 3)
     return tuple(float(c) for c in np.clip(base, 5, 250))
 
+
+
+def sample_paints(rng: np.random.Generator, colour, lt: Lighting) -> Dict[str, Tuple[float, float, float]]:
+    """Colour of every paint key of a body (``BodyShape.parts``, plus the flank and its
+    glass) under the scene's light, from the body colour and a few random trims."""
+    glass_g = rng.uniform(35, 95) if lt.name == "day" else rng.uniform(10, 35)
+    glass = (glass_g * rng.uniform(1.0, 1.25), glass_g * rng.uniform(0.95, 1.1), glass_g)
+    trim = (rng.uniform(25, 50),) * 3 if rng.random() < 0.6 else tuple(c * 0.8 for c in colour)
+    plate = (230, 230, 230) if rng.random() < 0.75 else (40, 200, 240)
+    box = colour if rng.random() < 0.4 else (rng.uniform(180, 240),) * 3
+    return {
+        "body": shade(colour, lt), "shade": shade(colour, lt, 0.55), "glass": shade(glass, lt, 1.0 / max(lt.ambient, 0.5)),
+        "dark": shade((22, 22, 24), lt), "trim": shade(trim, lt), "plate": shade(plate, lt, 1.0 if lt.name == "day" else 2.0),
+        "grille": shade((rng.uniform(20, 60),) * 3 if rng.random() < 0.8 else (160, 160, 165), lt),
+        "sign": (20, 150, 250) if lt.name != "day" else shade((20, 120, 220), lt, 1.3), "box": shade(box, lt),
+        "arch": shade((18, 18, 20), lt), "tyre": shade((rng.uniform(25, 40),) * 3, lt),
+        "hub": shade((rng.uniform(60, 190),) * 3, lt), "flank": shade(colour, lt, rng.uniform(0.6, 0.85)),
+        "flank_glass": shade(glass, lt, 0.8 / max(lt.ambient, 0.5)),
+    }
 
 def _rrect(u0: float, v0: float, u1: float, v1: float, ru: float = 0.0, rv: float = 0.0, n: int = 3) -> Poly:
     """Rounded rectangle as a polygon (radii in normalised units per axis)."""
