@@ -98,3 +98,34 @@ def test_replay_on_a_committed_bag_prints_flicker_unknown_and_ece(tmp_path, caps
     printed = capsys.readouterr().out
     assert "Flicker per track" in printed and "UNKNOWN published" in printed
     assert "| overall |" in printed and "ECE" in printed
+
+
+def test_split_by_track_id_is_deterministic_and_whole_tracks():
+    from signal_light_node.errors import ConfigError
+    from signal_light_node.training.holdout import split_by_track_id
+
+    tracks = [_track(f"bag:{i % 5}", [OFF] * 3) for i in range(10)]  # 5 IDs, 2 tracks each
+    kept, held = split_by_track_id(tracks, 0.3, seed=7)
+    assert len({t.track_id for t in held}) == 2 and len(held) == 4  # round(0.3 x 5) IDs
+    assert not {t.track_id for t in kept} & {t.track_id for t in held}
+    again = split_by_track_id(tracks, 0.3, seed=7)[1]
+    assert [t.track_id for t in again] == [t.track_id for t in held]
+    assert split_by_track_id(tracks, 0.0, seed=7) == (tracks, [])
+    with pytest.raises(ConfigError, match="holdout-fraction"):
+        split_by_track_id(tracks[:1], 0.5, seed=7)
+
+
+def test_train_holdout_fraction_writes_a_before_after_report(tmp_path, capsys):
+    out = tmp_path / "ft"
+    assert main(["train", "--out", str(out), "--init-from", "default", "--bags", str(BAG),
+                 "--holdout-fraction", "0.3", "--steps", "2", "--batch", "2", "--seq-len", "4",
+                 "--workers", "0", "--threads", "1", "--val-every", "2", "--no-progress"]) == 0
+    report = json.loads((out / "adapt_report.json").read_text())
+    assert len(report["held_out_tracks"]) == 2  # round(0.3 x 8 track IDs of day_street)
+    for key in ("before", "after"):
+        for figure in ("intent_macro_f1", "brake_f1", "unknown_share"):
+            assert report[key][figure] is None or 0.0 <= report[key][figure] <= 1.0
+        assert report[key]["scored_frames"] > 0
+    assert report["before"]["scored_frames"] == report["after"]["scored_frames"]
+    assert "before" in (out / "adapt_report.md").read_text()
+    assert "held-out tracks" in capsys.readouterr().out
