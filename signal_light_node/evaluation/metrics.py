@@ -515,13 +515,15 @@ def flicker_table(switches: Mapping[str, Mapping[str, object]]) -> List[Dict[str
         by excess, then predicted changes, then name.
     """
     tasks = [t for t in ("brake", "left", "right", "intent") if t in switches]
-    names = sorted({k for t in tasks for k in switches[t].get("per_track", {})})  # type: ignore[union-attr]
+    per_track: Dict[str, Mapping[str, Mapping[str, int]]] = {
+        t: switches[t].get("per_track", {}) for t in tasks}  # type: ignore[misc]
+    names = sorted({k for t in tasks for k in per_track[t]})
     rows = []
     for name in names:
         row: Dict[str, object] = {"track": name}
         excess = 0
         for t in tasks:
-            c = switches[t]["per_track"].get(name, {"predicted": 0, "true": 0})  # type: ignore[index, union-attr]
+            c = per_track[t].get(name, {"predicted": 0, "true": 0})
             row[t] = {"predicted": int(c["predicted"]), "true": int(c["true"])}
             excess += max(0, int(c["predicted"]) - int(c["true"]))
         row["excess"] = excess
