@@ -9,10 +9,13 @@ the node's intent filter (``--no-intent-filter`` scores the raw model); frames i
 warm-up (the first ``max(--warmup-frames, --warmup-seconds)`` of each track) are not
 scored, and a second report also leaves out ``--grace`` seconds after each ground-truth
 change (see :mod:`signal_light_node.evaluation.scoring`). The reports also count the
-switches (class changes along the tracks, predicted against true). Writes
-``metrics.json``, ``metrics.md``,
-``confusion_intent.png`` (no grace window) and ``confusion_intent_grace.png`` into
-``--out`` and prints the Markdown.
+switches (class changes along the tracks, predicted against true), per track as well
+(the flicker table, worst tracks first), the share of UNKNOWN published per light where
+the truth is OFF or ON, and the calibration of each light's published probabilities
+(ECE). Writes ``metrics.json``, ``metrics.md``,
+``confusion_intent.png`` (no grace window), ``confusion_intent_grace.png`` and one
+reliability diagram per light head, ``reliability_<light>.png``, into ``--out`` and
+prints the Markdown.
 
 ``--ideal-observer`` scores, instead of a checkpoint, the best any online model could do
 on a split or synthetic tracks (:mod:`signal_light_node.evaluation.ideal_observer`): the
@@ -147,7 +150,8 @@ def _headline(result: Dict[str, Any]) -> str:
 
 def render_markdown(result: Dict[str, Any]) -> str:
     """The whole evaluation as Markdown (headline, then both full reports)."""
-    from signal_light_node.evaluation.metrics import markdown_report, switches_markdown
+    from signal_light_node.evaluation.metrics import (flicker_markdown, light_outcomes_markdown,
+                                                      markdown_report, switches_markdown)
 
     st, counts = result["settings"], result["counts"]
     intent = result["switches"]["intent"]
@@ -171,6 +175,12 @@ def render_markdown(result: Dict[str, Any]) -> str:
                         f"After warm-up, {st['grace_seconds']:g} s grace window after label changes"),
         "### Switches (after warm-up: class changes along the tracks)", "",
         switches_markdown(result["switches"]),
+        "### Flicker per track (after warm-up)", "",
+        flicker_markdown(result.get("flicker", [])),
+        "### UNKNOWN published where the truth is OFF or ON"
+        + (" and calibration (ECE, 15 bins of the predicted class's confidence)"
+           if result.get("calibration") else ""), "",
+        light_outcomes_markdown(result["unknown_share"], result.get("calibration")),
     ]
     return "\n".join(parts)
 
@@ -196,7 +206,7 @@ def run(args: argparse.Namespace) -> int:
     from signal_light_node.model.backends.registry import create_backend
     from signal_light_node.runtime.backend import ModelRun
     from signal_light_node.evaluation.ideal_observer import score_ideal_observer
-    from signal_light_node.evaluation.metrics import render_confusion_png
+    from signal_light_node.evaluation.metrics import render_confusion_png, render_reliability_png
     from signal_light_node.evaluation.scoring import EvalSettings
     from signal_light_node.evaluation.streaming import evaluate_tracks
 
@@ -239,6 +249,10 @@ def run(args: argparse.Namespace) -> int:
         matrix = np.asarray(intent["confusion"]) if intent else np.zeros((5, 5), np.int64)
         render_confusion_png(matrix, CLASS_NAMES["intent"], str(out / name),
                              title=f"intent, {'grace window' if key == 'grace' else 'after warm-up'}")
+    for light, report in result.get("calibration", {}).items():
+        render_reliability_png(report, str(out / f"reliability_{light}.png"),
+                               title=f"{light}: reliability, ECE {report['ece']:.3f} "
+                                     f"({report['frames']} frames, truth OFF/ON)")
     print(markdown)
-    logger.info("wrote %s/metrics.json, metrics.md, confusion_intent.png", out)
+    logger.info("wrote %s/metrics.json, metrics.md, confusion_intent.png, reliability_*.png", out)
     return 0

@@ -142,7 +142,8 @@ def render_scores(result: dict, bag: "Path | str", intent_filter: str = "") -> s
         bag: The bag replayed.
         intent_filter: ``IntentFilterConfig.describe()`` of the engine, if known.
     """
-    from signal_light_node.evaluation.metrics import markdown_report, switches_markdown
+    from signal_light_node.evaluation.metrics import (flicker_markdown, light_outcomes_markdown,
+                                                      markdown_report, switches_markdown)
 
     st, c = result["settings"], result["counts"]
     head = (f"Agreement with the ground truth of {bag}: {c['frames']} judged frames with ground "
@@ -158,4 +159,9 @@ def render_scores(result: dict, bag: "Path | str", intent_filter: str = "") -> s
                                       f"{st['grace_seconds']:g} s grace window after label "
                                       f"changes"),
                       "### Switches (after warm-up: class changes along the tracks)", "",
-                      switches_markdown(result["switches"])])
+                      switches_markdown(result["switches"]),
+                      "### Flicker per track (after warm-up)", "",
+                      flicker_markdown(result["flicker"]),
+                      "### UNKNOWN published where the truth is OFF or ON, calibration (ECE)",
+                      "", light_outcomes_markdown(result["unknown_share"],
+                                                  result["calibration"])])

@@ -13,6 +13,11 @@ Examples::
     signal-light train --out runs/l --pool runs/pool --mode lanes --batch 32 --seq-len 12 \
         --init-from runs/f/best.pt --max-minutes 45
 
+    # fine-tune the shipped weights on your labelled bags, 30 % of their tracks held out,
+    # and compare before / after on them (OUT/adapt_report.md, adapt_report.json)
+    signal-light train --out runs/mine --init-from default --bags out/day_labelled \
+        --holdout-fraction 0.3 --steps 500
+
     # resume an interrupted run (last.pt + last.state.pt in --out)
     signal-light train --out runs/syn --max-minutes 30 --resume
 
@@ -167,6 +172,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="steps between validations")
     g.add_argument("--val-fraction", type=float, default=_default("val_fraction"),
                    help="share of bag/UCM tracks held out for validation")
+    g.add_argument("--holdout-fraction", type=float, default=_default("holdout_fraction"),
+                   help="with --init-from and --bags/--ucm: share of the track IDs (drawn with "
+                        "--seed) held out of the run; the --init-from model and the fine-tuned "
+                        "one are then evaluated on them (OUT/adapt_report.md and .json)")
     g.add_argument("--patience", type=int, default=_default("plateau_patience"),
                    help="validations without improvement before the LR drops")
     g.add_argument("--anneal-fraction", type=float,
@@ -196,7 +205,8 @@ def options_from_args(args: argparse.Namespace) -> TrainOptions:
         loss_warmup=args.loss_warmup, loss_warmup_seconds=args.loss_warmup_seconds,
         val_split=args.val_split,
         val_sequences=args.val_sequences, val_every=args.val_every,
-        val_fraction=args.val_fraction, plateau_patience=args.patience,
+        val_fraction=args.val_fraction, holdout_fraction=args.holdout_fraction,
+        plateau_patience=args.patience,
         anneal_fraction=args.anneal_fraction, device=args.device,
         precision=args.precision,
         seed=args.seed, threads=args.threads, workers=args.workers, resume=resume,
@@ -213,13 +223,37 @@ def options_from_args(args: argparse.Namespace) -> TrainOptions:
         progress=not args.no_progress)
 
 
+def _holdout_report(opts: TrainOptions, summary: Dict[str, Any]) -> str:
+    """Evaluate the ``--init-from`` model and the run's best (else last) checkpoint on the
+    held-out tracks; writes the report into ``--out`` and returns its Markdown."""
+    from signal_light_node.model import load_checkpoint
+    from signal_light_node.training.holdout import before_after, split_by_track_id, write_report
+    from signal_light_node.training.run_data import load_tracks
+    from signal_light_node.training.run_model import resolve_init
+
+    init = resolve_init(opts.init_from)
+    best = summary.get("best_step", -1) >= 0 and (opts.out / "best.pt").is_file()
+    after = opts.out / ("best.pt" if best else "last.pt")
+    before_model = load_checkpoint(init, map_location="cpu")
+    after_model = load_checkpoint(after, map_location="cpu")
+    crop = after_model.config.crop_config()
+    _, held_out = split_by_track_id(load_tracks(opts, crop), opts.holdout_fraction, opts.seed)
+    report = before_after(before_model.model.eval(), after_model.model.eval(), held_out,
+                          str(init), str(after))
+    return write_report(opts.out, report)
+
+
 def run(args: argparse.Namespace) -> int:
-    """Train; prints a JSON summary (rank 0 only under torchrun)."""
+    """Train; prints a JSON summary (rank 0 only under torchrun) and, with
+    ``--holdout-fraction``, the before/after report."""
     from signal_light_node.training.loop import train  # imports torch: only when training
 
-    summary = train(options_from_args(args))
+    opts = options_from_args(args)
+    summary = train(opts)
     import os
 
     if int(os.environ.get("RANK", "0")) == 0:
         print(json.dumps(summary, indent=2))
+        if opts.holdout_fraction > 0:
+            print(_holdout_report(opts, summary))
     return 0

@@ -415,6 +415,123 @@ class SwitchCounter:
                               for k, (p, t) in self._per_track.items()}}
 
 
+def expected_calibration_error(probs: np.ndarray, labels: np.ndarray, bins: int = 15) -> float:
+    """ECE of ``[M, K]`` probabilities against ``[M]`` labels (top-class confidence bins)."""
+    if len(labels) == 0:
+        return 0.0
+    confidence = probs.max(1)
+    correct = (probs.argmax(1) == labels).astype(np.float64)
+    edges = np.linspace(0.0, 1.0, bins + 1)
+    which = np.clip(np.digitize(confidence, edges[1:-1]), 0, bins - 1)
+    total = 0.0
+    for b in range(bins):
+        sel = which == b
+        if sel.any():
+            total += sel.mean() * abs(correct[sel].mean() - confidence[sel].mean())
+    return float(total)
+
+
+def reliability_report(probs: np.ndarray, labels: np.ndarray, bins: int = 15) -> Dict[str, object]:
+    """Reliability of a light head's published probabilities on frames whose truth is OFF or ON.
+
+    Args:
+        probs: ``[M, K]`` published probabilities.
+        labels: ``[M]`` true classes.
+        bins: Equal-width bins of the top-class confidence (as :func:`expected_calibration_error`).
+
+    Returns:
+        ``{"frames", "ece", "bins": [{"low", "high", "count", "confidence", "accuracy"}]}``:
+        per bin the mean confidence of the predicted class and how often it was right
+        (``None`` in an empty bin).
+    """
+    p, y = np.asarray(probs, np.float64), np.asarray(labels)
+    confidence = p.max(1) if len(y) else np.zeros(0)
+    correct = (p.argmax(1) == y) if len(y) else np.zeros(0, bool)
+    edges = np.linspace(0.0, 1.0, bins + 1)
+    which = np.clip(np.digitize(confidence, edges[1:-1]), 0, bins - 1)
+    rows = []
+    for b in range(bins):
+        sel = which == b
+        rows.append({"low": float(edges[b]), "high": float(edges[b + 1]), "count": int(sel.sum()),
+                     "confidence": float(confidence[sel].mean()) if sel.any() else None,
+                     "accuracy": float(correct[sel].mean()) if sel.any() else None})
+    return {"frames": int(len(y)), "ece": expected_calibration_error(p, y, bins), "bins": rows}
+
+
+class LightOutcomes:
+    """What the light heads published where the truth is OFF or ON: the share of UNKNOWN
+    and (with probabilities) the reliability of the published probabilities.
+
+    The UNKNOWN share of a head is the fraction of its scored frames with a true OFF or
+    ON whose published state is UNKNOWN; ``overall`` pools the three heads.
+    """
+
+    def __init__(self) -> None:
+        self._unknown = {t: [0, 0] for t in LIGHT_TASKS}  # [UNKNOWN published, frames]
+        self._probs: Dict[str, List[np.ndarray]] = {t: [] for t in LIGHT_TASKS}
+        self._labels: Dict[str, List[np.ndarray]] = {t: [] for t in LIGHT_TASKS}
+
+    def add(self, task: str, y_true: ArrayLike, y_pred: ArrayLike,
+            probs: Optional[np.ndarray] = None) -> None:
+        """Add a light head's scored frames (``probs``: their ``[N, K]`` published
+        probabilities, if known)."""
+        t, p = _pair(y_true, y_pred)
+        keep = (t == int(LightStatus.OFF)) | (t == int(LightStatus.ON))
+        self._unknown[task][0] += int(np.count_nonzero(p[keep] == int(LightStatus.UNKNOWN)))
+        self._unknown[task][1] += int(keep.sum())
+        if probs is not None:
+            q = np.asarray(probs, np.float64)[keep]
+            finite = np.isfinite(q).all(axis=1)
+            self._probs[task].append(q[finite])
+            self._labels[task].append(t[keep][finite])
+
+    def unknown_share(self) -> Dict[str, Dict[str, object]]:
+        """``{light: {"unknown", "frames", "share"}, "overall": {...}}`` (share None when no
+        frame had a true OFF or ON)."""
+        out: Dict[str, Dict[str, object]] = {}
+        for task, (u, n) in self._unknown.items():
+            out[task] = {"unknown": u, "frames": n, "share": _ratio(u, n)}
+        u = sum(v[0] for v in self._unknown.values())
+        n = sum(v[1] for v in self._unknown.values())
+        out["overall"] = {"unknown": u, "frames": n, "share": _ratio(u, n)}
+        return out
+
+    def calibration(self) -> Dict[str, Dict[str, object]]:
+        """Light -> :func:`reliability_report`, for the heads whose probabilities were given."""
+        return {t: reliability_report(np.concatenate(self._probs[t]),
+                                      np.concatenate(self._labels[t]))
+                for t in LIGHT_TASKS if self._probs[t]}
+
+
+def flicker_table(switches: Mapping[str, Mapping[str, object]]) -> List[Dict[str, object]]:
+    """Per track, the predicted and true changes of every head, worst tracks first.
+
+    Args:
+        switches: Task -> :meth:`SwitchCounter.report`.
+
+    Returns:
+        One row per track: ``{"track", "excess", task: {"predicted", "true"}, ...}`` where
+        ``excess`` sums, over the heads, the predicted changes beyond the true ones; sorted
+        by excess, then predicted changes, then name.
+    """
+    tasks = [t for t in ("brake", "left", "right", "intent") if t in switches]
+    per_track: Dict[str, Mapping[str, Mapping[str, int]]] = {
+        t: switches[t].get("per_track", {}) for t in tasks}  # type: ignore[misc]
+    names = sorted({k for t in tasks for k in per_track[t]})
+    rows = []
+    for name in names:
+        row: Dict[str, object] = {"track": name}
+        excess = 0
+        for t in tasks:
+            c = per_track[t].get(name, {"predicted": 0, "true": 0})
+            row[t] = {"predicted": int(c["predicted"]), "true": int(c["true"])}
+            excess += max(0, int(c["predicted"]) - int(c["true"]))
+        row["excess"] = excess
+        rows.append(row)
+    tasks_sum = lambda r: sum(r[t]["predicted"] for t in tasks)  # noqa: E731
+    return sorted(rows, key=lambda r: (-r["excess"], -tasks_sum(r), r["track"]))
+
+
 def selection_score(summary: Mapping[str, Optional[float]],
                     trained: Optional[Iterable[str]] = None) -> float:
     """Scalar used to pick the best checkpoint: mean of intent macro-F1 and brake accuracy.
@@ -539,6 +656,81 @@ def switches_markdown(switches: Mapping[str, Mapping[str, object]],
                   "| track | predicted | true |", "|---|---:|---:|"]
         lines += [f"| {k} | {v['predicted']} | {v['true']} |" for k, v in shown]
     return "\n".join(lines) + "\n"
+
+
+def flicker_markdown(table: Sequence[Mapping[str, object]], max_tracks: int = 20) -> str:
+    """Render :func:`flicker_table` (per track, predicted / true changes per head)."""
+    if not table:
+        return "No track was scored.\n"
+    tasks = [t for t in ("brake", "left", "right", "intent") if t in table[0]]
+    shown = list(table[:max_tracks])
+    more = f" ({len(shown)} of {len(table)})" if len(shown) < len(table) else ""
+    lines = [f"Changes per track, predicted / true, worst first{more}:", "",
+             "| track | " + " | ".join(tasks) + " | excess |",
+             "|---|" + "---:|" * (len(tasks) + 1)]
+    for row in shown:
+        cells = [f"{row[t]['predicted']} / {row[t]['true']}" for t in tasks]  # type: ignore[index]
+        lines.append(f"| {row['track']} | " + " | ".join(cells) + f" | {row['excess']} |")
+    return "\n".join(lines) + "\n"
+
+
+def light_outcomes_markdown(unknown: Mapping[str, Mapping[str, object]],
+                            calibration: Optional[Mapping[str, Mapping[str, object]]] = None
+                            ) -> str:
+    """The UNKNOWN share per light (and overall) and, when given, each light's ECE."""
+    lines = ["| light | frames with true OFF/ON | published UNKNOWN | share |"
+             + (" ECE |" if calibration else ""),
+             "|---|---:|---:|---:|" + ("---:|" if calibration else "")]
+    for name, u in unknown.items():
+        ece = ""
+        if calibration:
+            c = calibration.get(name)
+            ece = " " + ("–" if c is None else f"{c['ece']:.3f}") + " |"
+        lines.append(f"| {name} | {u['frames']} | {u['unknown']} | "
+                     f"{percent_cell(u['share'])} |{ece}")  # type: ignore[arg-type]
+    return "\n".join(lines) + "\n"
+
+
+def render_reliability_png(report: Mapping[str, object], path: str, title: str = "") -> None:
+    """Draw a :func:`reliability_report` as a reliability diagram PNG with OpenCV.
+
+    One bar per confidence bin at the observed accuracy of the predicted class, the
+    diagonal (perfect calibration), and the frame count of each bin under it.
+
+    Raises:
+        ConfigError: The file cannot be written.
+    """
+    import cv2  # local: keep the metric functions importable without OpenCV
+
+    size, left, top = 400, 60, 50
+    width, height = left + size + 30, top + size + 70
+    img = np.full((height, width, 3), 255, np.uint8)
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    x0, y0 = left, top + size  # origin (confidence 0, accuracy 0)
+    if title:
+        cv2.putText(img, title, (10, 24), font, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
+    for b in report["bins"]:  # type: ignore[union-attr]
+        if b["accuracy"] is None:
+            continue
+        xa, xb = x0 + int(b["low"] * size), x0 + int(b["high"] * size)
+        ya = y0 - int(round(b["accuracy"] * size))
+        cv2.rectangle(img, (xa + 1, ya), (xb - 1, y0), (200, 120, 40), -1)
+        yc = y0 - int(round(b["confidence"] * size))
+        cv2.line(img, (xa + 1, yc), (xb - 1, yc), (0, 0, 200), 2)
+        cv2.putText(img, str(b["count"]), (xa + 2, y0 + 14), font, 0.3, (80, 80, 80), 1,
+                    cv2.LINE_AA)
+    cv2.rectangle(img, (x0, top), (x0 + size, y0), (0, 0, 0), 1)
+    cv2.line(img, (x0, y0), (x0 + size, top), (128, 128, 128), 1, cv2.LINE_AA)
+    for v in (0.0, 0.5, 1.0):
+        cv2.putText(img, f"{v:.1f}", (x0 + int(v * size) - 10, y0 + 30), font, 0.4, (0, 0, 0), 1,
+                    cv2.LINE_AA)
+        cv2.putText(img, f"{v:.1f}", (left - 35, y0 - int(v * size) + 4), font, 0.4, (0, 0, 0), 1,
+                    cv2.LINE_AA)
+    cv2.putText(img, "confidence of the predicted class (bars: observed accuracy, red: mean "
+                "confidence; counts under the bins)", (10, height - 14), font, 0.3, (0, 0, 0), 1,
+                cv2.LINE_AA)
+    if not cv2.imwrite(str(path), img):
+        raise ConfigError(f"cannot write reliability diagram to {path}")
 
 
 def render_confusion_png(matrix: np.ndarray, class_names: Sequence[str], path: str,

@@ -21,21 +21,27 @@ band and occlusion band (:mod:`signal_light_node.evaluation.metrics`).
 
 Switches (flicker): per head and track, how often the predicted and the true class
 change from one scored frame to the next (after the warm-up, no grace window);
-reported per track and summed, with their ratio (``metrics.SwitchCounter``).
+reported per track and summed, with their ratio (``metrics.SwitchCounter``), and as
+a per-track table over the heads, worst first (``metrics.flicker_table``).
+
+Light outcomes (``metrics.LightOutcomes``, after the warm-up, no grace window): per light
+head the share of frames with a true OFF or ON published as UNKNOWN, and, where the
+published probabilities are given, their reliability (bins and ECE).
 """
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import Any, Dict
+from typing import Any, Dict, Mapping, Optional
 
 import numpy as np
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.evaluation.metrics import (MetricAccumulator, SwitchCounter,
-                                                  box_size_band, occlusion_band)
+from signal_light_node.evaluation.metrics import (LightOutcomes, MetricAccumulator,
+                                                  SwitchCounter, box_size_band, flicker_table,
+                                                  occlusion_band)
 from signal_light_node.evaluation.tracks import TrackSequence
-from signal_light_node.labels import CLASS_NAMES, TASKS
+from signal_light_node.labels import CLASS_NAMES, LIGHT_TASKS, TASKS
 
 _VIEW = TASKS.index("view")
 
@@ -131,11 +137,13 @@ class TrackScorer:
         self.settings = settings
         self.strict, self.graced = MetricAccumulator(), MetricAccumulator()
         self.switches = {task: SwitchCounter() for task in TASKS}
+        self.lights = LightOutcomes()
         self.counts: Dict[str, Any] = {"tracks": 0, "frames": 0, "stepped": 0,
                                        "warmup_excluded": 0, "scored": 0,
                                        "grace_excluded": {t: 0 for t in TASKS}}
 
-    def add(self, track: TrackSequence, pred: np.ndarray, breakdowns: bool = True) -> None:
+    def add(self, track: TrackSequence, pred: np.ndarray, breakdowns: bool = True,
+            probs: Optional[Mapping[str, np.ndarray]] = None) -> None:
         """Score one track.
 
         Args:
@@ -143,6 +151,8 @@ class TrackScorer:
                 not stepped and are never scored.
             pred: int64 ``[len(track), len(TASKS)]`` predicted classes.
             breakdowns: Also group the metrics by lighting, view, box size and occlusion.
+            probs: Light head -> ``[len(track), K]`` published probabilities, for the
+                calibration report (optional).
         """
         stepped = np.asarray(track.mask, bool)
         scored = warmup_mask(track, self.settings)
@@ -158,6 +168,9 @@ class TrackScorer:
             y, p = track.labels[rows, i], pred[rows, i]
             self.strict.add(task, y, p, groups)
             self.switches[task].add(track.track_id, y, p)
+            if task in LIGHT_TASKS:
+                self.lights.add(task, y, p, None if probs is None or task not in probs
+                                else np.asarray(probs[task])[rows])
             keep = grace_mask(track, i, self.settings)[rows]
             counts["grace_excluded"][task] += int((~keep).sum())
             self.graced.add(task, y[keep], p[keep],
@@ -165,11 +178,18 @@ class TrackScorer:
                              for k, v in groups.items()})
 
     def result(self) -> Dict[str, Any]:
-        """``{"settings", "counts", "no_grace": report, "grace": report, "switches"}``.
+        """``{"settings", "counts", "no_grace": report, "grace": report, "switches",
+        "flicker", "unknown_share", "calibration"}``.
 
         The reports come from :meth:`MetricAccumulator.report`, the switches (task ->
-        report) from :meth:`SwitchCounter.report`.
+        report) from :meth:`SwitchCounter.report`, ``flicker`` from
+        :func:`~.metrics.flicker_table`, ``unknown_share`` and ``calibration`` (light ->
+        reliability report, the heads given probabilities only) from
+        :class:`~.metrics.LightOutcomes`.
         """
+        switches = {t: c.report() for t, c in self.switches.items()}
         return {"settings": asdict(self.settings), "counts": self.counts,
                 "no_grace": self.strict.report(), "grace": self.graced.report(),
-                "switches": {t: c.report() for t, c in self.switches.items()}}
+                "switches": switches, "flicker": flicker_table(switches),
+                "unknown_share": self.lights.unknown_share(),
+                "calibration": self.lights.calibration()}

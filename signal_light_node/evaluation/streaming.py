@@ -17,7 +17,7 @@ The predictions are scored by :class:`~signal_light_node.evaluation.scoring.Trac
 from __future__ import annotations
 
 from dataclasses import asdict
-from typing import Any, Dict, Iterable, Iterator, List, Optional, Sequence
+from typing import Any, Dict, Iterable, Iterator, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -26,7 +26,7 @@ from tqdm import tqdm
 from signal_light_node.errors import ConfigError
 from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
 from signal_light_node.evaluation.tracks import TrackSequence
-from signal_light_node.labels import TASKS
+from signal_light_node.labels import CLASS_NAMES, LIGHT_TASKS, TASKS
 from signal_light_node.model.backends.registry import as_backend
 from signal_light_node.runtime.intent_filter import IntentFilter, IntentFilterConfig
 
@@ -34,7 +34,16 @@ from signal_light_node.runtime.intent_filter import IntentFilter, IntentFilterCo
 def predict_track_batch(model: Any, tracks: Sequence[TrackSequence],
                         device: "str | torch.device" = "cpu",
                         intent_filter: Optional[IntentFilterConfig] = None) -> List[np.ndarray]:
-    """Step a batch of tracks frame by frame; returns int64 ``[T_i, len(TASKS)]`` each.
+    """Step a batch of tracks frame by frame; returns int64 ``[T_i, len(TASKS)]`` each
+    (:func:`predict_track_probs` without the probabilities)."""
+    return predict_track_probs(model, tracks, device, intent_filter)[0]
+
+
+def predict_track_probs(model: Any, tracks: Sequence[TrackSequence],
+                        device: "str | torch.device" = "cpu",
+                        intent_filter: Optional[IntentFilterConfig] = None
+                        ) -> Tuple[List[np.ndarray], List[Dict[str, np.ndarray]]]:
+    """Step a batch of tracks frame by frame: the published classes and light probabilities.
 
     Args:
         model: A model backend (``runtime.backend.ModelBackend``: torch, onnxruntime), or
@@ -45,13 +54,17 @@ def predict_track_batch(model: Any, tracks: Sequence[TrackSequence],
             its defaults; ``enabled=False`` gives the raw model's argmax).
 
     Returns:
-        Published classes per frame; rows of frames that are not stepped (mask False)
-        are -1.
+        Per track: the published classes per frame, int64 ``[T_i, len(TASKS)]`` (rows of
+        frames that are not stepped, mask False, are -1), and per light head the
+        published probabilities ``[T_i, K]`` (NaN where not stepped).
     """
     backend = as_backend(model, str(device))
     n = len(tracks)
     length = max(len(t) for t in tracks)
     preds = [np.full((len(t), len(TASKS)), -1, np.int64) for t in tracks]
+    probs: List[Dict[str, np.ndarray]] = [
+        {task: np.full((len(t), len(CLASS_NAMES[task])), np.nan) for task in LIGHT_TASKS}
+        for t in tracks]
     # Each track's state is a row of the backend's row store, as in the state bank.
     states = backend.new_rows(n)
     light_filter = IntentFilter(intent_filter)
@@ -71,7 +84,9 @@ def predict_track_batch(model: Any, tracks: Sequence[TrackSequence],
         labels = np.stack([filtered.states[t] for t in TASKS], axis=1)
         for row, k in enumerate(active):
             preds[k][i] = labels[row]
-    return preds
+            for task in LIGHT_TASKS:
+                probs[k][task][i] = filtered.probs[task][row]
+    return preds, probs
 
 
 def _chunks(tracks: Iterable[TrackSequence], size: int) -> Iterator[List[TrackSequence]]:
@@ -120,9 +135,9 @@ def evaluate_tracks(model: Any, tracks: Iterable[TrackSequence],
     scorer = TrackScorer(settings)
     bar = tqdm(total=total, desc="evaluate", unit="track", disable=not progress)
     for batch in _chunks(tracks, settings.batch_tracks):
-        preds = predict_track_batch(backend, batch, intent_filter=intent_filter)
-        for track, pred in zip(batch, preds):
-            scorer.add(track, pred)
+        preds, probs = predict_track_probs(backend, batch, intent_filter=intent_filter)
+        for track, pred, prob in zip(batch, preds, probs):
+            scorer.add(track, pred, probs=prob)
         bar.update(len(batch))
     bar.close()
     if scorer.counts["tracks"] == 0:

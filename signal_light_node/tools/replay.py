@@ -38,6 +38,7 @@ import numpy as np
 
 from signal_light_node.boxes import TrackBox
 from signal_light_node.errors import ConfigError, ImageConversionError
+from signal_light_node.labels import LIGHT_TASKS
 from signal_light_node.io.bagio import BagWriter, find_topic, make, open_bag
 from signal_light_node.io.conversions import detections_to_boxes, stamp_to_ns
 from signal_light_node.io.image_codec import DEFAULT_MAX_IMAGE_PIXELS, msg_to_bgr
@@ -70,12 +71,15 @@ class TrackRecord:
         truth: ``[T, 5]`` ground-truth classes (``TASKS`` order).
         pred: ``[T, 5]`` predicted classes.
         frames_observed: The engine's ``frames_observed`` per frame (1 = state just started).
+        light_probs: ``[T, 3, 3]`` published (OFF, ON, UNKNOWN) probabilities of brake,
+            left and right.
     """
 
     stamps_ns: List[int] = field(default_factory=list)
     truth: List[np.ndarray] = field(default_factory=list)
     pred: List[np.ndarray] = field(default_factory=list)
     frames_observed: List[int] = field(default_factory=list)
+    light_probs: List[np.ndarray] = field(default_factory=list)
 
 
 @dataclass
@@ -645,6 +649,8 @@ def _record(tracks: Dict[str, TrackRecord], stamp: int, truth: Mapping[str, np.n
         rec.truth.append(row)
         rec.pred.append(result_row(res))
         rec.frames_observed.append(res.frames_observed)
+        rec.light_probs.append(np.array([[e.off, e.on, e.unknown] for e in
+                                         (res.brake, res.left, res.right)], np.float64))
 
 
 def score_summary(summary: ReplaySummary, settings: Any = None) -> Optional[Dict[str, Any]]:
@@ -661,7 +667,8 @@ def score_summary(summary: ReplaySummary, settings: Any = None) -> Optional[Dict
         settings: ``evaluation.scoring.EvalSettings`` (default: its defaults).
 
     Returns:
-        ``{"settings", "counts", "no_grace", "grace"}`` shaped like ``evaluate_tracks``'
+        ``{"settings", "counts", "no_grace", "grace", "switches", "flicker",
+        "unknown_share", "calibration"}`` shaped like ``evaluate_tracks``'
         result (reports from ``metrics.MetricAccumulator.report``, without breakdowns),
         where a track is one segment of a track's state, or None when no judged box had
         ground truth.
@@ -684,5 +691,7 @@ def score_summary(summary: ReplaySummary, settings: Any = None) -> Optional[Dict
                                 stamps_ns=np.asarray(rec.stamps_ns[a:b], np.int64),
                                 box_size=np.full(n, math.nan), occlusion=np.full(n, math.nan),
                                 source=f"replay:{summary.output.name}")
-            scorer.add(seq, np.stack(rec.pred[a:b]), breakdowns=False)
+            lights = np.stack(rec.light_probs[a:b])
+            scorer.add(seq, np.stack(rec.pred[a:b]), breakdowns=False,
+                       probs={t: lights[:, i] for i, t in enumerate(LIGHT_TASKS)})
     return scorer.result()

@@ -24,28 +24,13 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 import torch
 
+from signal_light_node.evaluation.metrics import expected_calibration_error
 from signal_light_node.model.checkpoint import load_checkpoint, save_checkpoint
 from signal_light_node.labels import TASKS
 from signal_light_node.training.feature_cache import (FeatureCache, collect_scored, split_tracks,
                                                       track_logits, trunk_fingerprint, write_cache)
 
 LOG = logging.getLogger(__name__)
-
-
-def expected_calibration_error(probs: np.ndarray, labels: np.ndarray, bins: int = 15) -> float:
-    """ECE of ``[M, K]`` probabilities against ``[M]`` labels (top-class confidence bins)."""
-    if len(labels) == 0:
-        return 0.0
-    confidence = probs.max(1)
-    correct = (probs.argmax(1) == labels).astype(np.float64)
-    edges = np.linspace(0.0, 1.0, bins + 1)
-    which = np.clip(np.digitize(confidence, edges[1:-1]), 0, bins - 1)
-    total = 0.0
-    for b in range(bins):
-        sel = which == b
-        if sel.any():
-            total += sel.mean() * abs(correct[sel].mean() - confidence[sel].mean())
-    return float(total)
 
 
 @torch.no_grad()

@@ -70,6 +70,7 @@ from signal_light_node.training.progress import (
     update_running,
     validation_record,
 )
+from signal_light_node.training.holdout import split_by_track_id
 from signal_light_node.training.run_data import (
     hold_out_tracks,
     load_tracks,
@@ -153,7 +154,9 @@ class Trainer:
     def _setup_data(self) -> None:
         """Tracks, held-out tracks, validation items and the training loader."""
         opts = self.opts
-        self.tracks = load_tracks(opts, self.crop)
+        # Tracks held out for the before/after report (.holdout) never reach the run.
+        self.tracks, _ = split_by_track_id(load_tracks(opts, self.crop), opts.holdout_fraction,
+                                           opts.seed)
         self.synthetic_share = synthetic_share(opts, self.tracks)
         self.train_tracks, held_out = hold_out_tracks(
             self.tracks, opts.val_fraction if opts.val_split is None else 0.0)

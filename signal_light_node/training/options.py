@@ -51,6 +51,8 @@ class TrainOptions:
         val_warmup_seconds: The same in seconds (the larger of the two applies).
         val_seq_len: Length of the sequences of a materialised validation split.
         val_fraction: Share of bag/UCM tracks held out for validation (no val_split).
+        holdout_fraction: Share of the track IDs the run loads (bags, UCM, pools) held
+            out of it altogether, for the before/after report (:mod:`.holdout`); 0: none.
         plateau_patience: Validations without improvement before the LR drops.
         plateau_factor: LR multiplier on a plateau.
         min_lr: Lowest LR.
@@ -127,6 +129,7 @@ class TrainOptions:
     val_warmup_seconds: float = 0.75
     val_seq_len: int = 48
     val_fraction: float = 0.1
+    holdout_fraction: float = 0.0
     plateau_patience: int = 3
     plateau_factor: float = 0.3
     min_lr: float = 1e-5
@@ -220,6 +223,11 @@ class TrainOptions:
                               "untrained encoder would never learn")
         if not 0 <= self.val_fraction < 1:
             raise ConfigError(f"validation fraction must be in [0, 1), got {self.val_fraction}")
+        if not 0 <= self.holdout_fraction < 1:
+            raise ConfigError(f"holdout fraction must be in [0, 1), got {self.holdout_fraction}")
+        if self.holdout_fraction > 0 and (self.init_from is None or not (self.bags or self.ucm)):
+            raise ConfigError("--holdout-fraction needs --init-from and labelled tracks "
+                              "(--bags or --ucm): it compares the model before and after")
 
     def _check_mode(self) -> None:
         if self.mode not in BATCH_MODES:

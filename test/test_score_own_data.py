@@ -1,0 +1,131 @@
+"""Scoring on your own data (issue 26, item 3): per-track flicker, UNKNOWN share and the
+reliability diagrams of ``signal-light evaluate`` on a labelled bag."""
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from signal_light_node.cli import main
+from signal_light_node.evaluation.metrics import LightOutcomes, reliability_report
+from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
+from signal_light_node.evaluation.tracks import TrackSequence
+from signal_light_node.labels import LIGHT_TASKS, TASKS, LightStatus
+
+BAG = Path(__file__).resolve().parents[1] / "bags" / "day_street"
+OFF, ON, UNK = int(LightStatus.OFF), int(LightStatus.ON), int(LightStatus.UNKNOWN)
+BRAKE = TASKS.index("brake")
+
+
+def _track(name, brake_true):
+    n = len(brake_true)
+    labels = np.zeros((n, len(TASKS)), np.int64)
+    labels[:, BRAKE] = brake_true
+    return TrackSequence(track_id=name, labels=labels, mask=np.ones(n, bool),
+                         stamps_ns=np.arange(n, dtype=np.int64) * 100_000_000,
+                         box_size=np.full(n, 40.0), occlusion=np.zeros(n))
+
+
+def test_flicker_table_and_unknown_share_by_hand():
+    scorer = TrackScorer(EvalSettings(warmup_frames=0, warmup_seconds=0.0))
+    # Track a: truth OFF OFF ON ON UNKNOWN (1 true change among the labelled frames,
+    # UNKNOWN truth counts as a class too: 2); published ON OFF ON UNKNOWN OFF (4 changes).
+    a = _track("a", [OFF, OFF, ON, ON, UNK])
+    pred_a = np.zeros((5, len(TASKS)), np.int64)
+    pred_a[:, BRAKE] = [ON, OFF, ON, UNK, OFF]
+    # Track b: truth ON throughout, published ON ON UNKNOWN (1 change).
+    b = _track("b", [ON, ON, ON])
+    pred_b = np.zeros((3, len(TASKS)), np.int64)
+    pred_b[:, BRAKE] = [ON, ON, UNK]
+    scorer.add(a, pred_a)
+    scorer.add(b, pred_b)
+    result = scorer.result()
+    flicker = result["flicker"]
+    assert [row["track"] for row in flicker] == ["a", "b"]  # worst first
+    assert flicker[0]["brake"] == {"predicted": 4, "true": 2}
+    assert flicker[0]["excess"] == 2
+    assert flicker[1]["brake"] == {"predicted": 1, "true": 0}
+    assert flicker[1]["excess"] == 1
+    # Brake frames with a true OFF/ON: 4 of a, 3 of b; UNKNOWN published on 1 + 1 of them.
+    assert result["unknown_share"]["brake"] == {"unknown": 2, "frames": 7, "share": 2 / 7}
+    # left/right: truth OFF everywhere (8 frames), never UNKNOWN.
+    assert result["unknown_share"]["left"] == {"unknown": 0, "frames": 8, "share": 0.0}
+    assert result["unknown_share"]["overall"] == {"unknown": 2, "frames": 23, "share": 2 / 23}
+    assert result["calibration"] == {}  # no probabilities given
+
+
+def test_reliability_report_by_hand():
+    probs = np.array([[0.9, 0.1, 0.0], [0.85, 0.15, 0.0], [0.3, 0.7, 0.0], [0.35, 0.65, 0.0]])
+    labels = np.array([OFF, ON, ON, ON])
+    rep = reliability_report(probs, labels, bins=5)
+    counts = [b["count"] for b in rep["bins"]]
+    assert counts == [0, 0, 0, 2, 2]  # 0.65, 0.7 in [0.6, 0.8); 0.85, 0.9 in [0.8, 1]
+    assert rep["bins"][3]["accuracy"] == 1.0 and rep["bins"][4]["accuracy"] == 0.5
+    assert rep["ece"] == pytest.approx(0.5 * abs(1.0 - 0.675) + 0.5 * abs(0.5 - 0.875))
+    outcomes = LightOutcomes()
+    outcomes.add("brake", labels, probs.argmax(1), probs)
+    assert outcomes.calibration()["brake"]["ece"] == pytest.approx(
+        reliability_report(probs, labels)["ece"])
+
+
+def test_evaluate_on_a_committed_bag_writes_flicker_unknown_and_reliability(tmp_path):
+    out = tmp_path / "eval"
+    assert main(["evaluate", "--bags", str(BAG), "--out", str(out), "--no-progress"]) == 0
+    result = json.loads((out / "metrics.json").read_text())
+    assert result["flicker"] and {"track", "excess", "brake", "left", "right", "intent"} \
+        <= set(result["flicker"][0])
+    excess = [row["excess"] for row in result["flicker"]]
+    assert excess == sorted(excess, reverse=True)
+    assert {row["track"] for row in result["flicker"]} == \
+        set(result["switches"]["brake"]["per_track"])
+    share = result["unknown_share"]
+    assert set(share) == set(LIGHT_TASKS) | {"overall"}
+    assert share["overall"]["frames"] == sum(share[t]["frames"] for t in LIGHT_TASKS) > 0
+    markdown = (out / "metrics.md").read_text()
+    assert "Flicker per track" in markdown and "UNKNOWN published" in markdown
+    for light in LIGHT_TASKS:
+        image = cv2.imread(str(out / f"reliability_{light}.png"))
+        assert image is not None and image.ndim == 3 and image.shape[0] > 100
+        assert 0.0 <= result["calibration"][light]["ece"] <= 1.0
+        assert sum(b["count"] for b in result["calibration"][light]["bins"]) == \
+            result["calibration"][light]["frames"] == share[light]["frames"]
+
+
+def test_replay_on_a_committed_bag_prints_flicker_unknown_and_ece(tmp_path, capsys):
+    assert main(["replay", str(BAG), "-o", str(tmp_path / "out"), "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "Flicker per track" in printed and "UNKNOWN published" in printed
+    assert "| overall |" in printed and "ECE" in printed
+
+
+def test_split_by_track_id_is_deterministic_and_whole_tracks():
+    from signal_light_node.errors import ConfigError
+    from signal_light_node.training.holdout import split_by_track_id
+
+    tracks = [_track(f"bag:{i % 5}", [OFF] * 3) for i in range(10)]  # 5 IDs, 2 tracks each
+    kept, held = split_by_track_id(tracks, 0.3, seed=7)
+    assert len({t.track_id for t in held}) == 2 and len(held) == 4  # round(0.3 x 5) IDs
+    assert not {t.track_id for t in kept} & {t.track_id for t in held}
+    again = split_by_track_id(tracks, 0.3, seed=7)[1]
+    assert [t.track_id for t in again] == [t.track_id for t in held]
+    assert split_by_track_id(tracks, 0.0, seed=7) == (tracks, [])
+    with pytest.raises(ConfigError, match="holdout-fraction"):
+        split_by_track_id(tracks[:1], 0.5, seed=7)
+
+
+def test_train_holdout_fraction_writes_a_before_after_report(tmp_path, capsys):
+    out = tmp_path / "ft"
+    assert main(["train", "--out", str(out), "--init-from", "default", "--bags", str(BAG),
+                 "--holdout-fraction", "0.3", "--steps", "2", "--batch", "2", "--seq-len", "4",
+                 "--workers", "0", "--threads", "1", "--val-every", "2", "--no-progress"]) == 0
+    report = json.loads((out / "adapt_report.json").read_text())
+    assert len(report["held_out_tracks"]) == 2  # round(0.3 x 8 track IDs of day_street)
+    for key in ("before", "after"):
+        for figure in ("intent_macro_f1", "brake_f1", "unknown_share"):
+            assert report[key][figure] is None or 0.0 <= report[key][figure] <= 1.0
+        assert report[key]["scored_frames"] > 0
+    assert report["before"]["scored_frames"] == report["after"]["scored_frames"]
+    assert "before" in (out / "adapt_report.md").read_text()
+    assert "held-out tracks" in capsys.readouterr().out
