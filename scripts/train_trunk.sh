@@ -107,5 +107,5 @@ echo "== 5/5 evaluation: own test split, held-out style family, independent gene
 INDEPENDENT=${INDEPENDENT:-$DATA/independent}   # the larger independent set, rendered once
 bash scripts/render_independent.sh "$INDEPENDENT"
 python scripts/transfer_report.py --checkpoint "$WEIGHTS" --data "$DATA" --out "$RUN/transfer" \
-  --threads "$THREADS" --independent-renders "$INDEPENDENT"/*
+  --threads "$THREADS" --independent-renders "$INDEPENDENT"/day_* "$INDEPENDENT"/night_*
 echo "== done in $(( ($(date +%s) - start) / 60 )) minutes; reports: $RUN/transfer/transfer.md"
