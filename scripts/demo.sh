@@ -4,7 +4,8 @@
 # a report (frames in/out, per-track timelines, latency, annotated video).
 #
 # Environment knobs (all optional):
-#   DEMO_BAG        bag to play (default: the first bag under bags/)
+#   DEMO_BAG        bag to play (default: bags/day_street, the training renderer's day street;
+#                   the first bag under bags/ if it is missing)
 #   DEMO_MODEL      checkpoint for the node (default: the shipped weights)
 #   DEMO_OUT        output folder (default: out/demo)
 #   DEMO_RATE       playback speed factor (default: 1.0)
@@ -26,6 +27,9 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 
 # --- inputs ---------------------------------------------------------------------------
 BAG="${DEMO_BAG:-}"
+# Named, not the first bag in sort order: the hard-negative bags (day_running_lamps, ...)
+# sort before it and hold no signal at all.
+if [ -z "$BAG" ] && [ -f bags/day_street/metadata.yaml ]; then BAG=bags/day_street; fi
 if [ -z "$BAG" ]; then
   for cand in bags/*; do
     if [ -f "$cand/metadata.yaml" ] || [[ "$cand" == *.mcap ]]; then BAG="$cand"; break; fi
