@@ -69,15 +69,14 @@ import numpy as np
 from signal_light_node.boxes import TrackBox
 from signal_light_node.errors import AnnotationError, ConfigError
 from signal_light_node.io.bagio import BagWriter, find_topic, make, open_bag
-from signal_light_node.io.conversions import detections_to_boxes, stamp_to_ns
+from signal_light_node.io.conversions import stamp_to_ns
 from signal_light_node.io.image_codec import bgr_to_compressed_fields
 from signal_light_node.io.topics import (DETECTIONS_TYPE, GROUND_TRUTH_TOPIC, IMAGE_TYPES,
                                          VEHICLE_LIGHTS_TYPE)
 from signal_light_node.labels import CLASS_NAMES, TASKS, intent_from_lights
 from signal_light_node.outputs.vehicle_lights import result_row, vehicle_light_array
 from signal_light_node.runtime.crops import clip_roi
-from signal_light_node.runtime.pairing import (DETECTIONS, IMAGE, OrderedPairing,
-                                               PairingConfig, pair_in_order)
+from signal_light_node.runtime.pairing import OrderedPairing, PairingConfig, pair_in_order
 from signal_light_node.runtime.results import VehicleResult
 from signal_light_node.tools.cvat_xml import (ATTRIBUTES, CvatBox, CvatVideo, label_spec,
                                               read_video_xml, write_video_xml)
@@ -270,7 +269,7 @@ def export_for_labelling(bag: "str | Path", out: "str | Path", engine: Any,
         AnnotationError: ``out`` exists, or no frame is chosen.
         BagIOError: The bag cannot be read or lacks a topic.
     """
-    from signal_light_node.tools.replay import replay_bag
+    from signal_light_node.tools.replay import replay_bag  # loads the engine's framework
 
     bag, out = Path(bag), Path(out)
     check_new_output(out)
@@ -483,6 +482,8 @@ def _ground_truth(bag: Path, record: Dict[str, Any], video: CvatVideo
         AnnotationError: The bag lacks a topic, an exported frame's image, or has another
             image or other track IDs there.
     """
+    from signal_light_node.tools.replay import bag_arrivals
+
     frames = record["frames"]
     wanted = {int(f["stamp_ns"]): k for k, f in enumerate(frames)}
     other = f"the file was exported from {record['bag']}"
@@ -497,11 +498,8 @@ def _ground_truth(bag: Path, record: Dict[str, Any], video: CvatVideo
                 raise AnnotationError(f"{bag} has no {topic} of type {' or '.join(types)}; "
                                       f"{other}")
         images = topics[image_t].count
-        arrivals = ((IMAGE, stamp_to_ns(m.msg.header.stamp), m, m.log_time_ns)
-                    if m.topic == image_t else
-                    (DETECTIONS, stamp_to_ns(m.msg.header.stamp), detections_to_boxes(m.msg),
-                     m.log_time_ns)
-                    for m in reader.messages([image_t, det_t], skip_undecodable=True))
+        # The replay's reader of the bag, so the frames pair as they did for the export.
+        arrivals = bag_arrivals(reader, [image_t, det_t], image_t, det_t)
         for paired in pair_in_order(arrivals, ordered):
             boxes = paired.detections if paired.paired else []
             for track_id in {b.track_id for b in boxes}:

@@ -225,8 +225,8 @@ def _collect(bag: Any, topic: Optional[str], key: Callable[[Any], Any]) -> Dict[
     return out
 
 
-def _arrivals(bag: Any, topics: Sequence[str], img_t: str, det_t: str,
-              writer: Optional[BagWriter]) -> Iterator[Tuple[str, int, Any, int]]:
+def bag_arrivals(bag: Any, topics: Sequence[str], img_t: str, det_t: str,
+                 writer: Optional[BagWriter] = None) -> Iterator[Tuple[str, int, Any, int]]:
     """The bag's images and detections in log-time order, as ``pair_in_order`` takes them.
 
     Images go in as their ``BagMessage``, detections as their boxes; the log time stands
@@ -524,7 +524,7 @@ class _Camera:
         one by one; with a ``writer`` every message read is copied into it."""
         self.pairing = OrderedPairing(self.pairing_config)
         topics = self.input_topics() if writer is not None else [self.image_t, self.det_t]
-        arrivals = _arrivals(self.reader, topics, self.image_t, self.det_t, writer)
+        arrivals = bag_arrivals(self.reader, topics, self.image_t, self.det_t, writer)
         for paired in pair_in_order(arrivals, self.pairing):
             m = paired.image
             boxes = paired.detections if paired.paired else []
