@@ -223,26 +223,6 @@ def options_from_args(args: argparse.Namespace) -> TrainOptions:
         progress=not args.no_progress)
 
 
-def _holdout_report(opts: TrainOptions, summary: Dict[str, Any]) -> str:
-    """Evaluate the ``--init-from`` model and the run's best (else last) checkpoint on the
-    held-out tracks; writes the report into ``--out`` and returns its Markdown."""
-    from signal_light_node.model import load_checkpoint
-    from signal_light_node.training.holdout import before_after, split_by_track_id, write_report
-    from signal_light_node.training.run_data import load_tracks
-    from signal_light_node.training.run_model import resolve_init
-
-    init = resolve_init(opts.init_from)
-    best = summary.get("best_step", -1) >= 0 and (opts.out / "best.pt").is_file()
-    after = opts.out / ("best.pt" if best else "last.pt")
-    before_model = load_checkpoint(init, map_location="cpu")
-    after_model = load_checkpoint(after, map_location="cpu")
-    crop = after_model.config.crop_config()
-    _, held_out = split_by_track_id(load_tracks(opts, crop), opts.holdout_fraction, opts.seed)
-    report = before_after(before_model.model.eval(), after_model.model.eval(), held_out,
-                          str(init), str(after))
-    return write_report(opts.out, report)
-
-
 def run(args: argparse.Namespace) -> int:
     """Train; prints a JSON summary (rank 0 only under torchrun) and, with
     ``--holdout-fraction``, the before/after report."""
@@ -254,6 +234,6 @@ def run(args: argparse.Namespace) -> int:
 
     if int(os.environ.get("RANK", "0")) == 0:
         print(json.dumps(summary, indent=2))
-        if opts.holdout_fraction > 0:
-            print(_holdout_report(opts, summary))
+        if summary.get("adapt_report"):
+            print(Path(summary["adapt_report"]).read_text())
     return 0

@@ -94,6 +94,29 @@ def report_markdown(report: Mapping[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def report_after_run(opts: Any, summary: Mapping[str, Any],
+                     held_out: Sequence[TrackSequence]) -> Path:
+    """After a run: evaluate its ``--init-from`` model and its best (else last) checkpoint
+    on the tracks it held out, write the report into its folder; returns the Markdown's path.
+
+    Args:
+        opts: The run's ``TrainOptions``.
+        summary: The run's summary (``best_step``).
+        held_out: The tracks :func:`split_by_track_id` held out of it.
+    """
+    from signal_light_node.model import load_checkpoint
+    from signal_light_node.training.run_model import resolve_init
+
+    init = resolve_init(opts.init_from)
+    best = summary.get("best_step", -1) >= 0 and (opts.out / "best.pt").is_file()
+    after = opts.out / ("best.pt" if best else "last.pt")
+    before_model = load_checkpoint(init, map_location="cpu").model.eval()
+    after_model = load_checkpoint(after, map_location="cpu").model.eval()
+    write_report(opts.out, before_after(before_model, after_model, held_out, str(init),
+                                        str(after)))
+    return Path(opts.out) / REPORT_MD
+
+
 def write_report(out: Path, report: Mapping[str, Any]) -> str:
     """Write ``adapt_report.json`` and ``adapt_report.md`` into ``out``; returns the Markdown."""
     markdown = report_markdown(report)

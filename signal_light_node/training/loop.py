@@ -70,7 +70,7 @@ from signal_light_node.training.progress import (
     update_running,
     validation_record,
 )
-from signal_light_node.training.holdout import split_by_track_id
+from signal_light_node.training.holdout import report_after_run, split_by_track_id
 from signal_light_node.training.run_data import (
     hold_out_tracks,
     load_tracks,
@@ -155,8 +155,8 @@ class Trainer:
         """Tracks, held-out tracks, validation items and the training loader."""
         opts = self.opts
         # Tracks held out for the before/after report (.holdout) never reach the run.
-        self.tracks, _ = split_by_track_id(load_tracks(opts, self.crop), opts.holdout_fraction,
-                                           opts.seed)
+        self.tracks, self.holdout_tracks = split_by_track_id(
+            load_tracks(opts, self.crop), opts.holdout_fraction, opts.seed)
         self.synthetic_share = synthetic_share(opts, self.tracks)
         self.train_tracks, held_out = hold_out_tracks(
             self.tracks, opts.val_fraction if opts.val_split is None else 0.0)
@@ -201,7 +201,10 @@ class Trainer:
         finally:
             report.close()
             barrier(self.dist)
-        return self._summary(time.monotonic() - started, last_val)
+        summary = self._summary(time.monotonic() - started, last_val)
+        if self.dist.main and self.holdout_tracks:
+            summary["adapt_report"] = str(report_after_run(opts, summary, self.holdout_tracks))
+        return summary
 
     def _should_stop(self, elapsed: float, budget: float) -> bool:
         """Rank 0's decision whether the step or time budget is spent."""
