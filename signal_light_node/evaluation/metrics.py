@@ -415,20 +415,34 @@ class SwitchCounter:
                               for k, (p, t) in self._per_track.items()}}
 
 
+def _confidence_bins(probs: np.ndarray, labels: np.ndarray, bins: int
+                     ) -> Tuple[np.ndarray, List[Tuple[int, float, float]]]:
+    """The bin edges and, per equal-width bin of the top-class confidence, ``(count, mean
+    confidence, accuracy)`` (NaN means in an empty bin)."""
+    p, y = np.asarray(probs, np.float64), np.asarray(labels)
+    confidence = p.max(1) if len(y) else np.zeros(0)
+    correct = (p.argmax(1) == y).astype(np.float64) if len(y) else np.zeros(0)
+    edges = np.linspace(0.0, 1.0, bins + 1)
+    which = np.clip(np.digitize(confidence, edges[1:-1]), 0, bins - 1)
+    rows = []
+    for b in range(bins):
+        sel = which == b
+        rows.append((int(sel.sum()), float(confidence[sel].mean()) if sel.any() else np.nan,
+                     float(correct[sel].mean()) if sel.any() else np.nan))
+    return edges, rows
+
+
 def expected_calibration_error(probs: np.ndarray, labels: np.ndarray, bins: int = 15) -> float:
     """ECE of ``[M, K]`` probabilities against ``[M]`` labels (top-class confidence bins)."""
     if len(labels) == 0:
         return 0.0
-    confidence = probs.max(1)
-    correct = (probs.argmax(1) == labels).astype(np.float64)
-    edges = np.linspace(0.0, 1.0, bins + 1)
-    which = np.clip(np.digitize(confidence, edges[1:-1]), 0, bins - 1)
-    total = 0.0
-    for b in range(bins):
-        sel = which == b
-        if sel.any():
-            total += sel.mean() * abs(correct[sel].mean() - confidence[sel].mean())
-    return float(total)
+    return _ece(_confidence_bins(probs, labels, bins)[1])
+
+
+def _ece(rows: Sequence[Tuple[int, float, float]]) -> float:
+    """The count-weighted mean gap between accuracy and confidence of the bins."""
+    total = sum(n for n, _, _ in rows)
+    return float(sum(n / total * abs(acc - conf) for n, conf, acc in rows if n)) if total else 0.0
 
 
 def reliability_report(probs: np.ndarray, labels: np.ndarray, bins: int = 15) -> Dict[str, object]:
@@ -444,18 +458,11 @@ def reliability_report(probs: np.ndarray, labels: np.ndarray, bins: int = 15) ->
         per bin the mean confidence of the predicted class and how often it was right
         (``None`` in an empty bin).
     """
-    p, y = np.asarray(probs, np.float64), np.asarray(labels)
-    confidence = p.max(1) if len(y) else np.zeros(0)
-    correct = (p.argmax(1) == y) if len(y) else np.zeros(0, bool)
-    edges = np.linspace(0.0, 1.0, bins + 1)
-    which = np.clip(np.digitize(confidence, edges[1:-1]), 0, bins - 1)
-    rows = []
-    for b in range(bins):
-        sel = which == b
-        rows.append({"low": float(edges[b]), "high": float(edges[b + 1]), "count": int(sel.sum()),
-                     "confidence": float(confidence[sel].mean()) if sel.any() else None,
-                     "accuracy": float(correct[sel].mean()) if sel.any() else None})
-    return {"frames": int(len(y)), "ece": expected_calibration_error(p, y, bins), "bins": rows}
+    edges, rows = _confidence_bins(probs, labels, bins)
+    return {"frames": int(len(labels)), "ece": _ece(rows),
+            "bins": [{"low": float(edges[b]), "high": float(edges[b + 1]), "count": n,
+                      "confidence": conf if n else None, "accuracy": acc if n else None}
+                     for b, (n, conf, acc) in enumerate(rows)]}
 
 
 class LightOutcomes:
