@@ -71,7 +71,9 @@ def test_trunk_config_is_validated():
                                      {"lit_periods": False},
                                      {"frequency_evidence": False, "lamp_detail": 2,
                                       "lit_hidden": 16},
-                                     {"blink_levels": False}])
+                                     {"blink_levels": False},
+                                     {"frequency_evidence": False, "lamp_detail": 2,
+                                      "cell_periods": True}])
 def test_stepping_frame_by_frame_equals_the_sequence(changes):
     model = _model(**changes)
     crops = torch.rand(3, 6, 3, 64, 64, generator=torch.Generator().manual_seed(1))
@@ -137,6 +139,53 @@ def test_left_and_right_in_opposite_phase_disagree():
     assert float(agreement[:, 1].max()) < -0.99  # the 6.5-frame resonator
 
 
+def _cell_vector(frames):
+    """The cell-period vector and map after the crops ``frames`` [T, 3, 64, 64]."""
+    fine = 8
+    n_signals = lamps.cell_blink_sizes(fine)[0]
+    res = torch.zeros(1, 2, n_signals, len(lamps.PERIODS))
+    memory = torch.zeros(1, 3, n_signals)
+    seen = torch.zeros(1, 1)
+    for crop in frames:
+        vector, cell_map, res, memory = lamps.cell_blink_step(
+            lamps.lamp_maps(crop[None], fine), res, memory, seen)
+        seen = torch.ones(1, 1)
+    return vector.reshape(2, len(lamps.CELL_CHANNELS), 2, len(lamps.PERIODS)), cell_map
+
+
+def _vehicle(t, lamp_on, shift=0):
+    crop = torch.full((3, 64, 64), 0.3)
+    crop[:, 16 + shift:48 + shift, 8:56] = 0.45  # the body, moved by the box's jitter
+    crop[2, 36:40, 12:16] = 0.7  # a steady tail lamp on each side
+    crop[2, 36:40, 48:52] = 0.7
+    if lamp_on:
+        crop[1:, 36:40, 4:8] = torch.tensor([0.55, 0.95])[:, None, None]  # amber, left
+    return crop
+
+
+def test_a_small_flashing_lamp_stands_out_in_its_half_and_cell():
+    frames = [_vehicle(t, (t % 8) < 4) for t in range(48)]
+    steady = [_vehicle(t, True) for t in range(48)]
+    rng = torch.Generator().manual_seed(0)
+    shifts = torch.randint(-2, 3, (48,), generator=rng).tolist()
+    jitter = [_vehicle(t, False, shift) for t, shift in enumerate(shifts)]
+    blink, blink_map = _cell_vector(frames)
+    period = lamps.PERIODS.index(9.0)  # nearest to the 8-frame blink
+    for other in (_cell_vector(steady)[0], _cell_vector(jitter)[0]):
+        # over the broadband change (kind 1), left half (0), warm excess (channel 1)
+        assert float(blink[1, 1, 0, period]) > float(other[1, 1, 0].max()) + 1.0
+    assert float(blink[1, 1, 0, period]) > float(blink[1, 1, 1].max()) + 1.0  # not the right
+    ratio_map = blink_map[0, 2 + 1]  # over the broadband change, warm excess
+    assert divmod(int(ratio_map.argmax()), 8) == (4, 0)  # the cell holding rows 36-40, x 4-8
+
+
+def test_cell_periods_add_their_state_and_inputs():
+    plain = _model(frequency_evidence=False, lamp_detail=2)
+    cells = _model(frequency_evidence=False, lamp_detail=2, cell_periods=True)
+    assert len(cells.initial_state(2)) == len(plain.initial_state(2)) + 1
+    assert cells.n_vector == plain.n_vector + lamps.cell_blink_sizes(8)[1]
+
+
 def test_relative_evidence_is_zero_for_a_new_track_and_fades_for_a_steady_map():
     current = torch.rand(1, 6, 4, 4)
     previous = torch.rand(1, 6, 4, 4)
@@ -182,7 +231,9 @@ def test_checkpoint_round_trip_needs_no_wheel(tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize("changes", [{}, {"frequency_evidence": False, "lamp_detail": 2,
-                                          "lit_hidden": 16, "blink_levels": False}])
+                                          "lit_hidden": 16, "blink_levels": False},
+                                     {"frequency_evidence": False, "lamp_detail": 2,
+                                      "cell_periods": True}])
 def test_onnx_export_steps_like_torch(tmp_path, changes):
     from signal_light_node.model.onnx_export import export_onnx
 

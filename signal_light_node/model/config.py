@@ -91,6 +91,11 @@ class ModelConfig:
             only the amplitudes for the blinkers (a blinker is a lamp that flashes: a
             steady lit lamp gives no blink evidence), the brake's level stays.
         lit_hidden: Width of the lit head's hidden layer (ReLU); 0 keeps it linear.
+        cell_periods: Give the trunk network blink periods per cell of the fine lamp grid
+            (``model.lamp_evidence.cell_blink_step``): each cell's peak brightness and warm
+            excess drive resonators, read raw and over the cell's own broadband change;
+            the largest per image half joins the track vector and a per-cell map joins
+            the evidence. Evidence of a flash that does not depend on how a lamp looks.
         lamp_detail: The lamp maps are computed on a grid this many times finer than the
             trunk's and stacked into channels per trunk cell (space to depth), so a small
             lamp keeps its own cell; 1 keeps one lamp-map cell per trunk cell.
@@ -133,6 +138,7 @@ class ModelConfig:
     blink_levels: bool = True
     lit_hidden: int = 0
     lamp_detail: int = 1
+    cell_periods: bool = False
     temperatures: Mapping[str, float] = field(default_factory=dict, hash=False)
 
     def __post_init__(self) -> None:
@@ -152,7 +158,7 @@ class ModelConfig:
             raise ConfigError(f"model config has a value of the wrong type: {exc}") from None
         # bool("false") is True: refuse anything but a real boolean (CLI values are JSON).
         for name in ("use_attention", "temporal_input", "relative_evidence", "frequency_evidence",
-                     "lit_head", "lit_periods", "blink_levels"):
+                     "lit_head", "lit_periods", "blink_levels", "cell_periods"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"model config {name} must be true or false, got "
                                   f"{getattr(self, name)!r}")

@@ -16,6 +16,11 @@ with the per-track memory passed in and returned (it lives in the model's state)
   periodic energy near that period over the last few periods, and the phase agreement of
   the left and right resonators tells a hazard (in phase) from noise. A steady lamp,
   however bright, drives none of them after its onset.
+* :func:`cell_blink_step`: the same resonators on every cell of the fine lamp grid (peak
+  brightness and peak warm excess), each amplitude also over the cell's own broadband
+  change (box jitter and passing light change a cell too, but not at one period). The
+  largest per image half and a per-cell map: a lamp of a few pixels that flashes stands
+  out against its own cell's history, whatever its colour or how it is drawn.
 
 The frame rate is not known to a step, so the periods are in frames (``PERIODS`` covers
 0.8-2.2 Hz blinks from 10 to 30 frames per second); the heads learn which ones matter.
@@ -169,3 +174,65 @@ def resonator_step(signals: Tensor, resonators: Tensor, level: Tensor, seen: Ten
 def resonator_features(n_signals: int, n_periods: int) -> int:
     """Length of :func:`resonator_step`'s features for ``n_signals`` (= 2K) signals."""
     return (n_signals + n_signals // 2) * n_periods
+
+
+#: Lamp-map channels whose fine cells drive :func:`cell_blink_step`: peak brightness and
+#: peak warm excess.
+CELL_CHANNELS = (1, 3)
+#: Per-frame rate of a cell's broadband change (about the resonators' memory).
+BROADBAND_RATE = 0.1
+#: Floor of the broadband change in the ratio (brightness units in [0, 1]).
+BROADBAND_FLOOR = 0.01
+
+
+def depth_to_space(maps: Tensor, factor: int) -> Tensor:
+    """The inverse of :func:`space_to_depth`: ``[N, C * f**2, H, W]`` -> ``[N, C, fH, fW]``."""
+    if factor == 1:
+        return maps
+    n, c, h, w = maps.shape
+    c //= factor * factor
+    cells = maps.reshape(n, c, factor, factor, h, w).permute(0, 1, 4, 2, 5, 3)
+    return cells.reshape(n, c, h * factor, w * factor)
+
+
+def cell_blink_sizes(fine: int) -> Tuple[int, int, int]:
+    """``(signals, vector features, map channels at the fine grid)`` of
+    :func:`cell_blink_step` on a ``fine x fine`` lamp grid."""
+    signals = len(CELL_CHANNELS) * fine * fine
+    return signals, 2 * len(CELL_CHANNELS) * 2 * len(PERIODS), 2 * len(CELL_CHANNELS)
+
+
+def cell_blink_step(fine_maps: Tensor, resonators: Tensor, memory: Tensor, seen: Tensor,
+                    periods: Sequence[float] = PERIODS) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+    """One frame of periodic energy per cell of the fine lamp grid.
+
+    Args:
+        fine_maps: ``[N, 6, F, F]`` lamp maps (:func:`lamp_maps`) on the fine grid.
+        resonators: ``[N, 2, S, P]`` real and imaginary parts per cell signal and period
+            (``S = 2 F F``, :data:`CELL_CHANNELS`).
+        memory: ``[N, 3, S]`` each signal's previous value, slow level and broadband change.
+        seen: ``[N, 1]`` 1 where the track has a previous frame.
+        periods: The ``P`` periods in frames.
+
+    Returns:
+        ``[N, 4 * C * P]`` vector (per amplitude kind -- raw, over the broadband change --,
+        channel and image half: the largest log amplitude over the half's cells per
+        period), ``[N, 2C, F, F]`` map (per cell the largest log amplitude over periods,
+        raw and over the broadband change), the new resonators and the new memory.
+    """
+    n, fine = fine_maps.shape[0], fine_maps.shape[-1]
+    channels = len(CELL_CHANNELS)
+    signals = fine_maps[:, list(CELL_CHANNELS)].reshape(n, -1)
+    previous, level, broad = memory.unbind(1)
+    previous = previous * seen + signals * (1.0 - seen)
+    broad = (broad + ((signals - previous).abs() - broad) * BROADBAND_RATE) * seen
+    resonators, level = resonate(signals, resonators, level, seen, periods)
+    amplitude = torch.sqrt(resonators[:, 0] ** 2 + resonators[:, 1] ** 2 + 1e-8)
+    ratio = amplitude / (broad.unsqueeze(-1) + BROADBAND_FLOOR)
+    kinds = torch.stack((amplitude, ratio), 1).reshape(n, 2, channels, fine, fine, len(periods))
+    kinds = torch.log(kinds + 1e-3)
+    half = fine // 2
+    vector = torch.stack((kinds[:, :, :, :, :half].amax(dim=(3, 4)),
+                          kinds[:, :, :, :, fine - half:].amax(dim=(3, 4))), 3)
+    cell_map = kinds.amax(dim=-1).reshape(n, 2 * channels, fine, fine)
+    return vector.flatten(1), cell_map, resonators, torch.stack((signals, level, broad), 1)

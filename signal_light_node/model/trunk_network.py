@@ -16,6 +16,8 @@ One step for ``N`` tracks::
          (periodic energy per blink period, left/right phase agreement)
       -> with ``lit_periods``: a linear "lamp lit in this frame" head on the evidence so
          far; each lamp's P(lit) drives its own resonators and a decaying peak
+      -> with ``cell_periods``: resonators on every fine lamp-map cell; the largest
+         amplitudes per image half join the track vector, a per-cell map the evidence
       -> 1x1 fusion + ReLU -> ConvLSTM layers (explicit (h, c) per layer)
       -> heads: 1x1 conv pooled to a grid (keeps left/right) + global max of h + the
          frequency features -> dense layer with dropout -> one linear layer per task.
@@ -23,7 +25,8 @@ One step for ``N`` tracks::
 The state is a tuple of pairs like :class:`~signal_light_node.model.network.LightStateNet`'s,
 so the state bank, the backends and the ONNX export carry it unchanged: the ConvLSTM
 ``(h, c)`` pairs, then ``(previous z, running mean of z)``, ``(previous and mean lamp
-maps, seen)`` and ``(resonators, signal level)`` as the options ask for.
+maps, seen)``, ``(resonators, signal level)``, the lit lamps' and the cells'
+``(resonators, memory)`` as the options ask for.
 """
 
 from __future__ import annotations
@@ -78,6 +81,10 @@ class TrunkLightNet(nn.Module):
         if config.relative_evidence:
             c_in += 2 * width + 2 * self.lamp_channels
         evidence_channels = c_in
+        self.fine = self.grid * config.lamp_detail
+        self.n_cell_signals, n_cell_vector, cell_maps = lamps.cell_blink_sizes(self.fine)
+        if config.cell_periods:
+            c_in += cell_maps * config.lamp_detail ** 2
         self.n_signals = 2 * len(lamps.SIGNAL_CHANNELS)
         self.n_freq = lamps.resonator_features(self.n_signals, len(lamps.PERIODS))
         self.lit_sizes = [config.num_classes[t] for t in LIT_TASKS]
@@ -87,7 +94,8 @@ class TrunkLightNet(nn.Module):
         self.level_lamps = len(LIT_TASKS) if config.blink_levels else 1
         self.n_vector = (self.n_freq if config.frequency_evidence else 0) + \
             (len(LIT_TASKS) * len(lamps.PERIODS) + self.level_lamps
-             + sum(self.lit_sizes[:self.level_lamps]) if config.lit_periods else 0)
+             + sum(self.lit_sizes[:self.level_lamps]) if config.lit_periods else 0) + \
+            (n_cell_vector if config.cell_periods else 0)
         self.freq: Optional[nn.Sequential] = None
         if self.n_vector:
             self.freq = nn.Sequential(nn.Linear(self.n_vector, FREQ_CHANNELS), nn.ReLU(inplace=True))
@@ -166,6 +174,9 @@ class TrunkLightNet(nn.Module):
         if self.config.lit_periods:
             n_lit = len(LIT_TASKS)
             shapes.append(((2 * n_lit * len(lamps.PERIODS), 1, 1), (2 * n_lit, 1, 1)))
+        if self.config.cell_periods:
+            s = self.n_cell_signals
+            shapes.append(((2 * s * len(lamps.PERIODS), 1, 1), (3 * s, 1, 1)))
         return shapes
 
     def initial_state(self, n: int) -> State:
@@ -225,6 +236,11 @@ class TrunkLightNet(nn.Module):
             lit_vector, lit_history = self._lit_periods(lit_logits, rest.pop(0), seen.reshape(n, 1))
             vector.append(lit_vector)
             new_history.append(lit_history)
+        if cfg.cell_periods:
+            cell_vector, cell_map, cell_history = self._cell_periods(maps, rest.pop(0), seen)
+            vector.append(cell_vector)
+            new_history.append(cell_history)
+            evidence = torch.cat((evidence, cell_map), 1)
         return evidence, (torch.cat(vector, 1) if vector else None), lit_logits, tuple(new_history)
 
     def _lit_periods(self, lit_logits: Tensor, history: Tuple[Tensor, Tensor], seen: Tensor
@@ -245,6 +261,19 @@ class TrunkLightNet(nn.Module):
                            + probs[:levels], 1)
         return vector, (resonators.reshape(n, -1, 1, 1),
                         torch.cat((level, peak), 1).reshape(n, -1, 1, 1))
+
+    def _cell_periods(self, maps: Tensor, history: Tuple[Tensor, Tensor], seen: Tensor
+                      ) -> Tuple[Tensor, Tensor, Tuple[Tensor, Tensor]]:
+        """Blink periods per fine lamp-map cell: the track vector's part, the evidence map
+        (stacked per trunk cell like the lamp maps) and the new history."""
+        n, detail, periods = maps.shape[0], self.config.lamp_detail, len(lamps.PERIODS)
+        resonators, memory = history
+        vector, cell_map, resonators, memory = lamps.cell_blink_step(
+            lamps.depth_to_space(maps, detail),
+            resonators.reshape(n, 2, self.n_cell_signals, periods),
+            memory.reshape(n, 3, self.n_cell_signals), seen.reshape(n, 1))
+        return vector, lamps.space_to_depth(cell_map, detail), \
+            (resonators.reshape(n, -1, 1, 1), memory.reshape(n, -1, 1, 1))
 
     def _fuse(self, evidence: Tensor, vector: Optional[Tensor]) -> Tensor:
         """The ConvLSTM input of ``[M, E, G, G]`` evidence and the ``[M, V]`` track vector."""
