@@ -115,6 +115,16 @@ def test_split_by_track_id_is_deterministic_and_whole_tracks():
         split_by_track_id(tracks[:1], 0.5, seed=7)
 
 
+def test_holdout_fraction_accepts_pool_tracks_and_needs_some_labelled_tracks(tmp_path):
+    from signal_light_node.errors import ConfigError
+    from signal_light_node.training.options import TrainOptions
+
+    common = dict(out=tmp_path, max_steps=1, init_from=Path("default"), holdout_fraction=0.5)
+    TrainOptions(pools=[tmp_path / "split"], **common).validate()  # a --pool split counts
+    with pytest.raises(ConfigError, match="--bags, --ucm or --pool"):
+        TrainOptions(**common).validate()
+
+
 def test_train_holdout_fraction_writes_a_before_after_report(tmp_path, capsys):
     out = tmp_path / "ft"
     assert main(["train", "--out", str(out), "--init-from", "default", "--bags", str(BAG),

@@ -173,9 +173,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--val-fraction", type=float, default=_default("val_fraction"),
                    help="share of bag/UCM tracks held out for validation")
     g.add_argument("--holdout-fraction", type=float, default=_default("holdout_fraction"),
-                   help="with --init-from and --bags/--ucm: share of the track IDs (drawn with "
-                        "--seed) held out of the run; the --init-from model and the fine-tuned "
-                        "one are then evaluated on them (OUT/adapt_report.md and .json)")
+                   help="with --init-from and --bags/--ucm/--pool: share of the track IDs "
+                        "(drawn with --seed) held out of the run; the --init-from model and "
+                        "the fine-tuned one are then evaluated on them (OUT/adapt_report.md "
+                        "and .json)")
     g.add_argument("--patience", type=int, default=_default("plateau_patience"),
                    help="validations without improvement before the LR drops")
     g.add_argument("--anneal-fraction", type=float,

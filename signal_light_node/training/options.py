@@ -225,9 +225,11 @@ class TrainOptions:
             raise ConfigError(f"validation fraction must be in [0, 1), got {self.val_fraction}")
         if not 0 <= self.holdout_fraction < 1:
             raise ConfigError(f"holdout fraction must be in [0, 1), got {self.holdout_fraction}")
-        if self.holdout_fraction > 0 and (self.init_from is None or not (self.bags or self.ucm)):
+        if self.holdout_fraction > 0 and (self.init_from is None
+                                          or not (self.bags or self.ucm or self.pools)):
             raise ConfigError("--holdout-fraction needs --init-from and labelled tracks "
-                              "(--bags or --ucm): it compares the model before and after")
+                              "(--bags, --ucm or --pool): it compares the model before and "
+                              "after")
 
     def _check_mode(self) -> None:
         if self.mode not in BATCH_MODES:

@@ -16,6 +16,9 @@ Sources:
   exact stamps unless a slop is given), the ground truth by the image's stamp. A vehicle is
   used in a frame when the frame has its detection (the box the engine would crop) and
   its ground-truth entry (same track ID).
+* **Unlabelled bags** (:func:`load_unlabelled_bag_tracks`, for ``signal-light adapt``):
+  the same reader without the ground truth: every paired frame, every box, labels
+  ``PAD_LABEL``.
 * **UC Merced Vehicle Rear Signal layout** (:func:`load_ucm_tracks`):
   ``<footage>/<footage>_<XXX>/<footage>_<XXX>_<start>/light_mask/frameNNNNNNNN.png``
   with XXX in OOO, BOO, OLO, BLO, OOR, BOR, OLR, BLR (B brake, L left, R right, O off).
@@ -182,15 +185,58 @@ def load_bag_tracks(path: Path, crop_config: CropConfig = CropConfig(),
         Tracks sorted by track ID; frames of a track in stamp order.
 
     Raises:
-        BagIOError: The bag cannot be read, lacks one of the three topics, or a named
-            topic has another type.
+        BagIOError: The bag cannot be read, lacks one of the three topics, a named
+            topic has another type, or no frame has all three.
     """
+    return _read_bag_tracks(path, crop_config, (image_topic, detection_topic,
+                                                ground_truth_topic), lighting, pairing)
+
+
+def load_unlabelled_bag_tracks(path: Path, crop_config: CropConfig = CropConfig(),
+                               image_topic: Optional[str] = None,
+                               detection_topic: Optional[str] = None,
+                               lighting: str = "unknown",
+                               pairing: PairingConfig = PairingConfig()) -> List[TrackSequence]:
+    """Per-track sequences of a bag without ground truth (a user's plain recording).
+
+    The same pairing and crops as :func:`load_bag_tracks` (one shared reader), but every
+    paired frame is used and every detection in it; a ground-truth topic, if the bag has
+    one, is not read. The tracks' labels are all ``PAD_LABEL`` (not labelled).
+
+    Args:
+        path: The bag.
+        crop_config: Crop settings of the model.
+        image_topic: Image topic (default: as :func:`load_bag_tracks`).
+        detection_topic: Detection topic (default: the first Detection2DArray topic).
+        lighting: Lighting written into the tracks.
+        pairing: How images and detections are paired.
+
+    Returns:
+        Tracks sorted by track ID; frames of a track in stamp order.
+
+    Raises:
+        BagIOError: The bag cannot be read, lacks an image or detection topic, a named
+            topic has another type, or no image has detections with its stamp.
+    """
+    return _read_bag_tracks(path, crop_config, (image_topic, detection_topic, None),
+                            lighting, pairing)
+
+
+def _read_bag_tracks(path: Path, crop_config: CropConfig,
+                     topics_wanted: Tuple[Optional[str], Optional[str], Optional[str]],
+                     lighting: str, pairing: PairingConfig) -> List[TrackSequence]:
+    """The reader of :func:`load_bag_tracks` (ground-truth topic given) and
+    :func:`load_unlabelled_bag_tracks` (ground-truth topic None: every paired box, no
+    labels); ``topics_wanted`` is ``(image, detections, ground truth)``."""
     from signal_light_node.io.bagio import find_topic, open_bag
     from signal_light_node.io.conversions import detections_to_boxes, stamp_to_ns
     from signal_light_node.outputs.vehicle_lights import truth_row
     from signal_light_node.io.image_codec import msg_to_bgr
 
     path = Path(path)
+    image_topic, detection_topic, ground_truth_topic = topics_wanted
+    labelled = ground_truth_topic is not None
+    unlabelled_row = np.full(len(TASKS), PAD_LABEL, np.int64)
     per_track: Dict[str, Dict[str, list]] = {}
     ordered = OrderedPairing(pairing)
     no_truth = 0
@@ -198,24 +244,25 @@ def load_bag_tracks(path: Path, crop_config: CropConfig = CropConfig(),
         topics = bag.topics()
         img_t = find_topic(topics, IMAGE_TYPES, image_topic, "image", path)
         det_t = find_topic(topics, (DETECTIONS_TYPE,), detection_topic, "detection", path)
-        gt_t = find_topic(topics, (VEHICLE_LIGHTS_TYPE,), ground_truth_topic, "ground truth",
-                          path)
         ground_truth: Dict[int, Any] = {}
-        for m in bag.messages([gt_t]):
-            ground_truth.setdefault(stamp_to_ns(m.msg.header.stamp), m.msg)
+        if labelled:
+            gt_t = find_topic(topics, (VEHICLE_LIGHTS_TYPE,), ground_truth_topic,
+                              "ground truth", path)
+            for m in bag.messages([gt_t]):
+                ground_truth.setdefault(stamp_to_ns(m.msg.header.stamp), m.msg)
         arrivals = ((IMAGE if m.topic == img_t else DETECTIONS, stamp_to_ns(m.msg.header.stamp),
                      m.msg, m.log_time_ns) for m in bag.messages([img_t, det_t]))
         for frame in pair_in_order(arrivals, ordered):
             gt_msg = ground_truth.get(frame.stamp_ns)
-            if not frame.paired or gt_msg is None:
+            if not frame.paired or (labelled and gt_msg is None):
                 no_truth += frame.paired
                 continue
             stamp = frame.stamp_ns
             image = msg_to_bgr(frame.image, img_t, stamp)
-            truth = {str(v.track_id): v for v in gt_msg.vehicles}
+            truth = {str(v.track_id): v for v in gt_msg.vehicles} if labelled else {}
             for box in detections_to_boxes(frame.detections):
                 gt = truth.get(box.track_id)
-                if gt is None:
+                if labelled and gt is None:
                     continue
                 rec = per_track.setdefault(box.track_id, {k: [] for k in
                                                           ("stamp", "crop", "label", "size", "ok")})
@@ -227,7 +274,7 @@ def load_bag_tracks(path: Path, crop_config: CropConfig = CropConfig(),
                     ok = False
                 rec["stamp"].append(stamp)
                 rec["crop"].append(crop)
-                rec["label"].append(truth_row(gt))
+                rec["label"].append(truth_row(gt) if labelled else unlabelled_row)
                 size = math.sqrt(max(box.width, 0.0) * max(box.height, 0.0))
                 rec["size"].append(float(size) if math.isfinite(size) else math.nan)
                 rec["ok"].append(ok)
@@ -255,8 +302,9 @@ def load_bag_tracks(path: Path, crop_config: CropConfig = CropConfig(),
             crop_config=crop_config,
         ))
     if not tracks:
-        raise BagIOError(f"bag {path}: no frame has an image, detections and ground truth with "
-                         f"matching stamps and track IDs")
+        raise BagIOError(f"bag {path}: no frame has an image, detections"
+                         + (" and ground truth with matching stamps and track IDs" if labelled
+                            else " with matching stamps and at least one box"))
     logger.info("bag %s: %d tracks, %d frames", path, len(tracks), sum(len(t) for t in tracks))
     return tracks
 

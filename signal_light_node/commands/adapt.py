@@ -1,0 +1,75 @@
+"""``signal-light adapt BAG... --out MODEL``: fit a model's normalisation to your camera,
+without labels.
+
+Re-estimates the batch-norm running means and variances of a checkpoint (default: the
+shipped weights) on unlabelled recordings, and refits nothing else
+(:mod:`signal_light_node.training.adapt_norms`). The inputs are bags, read and paired as
+the node reads them (``--image-topic``, ``--detections-topic``, ``--sync-slop`` as in
+``replay``), or materialised split directories (their labels are not read). Examples::
+
+    signal-light adapt my_recording_1 my_recording_2 --out runs/mine/adapted.pt
+    signal-light evaluate --checkpoint runs/mine/adapted.pt --bags my_labelled --out runs/mine/eval
+    signal-light export --weights runs/mine/adapted.pt --onnx runs/mine/adapted.onnx
+
+A model without batch norm, or data without a usable crop, is refused in one line and
+nothing is written.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from signal_light_node.commands.options import (add_input_topic_options, add_pairing_options,
+                                                add_torch_options, pairing_from_args)
+from signal_light_node.errors import ConfigError
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``signal-light adapt``."""
+    from signal_light_node.training.adapt_norms import AdaptSettings
+
+    default = AdaptSettings()
+    parser.formatter_class = argparse.ArgumentDefaultsHelpFormatter
+    parser.add_argument("inputs", nargs="+", type=Path, metavar="BAG",
+                        help="unlabelled recordings (bags), or materialised split directories")
+    parser.add_argument("--out", type=Path, required=True, metavar="MODEL",
+                        help="the adapted checkpoint to write (.pt; replaced if it exists)")
+    parser.add_argument("--checkpoint", type=Path, default=None,
+                        help="the .pt checkpoint to adapt (default: the shipped weights)")
+    parser.add_argument("--max-frames", type=int, default=default.max_frames, metavar="N",
+                        help="use at most N crops: whole tracks drawn with --seed, the last "
+                             "one cut short (default: all)")
+    parser.add_argument("--seed", type=int, default=default.seed,
+                        help="seed of the --max-frames draw")
+    parser.add_argument("--batch-tracks", type=int, default=default.batch_tracks,
+                        help="tracks stepped side by side")
+    parser.add_argument("--window", type=int, default=default.window_frames, metavar="FRAMES",
+                        help="frames per track and model call (the state is carried across)")
+    add_input_topic_options(parser)
+    add_pairing_options(parser)
+    add_torch_options(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Adapt, write the checkpoint, print what changed."""
+    import torch
+
+    from signal_light_node.training.adapt_norms import (AdaptSettings, InputReading,
+                                                        adapt_checkpoint)
+
+    if args.out.suffix != ".pt":
+        raise ConfigError(f"--out must name a .pt checkpoint, got {str(args.out)!r}")
+    if args.checkpoint is not None and args.checkpoint.suffix.lower() == ".onnx":
+        raise ConfigError("adapt needs the .pt checkpoint (an ONNX export has its batch norms "
+                          "folded into the convolutions); adapt the .pt, then export it")
+    if args.threads:
+        torch.set_num_threads(int(args.threads))
+    settings = AdaptSettings(batch_tracks=args.batch_tracks, window_frames=args.window,
+                             max_frames=args.max_frames, seed=args.seed, device=args.device)
+    reading = InputReading(image_topic=args.image_topic, detection_topic=args.detections_topic,
+                           pairing=pairing_from_args(args))
+    result = adapt_checkpoint(args.out, args.inputs, args.checkpoint, settings, reading,
+                              progress=not args.no_progress)
+    print("\n".join(result.summary_lines()))
+    return 0

@@ -1,0 +1,378 @@
+"""Adapting without labels: re-estimate a model's batch-norm statistics on new recordings.
+
+``signal-light adapt BAG... --out MODEL`` (``commands/adapt.py``) takes a checkpoint and
+unlabelled recordings of the user's camera (bags, read and paired as the node reads
+them, :func:`.sources.load_unlabelled_bag_tracks`; or materialised splits, whose labels
+are ignored) and writes a copy of the checkpoint whose batch-norm running means and
+variances are those of the activations on the new data. Nothing else is refit: every
+weight and every other buffer stays as it was, so the adapted model has the same
+architecture, loads and exports (ONNX, int8) like the one it came from.
+
+How the statistics are taken:
+
+* every track is stepped in frame order from a fresh state (``model.initial_state``,
+  ``model.forward_sequence`` in windows with the state carried), so inputs that depend on
+  a track's history (the CNN's temporal channels, the trunk model's relative evidence)
+  are what they are in the node; frames without a usable crop are skipped, as the engine
+  never steps them;
+* tracks are batched (``batch_tracks`` side by side, ``window_frames`` frames per call),
+  so a batch-norm layer sees many vehicles and moments per call;
+* only the batch-norm layers are in train mode (everything else in eval mode: no
+  dropout), under ``torch.no_grad()``; their running statistics are reset first and then
+  averaged cumulatively over every call, each call weighted by its frames (``momentum``
+  set per call to ``frames of the call / frames so far``; with calls of equal size this
+  is ``momentum=None``'s plain cumulative average, but the last, short windows of the
+  longest tracks would otherwise weigh as much as full ones).
+
+The same data, settings and torch thread count give the same tensors (another thread
+count changes the sums' rounding: about 1e-4 on the running variances).
+
+A model without batch norm (``norm: group``) or data without a single usable crop is
+refused (:class:`~signal_light_node.errors.ConfigError`) before anything is written; the
+checkpoint is written through :func:`~signal_light_node.model.checkpoint.save_checkpoint`
+(a temporary file renamed into place) with ``meta["adapted"]`` saying from what and on
+what.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+from torch import nn
+
+from signal_light_node.errors import BagIOError, ConfigError
+from signal_light_node.evaluation.tracks import TrackSequence
+from signal_light_node.model.interface import State, select_state, to_input
+from signal_light_node.runtime.crops import CropConfig
+from signal_light_node.runtime.pairing import PairingConfig
+
+logger = logging.getLogger(__name__)
+
+#: The checkpoint metadata keys that describe the file itself; refilled when it is written.
+_FILE_META = ("created", "package_version", "torch_version")
+
+
+@dataclass(frozen=True)
+class AdaptSettings:
+    """How the statistics are taken.
+
+    Attributes:
+        batch_tracks: Tracks stepped side by side.
+        window_frames: Frames of each track per ``forward_sequence`` call.
+        max_frames: Cap on the frames (crops) used; tracks are then drawn in an order
+            shuffled with ``seed`` and the last one taken is cut short. None: all.
+        seed: Seed of that draw (the only randomness).
+        device: Where the model runs.
+    """
+
+    batch_tracks: int = 16
+    window_frames: int = 32
+    max_frames: Optional[int] = None
+    seed: int = 0
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        if self.batch_tracks < 1 or self.window_frames < 1:
+            raise ConfigError(f"batch tracks and window frames must be >= 1, got "
+                              f"{self.batch_tracks} and {self.window_frames}")
+        if self.max_frames is not None and self.max_frames < 1:
+            raise ConfigError(f"--max-frames must be >= 1, got {self.max_frames}")
+
+
+@dataclass(frozen=True)
+class InputReading:
+    """How bags are read (a split needs none of it): topics and pairing, as in ``replay``."""
+
+    image_topic: Optional[str] = None
+    detection_topic: Optional[str] = None
+    pairing: PairingConfig = field(default_factory=PairingConfig)
+
+
+@dataclass
+class AdaptResult:
+    """What :func:`adapt_checkpoint` did.
+
+    Attributes:
+        out: The checkpoint written.
+        source: The checkpoint adapted.
+        inputs: The bags and splits read.
+        layers: Batch-norm layers re-estimated.
+        tracks: Tracks stepped.
+        frames: Frames (crops) stepped.
+        mean_shift: Per layer, the mean over channels of ``|new mean - old mean| / old sd``.
+        var_ratio: Per layer, the median over channels of ``new var / old var``.
+    """
+
+    out: Path
+    source: Path
+    inputs: List[Path]
+    layers: int
+    tracks: int
+    frames: int
+    mean_shift: Dict[str, float]
+    var_ratio: Dict[str, float]
+
+    def summary_lines(self) -> List[str]:
+        """What the command prints."""
+        shifts = np.array(list(self.mean_shift.values()))
+        ratios = np.array(list(self.var_ratio.values()))
+        names = ", ".join(str(p) for p in self.inputs)
+        return [
+            f"adapted {self.source} on {self.frames} frames of {self.tracks} tracks ({names})",
+            f"batch-norm statistics of {self.layers} layers re-estimated; every other weight "
+            f"and buffer unchanged",
+            f"running means moved {shifts.mean():.2f} old sd on average (largest layer "
+            f"{shifts.max():.2f}); running variances x{np.median(ratios):.2f} (median layer, "
+            f"range x{ratios.min():.2f}-x{ratios.max():.2f})",
+            f"wrote {self.out}",
+        ]
+
+
+# ---------------------------------------------------------------------------- data
+
+
+def is_split_dir(path: Path) -> bool:
+    """Whether ``path`` is a materialised split (a directory with the split's manifest)."""
+    from signal_light_node.data.split import MANIFEST
+
+    return Path(path).is_dir() and (Path(path) / MANIFEST).is_file()
+
+
+def check_inputs(paths: Sequence[Path]) -> None:
+    """Refuse an empty list or a path that does not exist (before anything is loaded).
+
+    Raises:
+        ConfigError: No input given.
+        BagIOError: A path does not exist.
+    """
+    if not paths:
+        raise ConfigError("give at least one bag or split directory to adapt on")
+    for path in paths:
+        if not Path(path).exists():
+            raise BagIOError(f"bag {path} does not exist")
+
+
+def load_unlabelled_tracks(paths: Sequence[Path], crop: CropConfig,
+                           reading: InputReading = InputReading()) -> List[TrackSequence]:
+    """Every track of the bags and splits, in the order given (labels are not used).
+
+    Raises:
+        BagIOError: A bag cannot be read or has no image with detections.
+        ConfigError: A split was cropped with other settings than ``crop``.
+    """
+    from signal_light_node.training.sources import load_unlabelled_bag_tracks, split_tracks
+
+    tracks: List[TrackSequence] = []
+    for path in paths:
+        if is_split_dir(path):
+            tracks += split_tracks(Path(path), crop, role="adaptation data")
+        else:
+            tracks += load_unlabelled_bag_tracks(Path(path), crop, reading.image_topic,
+                                                 reading.detection_topic,
+                                                 pairing=reading.pairing)
+    return tracks
+
+
+def stepped_crops(tracks: Sequence[TrackSequence]) -> List[np.ndarray]:
+    """Per track, the uint8 crops ``[n, S, S, 3]`` of the frames the engine would step
+    (mask True), in order; tracks without such a frame are left out."""
+    out = []
+    for track in tracks:
+        crops = track.crop_window(0, len(track))[np.asarray(track.mask, bool)]
+        if len(crops):
+            out.append(crops)
+    return out
+
+
+def cap_frames(sequences: List[np.ndarray], max_frames: Optional[int], seed: int
+               ) -> List[np.ndarray]:
+    """At most ``max_frames`` frames: whole tracks in an order shuffled with ``seed``, the
+    last one cut short; all of them, in their order, when under the cap or uncapped."""
+    total = sum(len(s) for s in sequences)
+    if max_frames is None or total <= max_frames:
+        return list(sequences)
+    order = np.random.default_rng(seed).permutation(len(sequences))
+    kept, left = [], int(max_frames)
+    for index in order:
+        if left <= 0:
+            break
+        kept.append(sequences[index][:left])
+        left -= len(kept[-1])
+    return kept
+
+
+# -------------------------------------------------------------------------- stepping
+
+
+def batch_norm_layers(model: nn.Module) -> List[Tuple[str, nn.Module]]:
+    """``(name, module)`` of every batch-norm layer of ``model``."""
+    return [(name, m) for name, m in model.named_modules()
+            if isinstance(m, nn.modules.batchnorm._BatchNorm)]
+
+
+def _chunks(items: Sequence[np.ndarray], size: int) -> Iterator[List[np.ndarray]]:
+    for start in range(0, len(items), size):
+        yield list(items[start:start + size])
+
+
+def _frame_weighting(seen: Dict[nn.Module, int]) -> Callable[[nn.Module, Any], None]:
+    """A forward pre-hook that weights each call of a batch-norm layer by its frames."""
+
+    def hook(module: nn.Module, inputs: Any) -> None:
+        n = int(inputs[0].shape[0])
+        seen[module] = seen.get(module, 0) + n
+        module.momentum = n / seen[module]
+
+    return hook
+
+
+def _step_chunk(model: nn.Module, chunk: List[np.ndarray], window: int, device: str) -> None:
+    """Step one batch of tracks through the model, windows of ``window`` frames, the state
+    carried; a track that has ended drops out of the batch (tracks sorted longest first)."""
+    chunk = sorted(chunk, key=len, reverse=True)
+    lengths = [len(s) for s in chunk]
+    state: State = model.initial_state(len(chunk))
+    start = 0
+    while start < lengths[0]:
+        k = sum(1 for n in lengths if n > start)
+        stop = min(start + window, lengths[k - 1])
+        crops = np.stack([s[start:stop] for s in chunk[:k]])
+        t, size = crops.shape[1], crops.shape[2]
+        x = to_input(crops.reshape((k * t,) + crops.shape[2:])).to(device)
+        x = x.reshape(k, t, 3, size, size)
+        if k < state[0][0].shape[0]:
+            state = select_state(state, torch.arange(k, device=x.device))
+        _, state = model.forward_sequence(x, state)
+        start = stop
+
+
+def reestimate_batch_norms(model: nn.Module, sequences: Sequence[np.ndarray],
+                           settings: AdaptSettings = AdaptSettings(),
+                           progress: bool = False) -> int:
+    """Replace the running statistics of every batch-norm layer of ``model`` by those of
+    the activations on ``sequences`` (see the module doc); returns the frames stepped.
+
+    The model is left in eval mode with its layers' ``momentum`` as it was.
+
+    Raises:
+        ConfigError: The model has no batch-norm layer, or ``sequences`` no frame.
+    """
+    from tqdm import tqdm
+
+    layers = [m for _, m in batch_norm_layers(model)]
+    if not layers:
+        raise ConfigError("the model has no batch-norm layer: nothing to re-estimate")
+    frames = sum(len(s) for s in sequences)
+    if not frames:
+        raise ConfigError("no frame to re-estimate the batch norms on")
+    momenta = [m.momentum for m in layers]
+    seen: Dict[nn.Module, int] = {}
+    hooks = [m.register_forward_pre_hook(_frame_weighting(seen)) for m in layers]
+    model.eval()
+    for m in layers:
+        m.reset_running_stats()
+        m.train()
+    try:
+        chunks = list(_chunks(sequences, settings.batch_tracks))
+        with torch.no_grad():
+            for chunk in tqdm(chunks, desc="adapt", unit="batch", disable=not progress):
+                _step_chunk(model, chunk, settings.window_frames, settings.device)
+    finally:
+        for hook in hooks:
+            hook.remove()
+        for m, momentum in zip(layers, momenta):
+            m.momentum = momentum
+        model.eval()
+    unseen = [name for name, m in batch_norm_layers(model) if m not in seen]
+    if unseen:
+        raise ConfigError(f"batch-norm layers never reached by a step: {unseen[:3]}")
+    return frames
+
+
+def _changes(before: Dict[str, torch.Tensor], model: nn.Module
+             ) -> Tuple[Dict[str, float], Dict[str, float]]:
+    """Per layer: mean |shift of the running mean| in old sd, median new/old variance."""
+    shift, ratio = {}, {}
+    for name, m in batch_norm_layers(model):
+        old_mean, old_var = before[f"{name}.running_mean"], before[f"{name}.running_var"]
+        sd = old_var.clamp_min(m.eps).sqrt()
+        shift[name] = float(((m.running_mean.cpu() - old_mean).abs() / sd).mean())
+        ratio[name] = float((m.running_var.cpu() / old_var.clamp_min(m.eps)).median())
+    return shift, ratio
+
+
+# ------------------------------------------------------------------------ checkpoint
+
+
+def adapted_meta(meta: Dict[str, Any], source: Path, result: AdaptResult,
+                 settings: AdaptSettings) -> Dict[str, Any]:
+    """The adapted checkpoint's metadata: the source's (training data, metrics, notes),
+    less what describes the file itself, plus ``adapted`` (from what, on what, how)."""
+    info = {k: v for k, v in meta.items() if k not in _FILE_META}
+    info["adapted"] = {
+        "method": "batch-norm running statistics re-estimated without labels "
+                  "(signal-light adapt); every other weight as in 'from'",
+        "from": str(source), "from_created": meta.get("created"),
+        "previous": meta.get("adapted"),
+        "data": [str(p) for p in result.inputs],
+        "tracks": result.tracks, "frames": result.frames, "batch_norm_layers": result.layers,
+        "settings": {k: v for k, v in asdict(settings).items() if k != "device"},
+        "mean_shift_sd": result.mean_shift, "var_ratio": result.var_ratio,
+    }
+    return info
+
+
+def adapt_checkpoint(out: Path, inputs: Sequence[Path], checkpoint: Optional[Path] = None,
+                     settings: AdaptSettings = AdaptSettings(),
+                     reading: InputReading = InputReading(),
+                     progress: bool = False) -> AdaptResult:
+    """Load ``checkpoint``, re-estimate its batch norms on ``inputs``, write ``out``.
+
+    Args:
+        out: The adapted checkpoint (a temporary file renamed into place).
+        inputs: Bags and split directories (labels, if any, are not read).
+        checkpoint: The checkpoint to adapt (default: the shipped weights).
+        settings: How the statistics are taken.
+        reading: Topics and pairing of the bags.
+        progress: Show a progress bar.
+
+    Returns:
+        What was done (:class:`AdaptResult`).
+
+    Raises:
+        ConfigError: The model has no batch norm, or the data no usable crop; nothing
+            is written.
+        BagIOError: An input is missing or unreadable.
+        CheckpointError: The checkpoint cannot be loaded or ``out`` written.
+    """
+    from signal_light_node.model.checkpoint import (DEFAULT_WEIGHTS, load_checkpoint,
+                                                    save_checkpoint)
+
+    inputs = [Path(p) for p in inputs]
+    check_inputs(inputs)
+    source = Path(DEFAULT_WEIGHTS if checkpoint is None else checkpoint)
+    loaded = load_checkpoint(source, map_location=settings.device)
+    if not batch_norm_layers(loaded.model):
+        raise ConfigError(f"{source} has no batch-norm layer (norm: {loaded.config.norm}): "
+                          "there are no statistics to adapt")
+    tracks = load_unlabelled_tracks(inputs, loaded.config.crop_config(), reading)
+    sequences = cap_frames(stepped_crops(tracks), settings.max_frames, settings.seed)
+    if not sequences:
+        raise ConfigError(f"no usable crop in {', '.join(map(str, inputs))}: "
+                          f"{len(tracks)} tracks, none with a box that can be cropped")
+    before = {k: v.detach().cpu().clone() for k, v in loaded.model.state_dict().items()}
+    frames = reestimate_batch_norms(loaded.model, sequences, settings, progress)
+    shift, ratio = _changes(before, loaded.model)
+    result = AdaptResult(out=Path(out), source=source, inputs=inputs,
+                         layers=len(shift), tracks=len(sequences), frames=frames,
+                         mean_shift=shift, var_ratio=ratio)
+    save_checkpoint(out, loaded.model, loaded.config,
+                    adapted_meta(loaded.meta, source, result, settings))
+    logger.info("adapted %s: %d batch-norm layers on %d frames of %d tracks -> %s", source,
+                result.layers, frames, result.tracks, out)
+    return result

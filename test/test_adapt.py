@@ -1,0 +1,205 @@
+"""``signal-light adapt``: batch-norm statistics re-estimated on unlabelled data, nothing
+else changed; refusals in one line with nothing written."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Dict
+
+import numpy as np
+import pytest
+import torch
+
+from signal_light_node.boxes import TrackBox
+from signal_light_node.cli import main
+from signal_light_node.io import bagio
+from signal_light_node.io.conversions import boxes_to_detections, make_header
+from signal_light_node.io.image_codec import bgr_to_compressed_fields
+from signal_light_node.model import load_checkpoint, save_checkpoint
+from signal_light_node.model.checkpoint import DEFAULT_WEIGHTS
+from signal_light_node.model.interface import to_input
+from signal_light_node.training.adapt_norms import (AdaptSettings, adapt_checkpoint,
+                                                    batch_norm_layers)
+from signal_light_node.training.sources import load_unlabelled_bag_tracks
+
+REPO = Path(__file__).resolve().parents[1]
+BAG = REPO / "bags" / "day_street"
+
+needs_bag = pytest.mark.skipif(not (BAG / "metadata.yaml").exists(),
+                               reason="bags/day_street is not committed")
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def adapted(tmp_path_factory) -> Path:
+    """The shipped model adapted on bags/day_street (a few hundred crops)."""
+    out = tmp_path_factory.mktemp("adapt") / "day.pt"
+    assert main(["adapt", str(BAG), "--out", str(out), "--threads", "1", "--no-progress"]) == 0
+    return out
+
+
+def _state(path: Path) -> Dict[str, torch.Tensor]:
+    return load_checkpoint(path).model.state_dict()
+
+
+def _bn_buffers(model: torch.nn.Module) -> set:
+    return {f"{name}.{b}" for name, _ in batch_norm_layers(model)
+            for b in ("running_mean", "running_var", "num_batches_tracked")}
+
+
+def _first_norm_input_mean(model: torch.nn.Module, tracks) -> torch.Tensor:
+    """Per channel, the mean of the first batch norm's input over every stepped crop
+    (the model in eval mode: that input does not depend on any batch norm)."""
+    first = batch_norm_layers(model)[0][1]
+    total, count = [], []
+
+    def hook(module, inputs):
+        total.append(inputs[0].sum(dim=(0, 2, 3)))
+        count.append(inputs[0].shape[0] * inputs[0].shape[2] * inputs[0].shape[3])
+
+    handle = first.register_forward_pre_hook(hook)
+    model.eval()
+    with torch.no_grad():
+        for track in tracks:
+            crops = track.crops[track.mask]
+            if len(crops):
+                model.forward_sequence(to_input(crops).unsqueeze(0))
+    handle.remove()
+    return torch.stack(total).sum(0) / sum(count)
+
+
+@needs_bag
+def test_only_batch_norm_buffers_change_toward_the_new_data(adapted: Path) -> None:
+    before, after = _state(DEFAULT_WEIGHTS), _state(adapted)
+    model = load_checkpoint(adapted).model
+    norms = _bn_buffers(model)
+    assert before.keys() == after.keys()
+    for key in before:
+        if key not in norms:
+            assert torch.equal(before[key], after[key]), key
+    moved = [k for k in norms if k.endswith("running_mean")
+             and not torch.equal(before[k], after[k])]
+    assert len(moved) == len(batch_norm_layers(model)) == 6
+    # The first layer's input does not depend on any batch norm: its new running mean is
+    # the mean over the bag's stepped crops, which the shipped statistics were not.
+    first = batch_norm_layers(model)[0][0]
+    tracks = load_unlabelled_bag_tracks(BAG, model.config.crop_config())
+    data_mean = _first_norm_input_mean(model, tracks)
+    new, old = after[f"{first}.running_mean"], before[f"{first}.running_mean"]
+    assert torch.allclose(new, data_mean, atol=1e-4, rtol=1e-3)
+    assert (new - data_mean).abs().mean() < 0.1 * (old - data_mean).abs().mean()
+
+
+@needs_bag
+def test_meta_says_what_it_was_adapted_from_and_on(adapted: Path, capsys) -> None:
+    loaded = load_checkpoint(adapted)
+    info = loaded.meta["adapted"]
+    assert Path(info["from"]) == DEFAULT_WEIGHTS and info["data"] == [str(BAG)]
+    assert info["frames"] > 100 and info["tracks"] == 8 and info["batch_norm_layers"] == 6
+    assert loaded.meta["training_data"] == load_checkpoint(DEFAULT_WEIGHTS).meta["training_data"]
+    # It loads and steps like any checkpoint.
+    model, size = loaded.model, loaded.config.input_size
+    crops = np.random.default_rng(0).integers(0, 255, (3, size, size, 3), dtype=np.uint8)
+    probs, state = model.step(to_input(crops), model.initial_state(3))
+    probs, _ = model.step(to_input(crops), state)
+    for p in probs.values():
+        assert torch.allclose(p.sum(1), torch.ones(3), atol=1e-5)
+
+
+@needs_bag
+def test_the_adapted_checkpoint_exports_to_onnx(adapted: Path, tmp_path: Path) -> None:
+    from signal_light_node.model.onnx_export import VERIFY_TOLERANCE, export_onnx
+
+    report = export_onnx(tmp_path / "adapted.onnx", adapted)  # checked against torch
+    assert report.path.is_file() and report.max_abs_diff <= VERIFY_TOLERANCE
+
+
+@needs_bag
+def test_the_same_data_gives_the_same_tensors(adapted: Path, tmp_path: Path) -> None:
+    again = tmp_path / "again.pt"
+    assert main(["adapt", str(BAG), "--out", str(again), "--threads", "1",
+                 "--no-progress"]) == 0
+    first, second = _state(adapted), _state(again)
+    assert all(torch.equal(first[k], second[k]) for k in first)
+
+
+@needs_bag
+def test_max_frames_caps_the_crops_with_the_seed(tmp_path: Path) -> None:
+    runs = [adapt_checkpoint(tmp_path / f"{i}.pt", [BAG],
+                             settings=AdaptSettings(max_frames=100, seed=seed))
+            for i, seed in enumerate((3, 3, 4))]
+    assert [r.frames for r in runs] == [100, 100, 100]
+    a, b, c = (_state(r.out) for r in runs)
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert not all(torch.equal(a[k], c[k]) for k in a)
+
+
+def test_a_rendered_split_adapts_a_trunk_model(tmp_path: Path) -> None:
+    """A split directory is read as data (labels unused); the trunk's norms are adapted."""
+    from signal_light_node.data.split import write_split
+    from signal_light_node.model.config import ModelConfig
+    from signal_light_node.model.registry import build_model
+
+    config = ModelConfig(encoder="efficientnet_lite0")
+    split = tmp_path / "split"
+    write_split(split, seed=5, n_sequences=3, seq_len=8, crop=config.crop_config(),
+                full_tracks=True, progress=False, vehicles=(1, 2))
+    source = save_checkpoint(tmp_path / "trunk.pt", build_model(config), config)
+    result = adapt_checkpoint(tmp_path / "adapted.pt", [split], source,
+                              AdaptSettings(window_frames=4))
+    assert result.layers == len(batch_norm_layers(load_checkpoint(source).model)) > 10
+    before, after = _state(source), _state(result.out)
+    norms = _bn_buffers(load_checkpoint(source).model)
+    assert all(torch.equal(before[k], after[k]) for k in before if k not in norms)
+    trunk_norms = [k for k in norms if k.startswith("trunk.") and k.endswith("running_mean")]
+    assert len(trunk_norms) == result.layers
+    assert all(not torch.equal(before[k], after[k]) for k in trunk_norms)
+
+
+def _refused(capsys, args, out: Path) -> str:
+    assert main(["adapt", *map(str, args), "--out", str(out), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("signal-light adapt: error:") and "\n" not in err
+    assert not out.exists() and not list(out.parent.glob(out.name + "*"))
+    return err
+
+
+@needs_bag
+def test_a_model_without_batch_norm_is_refused(tmp_path: Path, capsys) -> None:
+    from signal_light_node.model.config import ModelConfig
+    from signal_light_node.model.registry import build_model
+
+    config = ModelConfig(norm="group")
+    source = save_checkpoint(tmp_path / "group.pt", build_model(config), config)
+    err = _refused(capsys, [BAG, "--checkpoint", source], tmp_path / "out" / "a.pt")
+    assert "no batch-norm layer" in err
+
+
+def test_a_missing_bag_is_refused(tmp_path: Path, capsys) -> None:
+    err = _refused(capsys, [tmp_path / "nowhere"], tmp_path / "a.pt")
+    assert "does not exist" in err
+
+
+def test_a_bag_without_usable_crops_is_refused(tmp_path: Path, capsys) -> None:
+    """Every box lies outside the image: tracks, but not one crop."""
+    make, bag = bagio.make, tmp_path / "outside"
+    jpeg = bgr_to_compressed_fields(np.full((30, 40, 3), 90, np.uint8), "jpeg")
+    with bagio.BagWriter(bag) as writer:
+        writer.add_topic("/cam/image/compressed", "sensor_msgs/msg/CompressedImage")
+        writer.add_topic("/tracks", "vision_msgs/msg/Detection2DArray")
+        for i in range(3):
+            stamp = 10**12 + i * 10**8
+            header = make_header(stamp, "cam", make)
+            writer.write("/cam/image/compressed", stamp,
+                         make("sensor_msgs/msg/CompressedImage", header=header, **jpeg))
+            writer.write("/tracks", stamp, boxes_to_detections(
+                header, [TrackBox("7", 500, 500, 520, 520, "car")], make))
+    err = _refused(capsys, [bag], tmp_path / "a.pt")
+    assert "no usable crop" in err
