@@ -13,7 +13,11 @@ half the largest over its cells). Logistic regressions are fitted on FIT and sco
 
 Each feature family is probed alone and beside the per-frame lamp maps (8x8, the model's
 brightness evidence), so the table says what the periodic evidence adds and whether it
-carries to a style family or a generator never fitted on. Usage::
+carries to a style family or a generator never fitted on. Without any fitting, each set
+also gets the ROC AUC of one number, the largest raw amplitude over cells, channels,
+halves and periods, for ``any`` (``max amplitude``; ``max amplitude, grace`` leaves out
+the frames within ``--grace`` seconds after an intent change, where a detector with a
+memory still rings after the last flash). Usage::
 
     python scripts/probe_blink.py --fit runs/v13/test_split \\
         --score family=runs/v13/family_test_split indep=runs/indep/day_101,... --json OUT
@@ -67,8 +71,9 @@ def brightness_features(crops: np.ndarray) -> np.ndarray:
     return lamp_maps(x, 8).flatten(1).numpy()
 
 
-def targets(track: TrackSequence) -> Dict[str, np.ndarray]:
-    """Per frame: 1 / 0 / -1 (not scored) for each probe target."""
+def targets(track: TrackSequence, grace: float = 0.0) -> Dict[str, np.ndarray]:
+    """Per frame: 1 / 0 / -1 (not scored) for each probe target; ``any_grace`` also
+    leaves out ``grace`` seconds after each intent change."""
     lab = track.labels
     intent = lab[:, TASKS.index("intent")]
     view = lab[:, TASKS.index("view")]
@@ -78,18 +83,23 @@ def targets(track: TrackSequence) -> Dict[str, np.ndarray]:
     side = np.where(view != View.BEHIND, -1,
                     np.where(left == LightStatus.ON, 1, np.where(left == LightStatus.OFF, 0, -1)))
     keep = track.mask & (np.arange(len(track)) >= WARMUP)
-    return {"any": np.where(keep, any_on, -1), "side": np.where(keep, side, -1)}
+    after_change = np.zeros(len(track), bool)
+    for change in np.nonzero(np.diff(intent) != 0)[0] + 1:
+        after_change[change:change + int(round(grace * track.fps))] = True
+    return {"any": np.where(keep, any_on, -1), "side": np.where(keep, side, -1),
+            "any_grace": np.where(keep & ~after_change, any_on, -1)}
 
 
-def featurise(tracks: Sequence[TrackSequence], grid: int) -> Tuple[Dict[str, np.ndarray],
-                                                                   Dict[str, np.ndarray]]:
+def featurise(tracks: Sequence[TrackSequence], grid: int, grace: float
+              ) -> Tuple[Dict[str, np.ndarray], Dict[str, np.ndarray]]:
+    """Features (periodic, brightness, both) and targets of every frame of ``tracks``."""
     feats: Dict[str, List[np.ndarray]] = {"periodic": [], "brightness": []}
-    tg: Dict[str, List[np.ndarray]] = {"any": [], "side": []}
+    tg: Dict[str, List[np.ndarray]] = {"any": [], "side": [], "any_grace": []}
     for track in tracks:
         crops = track.crops
         feats["periodic"].append(periodic_features(crops, grid))
         feats["brightness"].append(brightness_features(crops))
-        for k, v in targets(track).items():
+        for k, v in targets(track, grace).items():
             tg[k].append(v)
     f = {k: np.concatenate(v) for k, v in feats.items()}
     f["both"] = np.concatenate((f["periodic"], f["brightness"]), 1)
@@ -131,27 +141,35 @@ def main() -> int:
     p.add_argument("--fit", type=Path, nargs="+", required=True)
     p.add_argument("--score", nargs="+", default=[], help="NAME=PATH[,PATH...]")
     p.add_argument("--grid", type=int, default=8, help="fine lamp-map grid (even)")
+    p.add_argument("--grace", type=float, default=1.0,
+                   help="seconds after an intent change left out of 'max amplitude, grace'")
+    p.add_argument("--max-tracks", type=int, default=0, help="first N tracks of each set (0: all)")
     p.add_argument("--json", type=Path)
     args = p.parse_args()
     torch.set_num_threads(1)
-    fit_tracks = [t for path in args.fit for t in load(path)]
+    cap = (lambda ts: ts[:args.max_tracks]) if args.max_tracks else (lambda ts: ts)
+    fit_tracks = cap([t for path in args.fit for t in load(path)])
     n = len(fit_tracks)
     half = [t for i, t in enumerate(fit_tracks) if i % 2 == 0]
     other = [t for i, t in enumerate(fit_tracks) if i % 2 == 1]
     sets = {"fit, held-out tracks": other}
     for spec in args.score:
         name, paths = spec.split("=", 1)
-        sets[name] = [t for path in paths.split(",") for t in load(Path(path))]
-    fx, fy = featurise(half, args.grid)
+        sets[name] = cap([t for path in paths.split(",") for t in load(Path(path))])
+    fx, fy = featurise(half, args.grid, args.grace)
     print(f"fitted on {len(half)} of {n} tracks; positives any {int((fy['any'] == 1).sum())}"
           f" / {int((fy['any'] >= 0).sum())}", flush=True)
     models = {(kind, target): fit(fx[kind], fy[target])
-              for kind in fx for target in fy}
+              for kind in fx for target in ("any", "side")}
+    amplitude = slice(0, fx["periodic"].shape[1] // 2)  # raw amplitudes come first
     results: Dict[str, Dict[str, float]] = {}
     for name, tracks in sets.items():
-        sx, sy = featurise(tracks, args.grid)
+        sx, sy = featurise(tracks, args.grid, args.grace)
         row = {f"{kind}/{target}": round(auc(models[kind, target](sx[kind]), sy[target]), 3)
                for kind, target in models}
+        biggest = sx["periodic"][:, amplitude].max(1)
+        row["max amplitude"] = round(auc(biggest, sy["any"]), 3)
+        row["max amplitude, grace"] = round(auc(biggest, sy["any_grace"]), 3)
         row["frames any"] = int((sy["any"] >= 0).sum())
         judged = max(1, int((sy["any"] >= 0).sum()))
         row["share ON any"] = round(float((sy["any"] == 1).sum()) / judged, 3)
