@@ -73,7 +73,9 @@ def test_trunk_config_is_validated():
                                       "lit_hidden": 16},
                                      {"blink_levels": False},
                                      {"frequency_evidence": False, "lamp_detail": 2,
-                                      "cell_periods": True}])
+                                      "cell_periods": True},
+                                     {"frequency_evidence": False, "lamp_detail": 2,
+                                      "cell_periods": True, "cell_pooled": True}])
 def test_stepping_frame_by_frame_equals_the_sequence(changes):
     model = _model(**changes)
     crops = torch.rand(3, 6, 3, 64, 64, generator=torch.Generator().manual_seed(1))
@@ -182,8 +184,28 @@ def test_a_small_flashing_lamp_stands_out_in_its_half_and_cell():
 def test_cell_periods_add_their_state_and_inputs():
     plain = _model(frequency_evidence=False, lamp_detail=2)
     cells = _model(frequency_evidence=False, lamp_detail=2, cell_periods=True)
+    pooled = _model(frequency_evidence=False, lamp_detail=2, cell_periods=True, cell_pooled=True)
     assert len(cells.initial_state(2)) == len(plain.initial_state(2)) + 1
     assert cells.n_vector == plain.n_vector + lamps.cell_blink_sizes(8)[1]
+    assert pooled.n_vector == plain.n_vector + 4
+    with pytest.raises(ConfigError, match="cell_pooled needs cell_periods"):
+        trunk_config(cell_pooled=True)
+
+
+def test_pooled_cell_periods_are_the_raw_amplitudes_largest_over_periods():
+    frames = [_vehicle(t, (t % 8) < 4) for t in range(40)]
+    n_signals = lamps.cell_blink_sizes(8)[0]
+    state = (torch.zeros(1, 2, n_signals, len(lamps.PERIODS)), torch.zeros(1, 3, n_signals))
+    for t, crop in enumerate(frames):
+        maps = lamps.lamp_maps(crop[None], 8)
+        seen = torch.full((1, 1), float(t > 0))
+        full = lamps.cell_blink_step(maps, *state, seen)
+        pooled = lamps.cell_blink_step(maps, *state, seen, pooled=True)
+        state = full[2:]
+    per_period = full[0].reshape(2, len(lamps.CELL_CHANNELS), 2, len(lamps.PERIODS))
+    assert torch.allclose(pooled[0].reshape(len(lamps.CELL_CHANNELS), 2),
+                          per_period[0].amax(-1))  # raw kind, largest over periods
+    assert torch.equal(pooled[1][0], full[1][0, :len(lamps.CELL_CHANNELS)])
 
 
 def test_relative_evidence_is_zero_for_a_new_track_and_fades_for_a_steady_map():
@@ -233,7 +255,7 @@ def test_checkpoint_round_trip_needs_no_wheel(tmp_path, monkeypatch):
 @pytest.mark.parametrize("changes", [{}, {"frequency_evidence": False, "lamp_detail": 2,
                                           "lit_hidden": 16, "blink_levels": False},
                                      {"frequency_evidence": False, "lamp_detail": 2,
-                                      "cell_periods": True}])
+                                      "cell_periods": True, "cell_pooled": True}])
 def test_onnx_export_steps_like_torch(tmp_path, changes):
     from signal_light_node.model.onnx_export import export_onnx
 

@@ -96,6 +96,9 @@ class ModelConfig:
             excess drive resonators, read raw and over the cell's own broadband change;
             the largest per image half joins the track vector and a per-cell map joins
             the evidence. Evidence of a flash that does not depend on how a lamp looks.
+        cell_pooled: With ``cell_periods``, only each cell's raw amplitude, pooled over
+            the periods (4 track-vector values, 2 map channels): no per-period or
+            per-noise-level detail for the heads to fit to one renderer's frame rates.
         lamp_detail: The lamp maps are computed on a grid this many times finer than the
             trunk's and stacked into channels per trunk cell (space to depth), so a small
             lamp keeps its own cell; 1 keeps one lamp-map cell per trunk cell.
@@ -139,6 +142,7 @@ class ModelConfig:
     lit_hidden: int = 0
     lamp_detail: int = 1
     cell_periods: bool = False
+    cell_pooled: bool = False
     temperatures: Mapping[str, float] = field(default_factory=dict, hash=False)
 
     def __post_init__(self) -> None:
@@ -158,7 +162,8 @@ class ModelConfig:
             raise ConfigError(f"model config has a value of the wrong type: {exc}") from None
         # bool("false") is True: refuse anything but a real boolean (CLI values are JSON).
         for name in ("use_attention", "temporal_input", "relative_evidence", "frequency_evidence",
-                     "lit_head", "lit_periods", "blink_levels", "cell_periods"):
+                     "lit_head", "lit_periods", "blink_levels", "cell_periods",
+                     "cell_pooled"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"model config {name} must be true or false, got "
                                   f"{getattr(self, name)!r}")
@@ -188,6 +193,8 @@ class ModelConfig:
             raise ConfigError(f"model config std must be positive, got {self.std}")
         if self.norm not in ("batch", "group"):
             raise ConfigError(f"model config norm must be 'batch' or 'group', got {self.norm!r}")
+        if self.cell_pooled and not self.cell_periods:
+            raise ConfigError("model config cell_pooled needs cell_periods")
         if self.lit_periods and not self.lit_head:
             raise ConfigError("model config lit_periods needs lit_head")
         if self.encoder not in ENCODERS:

@@ -195,15 +195,18 @@ def depth_to_space(maps: Tensor, factor: int) -> Tensor:
     return cells.reshape(n, c, h * factor, w * factor)
 
 
-def cell_blink_sizes(fine: int) -> Tuple[int, int, int]:
+def cell_blink_sizes(fine: int, pooled: bool = False) -> Tuple[int, int, int]:
     """``(signals, vector features, map channels at the fine grid)`` of
     :func:`cell_blink_step` on a ``fine x fine`` lamp grid."""
     signals = len(CELL_CHANNELS) * fine * fine
+    if pooled:
+        return signals, len(CELL_CHANNELS) * 2, len(CELL_CHANNELS)
     return signals, 2 * len(CELL_CHANNELS) * 2 * len(PERIODS), 2 * len(CELL_CHANNELS)
 
 
 def cell_blink_step(fine_maps: Tensor, resonators: Tensor, memory: Tensor, seen: Tensor,
-                    periods: Sequence[float] = PERIODS) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+                    periods: Sequence[float] = PERIODS, pooled: bool = False
+                    ) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
     """One frame of periodic energy per cell of the fine lamp grid.
 
     Args:
@@ -213,6 +216,12 @@ def cell_blink_step(fine_maps: Tensor, resonators: Tensor, memory: Tensor, seen:
         memory: ``[N, 3, S]`` each signal's previous value, slow level and broadband change.
         seen: ``[N, 1]`` 1 where the track has a previous frame.
         periods: The ``P`` periods in frames.
+        pooled: Only the raw amplitudes, each cell's largest over the periods: a
+            ``[N, 2C]`` vector (per channel and half) and a ``[N, C, F, F]`` map. Which
+            period a blink has depends on the frame rate, and the ratio to the broadband
+            change on how a renderer or camera adds noise; a probe fitted on one renderer
+            carried these few numbers to another where the full set did not
+            (``docs/model.md``).
 
     Returns:
         ``[N, 4 * C * P]`` vector (per amplitude kind -- raw, over the broadband change --,
@@ -232,7 +241,13 @@ def cell_blink_step(fine_maps: Tensor, resonators: Tensor, memory: Tensor, seen:
     kinds = torch.stack((amplitude, ratio), 1).reshape(n, 2, channels, fine, fine, len(periods))
     kinds = torch.log(kinds + 1e-3)
     half = fine // 2
+    memory = torch.stack((signals, level, broad), 1)
+    if pooled:
+        cell_map = kinds[:, 0].amax(dim=-1)  # [N, C, F, F]
+        vector = torch.stack((cell_map[..., :half].amax(dim=(2, 3)),
+                              cell_map[..., fine - half:].amax(dim=(2, 3))), 2)
+        return vector.flatten(1), cell_map, resonators, memory
     vector = torch.stack((kinds[:, :, :, :, :half].amax(dim=(3, 4)),
                           kinds[:, :, :, :, fine - half:].amax(dim=(3, 4))), 3)
     cell_map = kinds.amax(dim=-1).reshape(n, 2 * channels, fine, fine)
-    return vector.flatten(1), cell_map, resonators, torch.stack((signals, level, broad), 1)
+    return vector.flatten(1), cell_map, resonators, memory

@@ -82,7 +82,8 @@ class TrunkLightNet(nn.Module):
             c_in += 2 * width + 2 * self.lamp_channels
         evidence_channels = c_in
         self.fine = self.grid * config.lamp_detail
-        self.n_cell_signals, n_cell_vector, cell_maps = lamps.cell_blink_sizes(self.fine)
+        self.n_cell_signals, n_cell_vector, cell_maps = lamps.cell_blink_sizes(
+            self.fine, config.cell_pooled)
         if config.cell_periods:
             c_in += cell_maps * config.lamp_detail ** 2
         self.n_signals = 2 * len(lamps.SIGNAL_CHANNELS)
@@ -271,7 +272,8 @@ class TrunkLightNet(nn.Module):
         vector, cell_map, resonators, memory = lamps.cell_blink_step(
             lamps.depth_to_space(maps, detail),
             resonators.reshape(n, 2, self.n_cell_signals, periods),
-            memory.reshape(n, 3, self.n_cell_signals), seen.reshape(n, 1))
+            memory.reshape(n, 3, self.n_cell_signals), seen.reshape(n, 1),
+            pooled=self.config.cell_pooled)
         return vector, lamps.space_to_depth(cell_map, detail), \
             (resonators.reshape(n, -1, 1, 1), memory.reshape(n, -1, 1, 1))
 
