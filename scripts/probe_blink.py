@@ -11,8 +11,9 @@ half the largest over its cells). Logistic regressions are fitted on FIT and sco
 * ``any``: a blinker ON (intent LEFT, RIGHT or HAZARD) against both OFF;
 * ``side``: from behind only, the image-left half's blinker (the vehicle's left) ON.
 
-Each feature family is probed alone and beside the per-frame lamp maps (8x8, the model's
-brightness evidence), so the table says what the periodic evidence adds and whether it
+Each feature family (``periodic``: all 56 values; ``pooled``: the 4 of ``cell_pooled``,
+each raw amplitude's largest over the periods) is probed alone, and the full one beside
+the per-frame lamp maps (8x8, the model's brightness evidence), so the table says what the periodic evidence adds and whether it
 carries to a style family or a generator never fitted on. Without any fitting, each set
 also gets the ROC AUC of one number, the largest raw amplitude over cells, channels,
 halves and periods, for ``any`` (``max amplitude``; ``max amplitude, grace`` leaves out
@@ -93,11 +94,14 @@ def targets(track: TrackSequence, grace: float = 0.0) -> Dict[str, np.ndarray]:
 def featurise(tracks: Sequence[TrackSequence], grid: int, grace: float
               ) -> Tuple[Dict[str, np.ndarray], Dict[str, np.ndarray]]:
     """Features (periodic, brightness, both) and targets of every frame of ``tracks``."""
-    feats: Dict[str, List[np.ndarray]] = {"periodic": [], "brightness": []}
+    feats: Dict[str, List[np.ndarray]] = {"periodic": [], "pooled": [], "brightness": []}
     tg: Dict[str, List[np.ndarray]] = {"any": [], "side": [], "any_grace": []}
     for track in tracks:
         crops = track.crops
-        feats["periodic"].append(periodic_features(crops, grid))
+        periodic = periodic_features(crops, grid)
+        feats["periodic"].append(periodic)
+        raw = periodic.reshape(len(periodic), 2, -1, 2, len(PERIODS))[:, 0]
+        feats["pooled"].append(raw.max(-1).reshape(len(periodic), -1))
         feats["brightness"].append(brightness_features(crops))
         for k, v in targets(track, grace).items():
             tg[k].append(v)
@@ -167,6 +171,8 @@ def main() -> int:
         sx, sy = featurise(tracks, args.grid, args.grace)
         row = {f"{kind}/{target}": round(auc(models[kind, target](sx[kind]), sy[target]), 3)
                for kind, target in models}
+        row.update({f"{kind}/any, grace": round(auc(models[kind, "any"](sx[kind]),
+                                                     sy["any_grace"]), 3) for kind in sx})
         biggest = sx["periodic"][:, amplitude].max(1)
         row["max amplitude"] = round(auc(biggest, sy["any"]), 3)
         row["max amplitude, grace"] = round(auc(biggest, sy["any_grace"]), 3)
