@@ -237,16 +237,18 @@ def cell_blink_step(fine_maps: Tensor, resonators: Tensor, memory: Tensor, seen:
     broad = (broad + ((signals - previous).abs() - broad) * BROADBAND_RATE) * seen
     resonators, level = resonate(signals, resonators, level, seen, periods)
     amplitude = torch.sqrt(resonators[:, 0] ** 2 + resonators[:, 1] ** 2 + 1e-8)
-    ratio = amplitude / (broad.unsqueeze(-1) + BROADBAND_FLOOR)
-    kinds = torch.stack((amplitude, ratio), 1).reshape(n, 2, channels, fine, fine, len(periods))
-    kinds = torch.log(kinds + 1e-3)
     half = fine // 2
+    # The pooled form keeps the broadband memory too: one state layout for both forms.
     memory = torch.stack((signals, level, broad), 1)
     if pooled:
-        cell_map = kinds[:, 0].amax(dim=-1)  # [N, C, F, F]
+        raw = torch.log(amplitude + 1e-3).reshape(n, channels, fine, fine, len(periods))
+        cell_map = raw.amax(dim=-1)  # [N, C, F, F]
         vector = torch.stack((cell_map[..., :half].amax(dim=(2, 3)),
                               cell_map[..., fine - half:].amax(dim=(2, 3))), 2)
         return vector.flatten(1), cell_map, resonators, memory
+    ratio = amplitude / (broad.unsqueeze(-1) + BROADBAND_FLOOR)
+    kinds = torch.stack((amplitude, ratio), 1).reshape(n, 2, channels, fine, fine, len(periods))
+    kinds = torch.log(kinds + 1e-3)
     vector = torch.stack((kinds[:, :, :, :, :half].amax(dim=(3, 4)),
                           kinds[:, :, :, :, fine - half:].amax(dim=(3, 4))), 3)
     cell_map = kinds.amax(dim=-1).reshape(n, 2 * channels, fine, fine)
