@@ -17,7 +17,7 @@ The predictions are scored by :class:`~signal_light_node.evaluation.scoring.Trac
 from __future__ import annotations
 
 from dataclasses import asdict
-from typing import Any, Dict, Iterable, Iterator, List, Optional, Sequence, Tuple
+from typing import Any, Dict, Iterable, Iterator, List, Optional, Sequence, Tuple, TypeVar
 
 import numpy as np
 import torch
@@ -89,10 +89,14 @@ def predict_track_probs(model: Any, tracks: Sequence[TrackSequence],
     return preds, probs
 
 
-def _chunks(tracks: Iterable[TrackSequence], size: int) -> Iterator[List[TrackSequence]]:
-    chunk: List[TrackSequence] = []
-    for track in tracks:
-        chunk.append(track)
+T = TypeVar("T")
+
+
+def chunks(items: Iterable[T], size: int) -> Iterator[List[T]]:
+    """``items`` in lists of ``size`` (the last one shorter), consumed lazily."""
+    chunk: List[T] = []
+    for item in items:
+        chunk.append(item)
         if len(chunk) == size:
             yield chunk
             chunk = []
@@ -134,7 +138,7 @@ def evaluate_tracks(model: Any, tracks: Iterable[TrackSequence],
     intent_filter = intent_filter or IntentFilterConfig()
     scorer = TrackScorer(settings)
     bar = tqdm(total=total, desc="evaluate", unit="track", disable=not progress)
-    for batch in _chunks(tracks, settings.batch_tracks):
+    for batch in chunks(tracks, settings.batch_tracks):
         preds, probs = predict_track_probs(backend, batch, intent_filter=intent_filter)
         for track, pred, prob in zip(batch, preds, probs):
             scorer.add(track, pred, probs=prob)

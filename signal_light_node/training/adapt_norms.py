@@ -39,13 +39,14 @@ from __future__ import annotations
 import logging
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
 from torch import nn
 
 from signal_light_node.errors import BagIOError, ConfigError
+from signal_light_node.evaluation.streaming import chunks
 from signal_light_node.evaluation.tracks import TrackSequence
 from signal_light_node.model.interface import State, select_state, to_input
 from signal_light_node.runtime.crops import CropConfig
@@ -215,11 +216,6 @@ def batch_norm_layers(model: nn.Module) -> List[Tuple[str, nn.Module]]:
             if isinstance(m, nn.modules.batchnorm._BatchNorm)]
 
 
-def _chunks(items: Sequence[np.ndarray], size: int) -> Iterator[List[np.ndarray]]:
-    for start in range(0, len(items), size):
-        yield list(items[start:start + size])
-
-
 def _frame_weighting(seen: Dict[nn.Module, int]) -> Callable[[nn.Module, Any], None]:
     """A forward pre-hook that weights each call of a batch-norm layer by its frames."""
 
@@ -278,9 +274,9 @@ def reestimate_batch_norms(model: nn.Module, sequences: Sequence[np.ndarray],
         m.reset_running_stats()
         m.train()
     try:
-        chunks = list(_chunks(sequences, settings.batch_tracks))
+        batches = list(chunks(sequences, settings.batch_tracks))
         with torch.no_grad():
-            for chunk in tqdm(chunks, desc="adapt", unit="batch", disable=not progress):
+            for chunk in tqdm(batches, desc="adapt", unit="batch", disable=not progress):
                 _step_chunk(model, chunk, settings.window_frames, settings.device)
     finally:
         for hook in hooks:
