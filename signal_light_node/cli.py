@@ -20,8 +20,8 @@ SUBCOMMANDS = {
     "info": ("info", "describe a bag: topics, types, counts, duration, image size, track IDs"),
     "synth": ("synth", "render a synthetic scene bag with ground truth"),
     "train": ("train", "train the light-state model"),
-    "adapt": ("adapt", "re-estimate a model's batch-norm statistics on unlabelled recordings "
-                       "of your camera (no labels; nothing else refit)"),
+    "adapt": ("adapt", "move a model's batch-norm statistics to unlabelled recordings of "
+                       "your camera (no labels; nothing else refit)"),
     "evaluate": ("evaluate", "score a checkpoint on a synthetic split or on labelled bags"),
     "replay": ("replay", "run the detector engine over a bag without ROS, writing an output bag"),
     "export": ("export", "export a checkpoint's model step to ONNX (for the onnxruntime backend)"),

@@ -1,5 +1,5 @@
-"""``signal-light adapt``: batch-norm statistics re-estimated on unlabelled data, nothing
-else changed; refusals in one line with nothing written."""
+"""``signal-light adapt``: batch-norm statistics moved to unlabelled data (shifted from the
+reference, or replaced), nothing else changed; refusals in one line with nothing written."""
 
 from __future__ import annotations
 
@@ -18,15 +18,19 @@ from signal_light_node.io.image_codec import bgr_to_compressed_fields
 from signal_light_node.model import load_checkpoint, save_checkpoint
 from signal_light_node.model.checkpoint import DEFAULT_WEIGHTS
 from signal_light_node.model.interface import to_input
-from signal_light_node.training.adapt_norms import (AdaptSettings, adapt_checkpoint,
-                                                    batch_norm_layers)
+from signal_light_node.training.adapt_norms import (REFERENCE_KEY, AdaptSettings,
+                                                    adapt_checkpoint, batch_norm_layers,
+                                                    check_stats, measure_batch_norms,
+                                                    stepped_crops)
 from signal_light_node.training.sources import load_unlabelled_bag_tracks
 
 REPO = Path(__file__).resolve().parents[1]
 BAG = REPO / "bags" / "day_street"
+NIGHT = REPO / "bags" / "night_street"
 
-needs_bag = pytest.mark.skipif(not (BAG / "metadata.yaml").exists(),
-                               reason="bags/day_street is not committed")
+needs_bag = pytest.mark.skipif(not (BAG / "metadata.yaml").exists()
+                               or not (NIGHT / "metadata.yaml").exists(),
+                               reason="bags/day_street and bags/night_street are not committed")
 
 
 @pytest.fixture(autouse=True)
@@ -39,10 +43,27 @@ def _one_thread():
 
 @pytest.fixture(scope="module")
 def adapted(tmp_path_factory) -> Path:
-    """The shipped model adapted on bags/day_street (a few hundred crops)."""
+    """The shipped model's statistics replaced by bags/day_street's (a few hundred crops)."""
     out = tmp_path_factory.mktemp("adapt") / "day.pt"
+    assert main(["adapt", str(BAG), "--out", str(out), "--method", "replace",
+                 "--threads", "1", "--no-progress"]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def shifted(tmp_path_factory) -> Path:
+    """The shipped model shifted to bags/day_street from the reference it carries."""
+    out = tmp_path_factory.mktemp("shift") / "day.pt"
     assert main(["adapt", str(BAG), "--out", str(out), "--threads", "1", "--no-progress"]) == 0
     return out
+
+
+def _stats(path, bag: Path = BAG):
+    """The batch-norm statistics ``bag`` gives the checkpoint at ``path`` (the default
+    settings; its own statistics untouched)."""
+    model = load_checkpoint(path).model
+    tracks = load_unlabelled_bag_tracks(bag, model.config.crop_config())
+    return measure_batch_norms(model, stepped_crops(tracks))
 
 
 def _state(path: Path) -> Dict[str, torch.Tensor]:
@@ -124,8 +145,8 @@ def test_the_adapted_checkpoint_exports_to_onnx(adapted: Path, tmp_path: Path) -
 @needs_bag
 def test_the_same_data_gives_the_same_tensors(adapted: Path, tmp_path: Path) -> None:
     again = tmp_path / "again.pt"
-    assert main(["adapt", str(BAG), "--out", str(again), "--threads", "1",
-                 "--no-progress"]) == 0
+    assert main(["adapt", str(BAG), "--out", str(again), "--method", "replace",
+                 "--threads", "1", "--no-progress"]) == 0
     first, second = _state(adapted), _state(again)
     assert all(torch.equal(first[k], second[k]) for k in first)
 
@@ -141,6 +162,64 @@ def test_max_frames_caps_the_crops_with_the_seed(tmp_path: Path) -> None:
     assert not all(torch.equal(a[k], c[k]) for k in a)
 
 
+def test_the_shipped_weights_carry_a_reference_that_covers_every_norm() -> None:
+    loaded = load_checkpoint(DEFAULT_WEIGHTS)
+    entry = loaded.meta[REFERENCE_KEY]
+    assert entry["frames"] > 10000 and entry["data"]
+    check_stats(entry["layers"], loaded.model, "the shipped reference")
+
+
+@needs_bag
+def test_a_shift_moves_each_mean_by_the_data_less_the_reference(shifted: Path) -> None:
+    """Means: stored + (bag - reference); variances and every other tensor as shipped."""
+    before, after = _state(DEFAULT_WEIGHTS), _state(shifted)
+    reference = load_checkpoint(DEFAULT_WEIGHTS).meta[REFERENCE_KEY]["layers"]
+    target = _stats(DEFAULT_WEIGHTS)
+    model = load_checkpoint(shifted).model
+    means = {f"{name}.running_mean": name for name, _ in batch_norm_layers(model)}
+    for key in before:
+        if key in means:
+            name = means[key]
+            expected = before[key] + target[name]["mean"] - reference[name]["mean"]
+            assert torch.allclose(after[key], expected, atol=1e-5), key
+            assert not torch.equal(after[key], before[key]), key
+        elif not key.endswith("num_batches_tracked"):
+            assert torch.equal(before[key], after[key]), key
+
+
+@needs_bag
+def test_a_shift_on_the_reference_data_itself_changes_nothing(tmp_path: Path) -> None:
+    """Data like the training data (here: the reference itself) leave the model as it
+    was, where a replacement would move it."""
+    ref = main(["adapt", "--reference", str(NIGHT), "--out", str(tmp_path / "ref.pt"),
+                "--threads", "1", "--no-progress"])
+    assert ref == 0
+    shipped, recorded = _state(DEFAULT_WEIGHTS), _state(tmp_path / "ref.pt")
+    assert all(torch.equal(shipped[k], recorded[k]) for k in shipped)
+    assert main(["adapt", str(NIGHT), "--checkpoint", str(tmp_path / "ref.pt"),
+                 "--out", str(tmp_path / "same.pt"), "--threads", "1", "--no-progress"]) == 0
+    same = _state(tmp_path / "same.pt")
+    assert all(torch.allclose(shipped[k].float(), same[k].float(), atol=1e-5) for k in shipped)
+    assert main(["adapt", str(NIGHT), "--method", "replace", "--out", str(tmp_path / "r.pt"),
+                 "--threads", "1", "--no-progress"]) == 0
+    replaced = _state(tmp_path / "r.pt")
+    assert not all(torch.allclose(shipped[k].float(), replaced[k].float(), atol=1e-3)
+                   for k in shipped)
+
+
+@needs_bag
+def test_adapting_twice_shifts_from_the_last_data_not_twice(shifted: Path,
+                                                              tmp_path: Path) -> None:
+    """The adapted checkpoint's reference is the data it was adapted on: adapting it to
+    another recording gives what adapting the shipped model to that recording gives."""
+    assert load_checkpoint(shifted).meta[REFERENCE_KEY]["data"] == [str(BAG)]
+    for source, out in ((shifted, "twice.pt"), (DEFAULT_WEIGHTS, "once.pt")):
+        assert main(["adapt", str(NIGHT), "--checkpoint", str(source), "--out",
+                     str(tmp_path / out), "--threads", "1", "--no-progress"]) == 0
+    twice, once = _state(tmp_path / "twice.pt"), _state(tmp_path / "once.pt")
+    assert all(torch.allclose(twice[k].float(), once[k].float(), atol=1e-5) for k in once)
+
+
 def test_a_rendered_split_adapts_a_trunk_model(tmp_path: Path) -> None:
     """A split directory is read as data (labels unused); the trunk's norms are adapted."""
     from signal_light_node.data.split import write_split
@@ -153,7 +232,7 @@ def test_a_rendered_split_adapts_a_trunk_model(tmp_path: Path) -> None:
                 full_tracks=True, progress=False, vehicles=(1, 2))
     source = save_checkpoint(tmp_path / "trunk.pt", build_model(config), config)
     result = adapt_checkpoint(tmp_path / "adapted.pt", [split], source,
-                              AdaptSettings(window_frames=4))
+                              AdaptSettings(window_frames=4, method="replace"))
     assert result.layers == len(batch_norm_layers(load_checkpoint(source).model)) > 10
     before, after = _state(source), _state(result.out)
     norms = _bn_buffers(load_checkpoint(source).model)
@@ -180,6 +259,36 @@ def test_a_model_without_batch_norm_is_refused(tmp_path: Path, capsys) -> None:
     source = save_checkpoint(tmp_path / "group.pt", build_model(config), config)
     err = _refused(capsys, [BAG, "--checkpoint", source], tmp_path / "out" / "a.pt")
     assert "no batch-norm layer" in err
+
+
+@needs_bag
+def test_a_shift_without_a_reference_is_refused(tmp_path: Path, capsys) -> None:
+    """A model of one's own carries no reference until ``--reference`` records one."""
+    from signal_light_node.model.config import ModelConfig
+    from signal_light_node.model.registry import build_model
+
+    config = ModelConfig()
+    source = save_checkpoint(tmp_path / "mine.pt", build_model(config), config)
+    err = _refused(capsys, [BAG, "--checkpoint", source], tmp_path / "out" / "a.pt")
+    assert "no reference statistics" in err and "--reference" in err
+
+
+def test_reference_statistics_of_another_model_are_refused() -> None:
+    from signal_light_node.errors import ConfigError
+
+    model = load_checkpoint(DEFAULT_WEIGHTS).model
+    first = batch_norm_layers(model)[0][0]
+    stats = {name: {"mean": m.running_mean.clone(), "var": m.running_var.clone()}
+             for name, m in batch_norm_layers(model)}
+    check_stats(stats, model, "these")
+    stats[first]["mean"] = stats[first]["mean"][:-1]
+    with pytest.raises(ConfigError, match=first):
+        check_stats(stats, model, "these")
+
+
+def test_nothing_to_adapt_on_is_refused(tmp_path: Path, capsys) -> None:
+    err = _refused(capsys, [], tmp_path / "a.pt")
+    assert "at least one bag" in err
 
 
 def test_a_missing_bag_is_refused(tmp_path: Path, capsys) -> None:

@@ -1,12 +1,28 @@
-"""Adapting without labels: re-estimate a model's batch-norm statistics on new recordings.
+"""Adapting without labels: move a model's batch-norm statistics to new recordings.
 
 ``signal-light adapt BAG... --out MODEL`` (``commands/adapt.py``) takes a checkpoint and
 unlabelled recordings of the user's camera (bags, read and paired as the node reads
 them, :func:`.sources.load_unlabelled_bag_tracks`; or materialised splits, whose labels
-are ignored) and writes a copy of the checkpoint whose batch-norm running means and
-variances are those of the activations on the new data. Nothing else is refit: every
-weight and every other buffer stays as it was, so the adapted model has the same
-architecture, loads and exports (ONNX, int8) like the one it came from.
+are ignored) and writes a copy of the checkpoint whose batch-norm running statistics
+follow the new data. Nothing else is refit: every weight and every other buffer stays as
+it was, so the adapted model has the same architecture, loads and exports (ONNX, int8)
+like the one it came from.
+
+Two methods (``AdaptSettings.method``):
+
+* ``shift`` (the default): each running mean moves by how far the new data's mean lies
+  from the **reference**, the same statistic measured the same way on data like the
+  model's training data; the running variances stay. The stored statistics of a model
+  need not be those of its training data as stepped here (the shipped CNN's last stage
+  trained with frozen norms on top of an earlier stage's statistics), and the heads are
+  tuned to them: on data like the training data a shift changes nothing, where a
+  replacement would. Variances are kept because a camera with stronger contrast then
+  still gives the first layer stronger lamp evidence, which the heads read (measured:
+  docs/results/adapt_family.md). The reference is stored in the checkpoint
+  (``meta["norm_reference"]``), measured from ``--reference DATA`` or carried over; an
+  adapted checkpoint's reference is the data it was adapted on, so adapting it again
+  shifts from there and never twice.
+* ``replace``: the running means and variances become the new data's (plain AdaBN).
 
 How the statistics are taken:
 
@@ -27,11 +43,11 @@ How the statistics are taken:
 The same data, settings and torch thread count give the same tensors (another thread
 count changes the sums' rounding: about 1e-4 on the running variances).
 
-A model without batch norm (``norm: group``) or data without a single usable crop is
-refused (:class:`~signal_light_node.errors.ConfigError`) before anything is written; the
-checkpoint is written through :func:`~signal_light_node.model.checkpoint.save_checkpoint`
-(a temporary file renamed into place) with ``meta["adapted"]`` saying from what and on
-what.
+A model without batch norm (``norm: group``), data without a single usable crop, or a
+``shift`` without a reference is refused (:class:`~signal_light_node.errors.ConfigError`)
+before anything is written; the checkpoint is written through
+:func:`~signal_light_node.model.checkpoint.save_checkpoint` (a temporary file renamed into
+place) with ``meta["adapted"]`` saying from what, on what and how.
 """
 
 from __future__ import annotations
@@ -56,6 +72,13 @@ logger = logging.getLogger(__name__)
 
 #: The checkpoint metadata keys that describe the file itself; refilled when it is written.
 _FILE_META = ("created", "package_version", "torch_version")
+#: How adapted statistics are formed (see the module doc).
+METHODS = ("shift", "replace")
+#: Where a checkpoint keeps the reference statistics a ``shift`` starts from.
+REFERENCE_KEY = "norm_reference"
+
+#: Per batch-norm layer name, ``{"mean": [C], "var": [C]}`` float tensors (on the CPU).
+NormStats = Dict[str, Dict[str, torch.Tensor]]
 
 
 @dataclass(frozen=True)
@@ -69,6 +92,7 @@ class AdaptSettings:
             shuffled with ``seed`` and the last one taken is cut short. None: all.
         seed: Seed of that draw (the only randomness).
         device: Where the model runs.
+        method: ``shift`` or ``replace`` (see the module doc).
     """
 
     batch_tracks: int = 16
@@ -76,8 +100,12 @@ class AdaptSettings:
     max_frames: Optional[int] = None
     seed: int = 0
     device: str = "cpu"
+    method: str = "shift"
 
     def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ConfigError(f"--method must be one of {', '.join(METHODS)}, got "
+                              f"{self.method!r}")
         if self.batch_tracks < 1 or self.window_frames < 1:
             raise ConfigError(f"batch tracks and window frames must be >= 1, got "
                               f"{self.batch_tracks} and {self.window_frames}")
@@ -102,11 +130,13 @@ class AdaptResult:
         out: The checkpoint written.
         source: The checkpoint adapted.
         inputs: The bags and splits read.
-        layers: Batch-norm layers re-estimated.
+        layers: Batch-norm layers adapted.
         tracks: Tracks stepped.
         frames: Frames (crops) stepped.
         mean_shift: Per layer, the mean over channels of ``|new mean - old mean| / old sd``.
         var_ratio: Per layer, the median over channels of ``new var / old var``.
+        method: ``shift`` or ``replace``.
+        reference: What the reference statistics were measured on (empty: none used).
     """
 
     out: Path
@@ -117,21 +147,59 @@ class AdaptResult:
     frames: int
     mean_shift: Dict[str, float]
     var_ratio: Dict[str, float]
+    method: str = "shift"
+    reference: List[str] = field(default_factory=list)
 
     def summary_lines(self) -> List[str]:
         """What the command prints."""
         shifts = np.array(list(self.mean_shift.values()))
         ratios = np.array(list(self.var_ratio.values()))
         names = ", ".join(str(p) for p in self.inputs)
+        how = (f"running means of {self.layers} batch-norm layers shifted by this data's "
+               f"mean less the reference's ({', '.join(self.reference)}); variances kept"
+               if self.method == "shift" else
+               f"batch-norm statistics of {self.layers} layers replaced by this data's")
+        moved = (f"running means moved {shifts.mean():.2f} old sd on average (largest layer "
+                 f"{shifts.max():.2f})")
+        if self.method != "shift":  # a shift keeps every variance
+            moved += (f"; running variances x{np.median(ratios):.2f} (median layer, range "
+                      f"x{ratios.min():.2f}-x{ratios.max():.2f})")
         return [
             f"adapted {self.source} on {self.frames} frames of {self.tracks} tracks ({names})",
-            f"batch-norm statistics of {self.layers} layers re-estimated; every other weight "
-            f"and buffer unchanged",
-            f"running means moved {shifts.mean():.2f} old sd on average (largest layer "
-            f"{shifts.max():.2f}); running variances x{np.median(ratios):.2f} (median layer, "
-            f"range x{ratios.min():.2f}-x{ratios.max():.2f})",
+            f"{how}; every other weight and buffer unchanged",
+            moved,
             f"wrote {self.out}",
         ]
+
+
+@dataclass
+class ReferenceResult:
+    """What :func:`record_reference` did: a checkpoint copy that carries reference statistics.
+
+    Attributes:
+        out: The checkpoint written.
+        source: The checkpoint it copies.
+        data: The bags and splits the reference was measured on.
+        layers: Batch-norm layers measured.
+        tracks: Tracks stepped.
+        frames: Frames (crops) stepped.
+    """
+
+    out: Path
+    source: Path
+    data: List[Path]
+    layers: int
+    tracks: int
+    frames: int
+
+    def summary_lines(self) -> List[str]:
+        """What the command prints."""
+        names = ", ".join(str(p) for p in self.data)
+        return [f"measured the reference statistics of {self.layers} batch-norm layers of "
+                f"{self.source} on {self.frames} frames of {self.tracks} tracks ({names})",
+                "weights and running statistics unchanged; a later 'adapt' shifts from this "
+                "reference",
+                f"wrote {self.out}"]
 
 
 # ---------------------------------------------------------------------------- data
@@ -290,6 +358,57 @@ def reestimate_batch_norms(model: nn.Module, sequences: Sequence[np.ndarray],
     return frames
 
 
+def measure_batch_norms(model: nn.Module, sequences: Sequence[np.ndarray],
+                        settings: AdaptSettings = AdaptSettings(),
+                        progress: bool = False) -> NormStats:
+    """The running statistics every batch-norm layer of ``model`` takes on ``sequences``
+    (as :func:`reestimate_batch_norms` takes them); the model's own are left as they were.
+
+    Raises:
+        ConfigError: The model has no batch-norm layer, or ``sequences`` no frame.
+    """
+    layers = batch_norm_layers(model)
+    saved = {name: {k: v.clone() for k, v in m.state_dict().items()} for name, m in layers}
+    try:
+        reestimate_batch_norms(model, sequences, settings, progress)
+        return {name: {"mean": m.running_mean.detach().cpu().clone(),
+                       "var": m.running_var.detach().cpu().clone()} for name, m in layers}
+    finally:
+        for name, m in layers:
+            m.load_state_dict(saved[name])
+
+
+def check_stats(stats: NormStats, model: nn.Module, what: str) -> None:
+    """Refuse statistics that do not cover every batch-norm layer of ``model`` channel for
+    channel (another architecture's, or a damaged checkpoint's).
+
+    Raises:
+        ConfigError: Naming the first layer that does not match.
+    """
+    for name, m in batch_norm_layers(model):
+        entry = stats.get(name)
+        if (not isinstance(entry, dict) or any(
+                not isinstance(entry.get(k), torch.Tensor)
+                or tuple(entry[k].shape) != tuple(m.running_mean.shape) for k in ("mean", "var"))):
+            raise ConfigError(f"{what} do not match the model's batch-norm layer {name!r}")
+
+
+def apply_stats(model: nn.Module, target: NormStats, method: str,
+                reference: Optional[NormStats] = None) -> None:
+    """Set the running statistics of ``model`` from the ``target`` data's: ``replace``
+    takes them; ``shift`` moves each running mean by ``target - reference`` and keeps the
+    variances (see the module doc)."""
+    for name, m in batch_norm_layers(model):
+        mean, var = target[name]["mean"], target[name]["var"]
+        with torch.no_grad():
+            if method == "replace":
+                m.running_mean.copy_(mean.to(m.running_mean))
+                m.running_var.copy_(var.to(m.running_var))
+            else:
+                assert reference is not None, "a shift needs reference statistics"
+                m.running_mean.add_((mean - reference[name]["mean"]).to(m.running_mean))
+
+
 def _changes(before: Dict[str, torch.Tensor], model: nn.Module
              ) -> Tuple[Dict[str, float], Dict[str, float]]:
     """Per layer: mean |shift of the running mean| in old sd, median new/old variance."""
@@ -305,17 +424,32 @@ def _changes(before: Dict[str, torch.Tensor], model: nn.Module
 # ------------------------------------------------------------------------ checkpoint
 
 
+def reference_entry(stats: NormStats, data: Sequence[Path], tracks: int,
+                    frames: int) -> Dict[str, Any]:
+    """``meta["norm_reference"]``: the statistics and what they were measured on."""
+    return {"data": [str(p) for p in data], "tracks": int(tracks), "frames": int(frames),
+            "layers": stats}
+
+
+def stored_reference(meta: Dict[str, Any]) -> Optional[NormStats]:
+    """The reference statistics a checkpoint carries, or None."""
+    entry = meta.get(REFERENCE_KEY)
+    return None if not isinstance(entry, dict) else entry.get("layers")
+
+
 def adapted_meta(meta: Dict[str, Any], source: Path, result: AdaptResult,
                  settings: AdaptSettings) -> Dict[str, Any]:
     """The adapted checkpoint's metadata: the source's (training data, metrics, notes),
     less what describes the file itself, plus ``adapted`` (from what, on what, how)."""
     info = {k: v for k, v in meta.items() if k not in _FILE_META}
     info["adapted"] = {
-        "method": "batch-norm running statistics re-estimated without labels "
-                  "(signal-light adapt); every other weight as in 'from'",
+        "method": ("batch-norm running means shifted by the data's mean less the "
+                   "reference's, variances kept" if settings.method == "shift" else
+                   "batch-norm running statistics replaced by the data's")
+                  + " (signal-light adapt, without labels); every other weight as in 'from'",
         "from": str(source), "from_created": meta.get("created"),
         "previous": meta.get("adapted"),
-        "data": [str(p) for p in result.inputs],
+        "data": [str(p) for p in result.inputs], "reference": result.reference,
         "tracks": result.tracks, "frames": result.frames, "batch_norm_layers": result.layers,
         "settings": {k: v for k, v in asdict(settings).items() if k != "device"},
         "mean_shift_sd": result.mean_shift, "var_ratio": result.var_ratio,
@@ -323,52 +457,121 @@ def adapted_meta(meta: Dict[str, Any], source: Path, result: AdaptResult,
     return info
 
 
-def adapt_checkpoint(out: Path, inputs: Sequence[Path], checkpoint: Optional[Path] = None,
-                     settings: AdaptSettings = AdaptSettings(),
-                     reading: InputReading = InputReading(),
-                     progress: bool = False) -> AdaptResult:
-    """Load ``checkpoint``, re-estimate its batch norms on ``inputs``, write ``out``.
+def _load_adaptable(checkpoint: Optional[Path], device: str) -> Tuple[Path, Any]:
+    """The checkpoint's path and loaded model; refused when it has no batch norm."""
+    from signal_light_node.model.checkpoint import DEFAULT_WEIGHTS, load_checkpoint
 
-    Args:
-        out: The adapted checkpoint (a temporary file renamed into place).
-        inputs: Bags and split directories (labels, if any, are not read).
-        checkpoint: The checkpoint to adapt (default: the shipped weights).
-        settings: How the statistics are taken.
-        reading: Topics and pairing of the bags.
-        progress: Show a progress bar.
-
-    Returns:
-        What was done (:class:`AdaptResult`).
-
-    Raises:
-        ConfigError: The model has no batch norm, or the data no usable crop; nothing
-            is written.
-        BagIOError: An input is missing or unreadable.
-        CheckpointError: The checkpoint cannot be loaded or ``out`` written.
-    """
-    from signal_light_node.model.checkpoint import (DEFAULT_WEIGHTS, load_checkpoint,
-                                                    save_checkpoint)
-
-    inputs = [Path(p) for p in inputs]
-    check_inputs(inputs)
     source = Path(DEFAULT_WEIGHTS if checkpoint is None else checkpoint)
-    loaded = load_checkpoint(source, map_location=settings.device)
+    loaded = load_checkpoint(source, map_location=device)
     if not batch_norm_layers(loaded.model):
         raise ConfigError(f"{source} has no batch-norm layer (norm: {loaded.config.norm}): "
                           "there are no statistics to adapt")
+    return source, loaded
+
+
+def _stepped(inputs: Sequence[Path], loaded: Any, settings: AdaptSettings,
+             reading: InputReading) -> List[np.ndarray]:
+    """The crop sequences of ``inputs`` the statistics are taken on (capped, refused if
+    there is none)."""
     tracks = load_unlabelled_tracks(inputs, loaded.config.crop_config(), reading)
     sequences = cap_frames(stepped_crops(tracks), settings.max_frames, settings.seed)
     if not sequences:
         raise ConfigError(f"no usable crop in {', '.join(map(str, inputs))}: "
                           f"{len(tracks)} tracks, none with a box that can be cropped")
+    return sequences
+
+
+def _measured_reference(loaded: Any, data: Sequence[Path], settings: AdaptSettings,
+                        reading: InputReading, progress: bool) -> Dict[str, Any]:
+    """``meta["norm_reference"]`` measured on ``data``."""
+    sequences = _stepped(data, loaded, settings, reading)
+    stats = measure_batch_norms(loaded.model, sequences, settings, progress)
+    return reference_entry(stats, data, len(sequences), sum(len(s) for s in sequences))
+
+
+def adapt_checkpoint(out: Path, inputs: Sequence[Path], checkpoint: Optional[Path] = None,
+                     settings: AdaptSettings = AdaptSettings(),
+                     reading: InputReading = InputReading(),
+                     progress: bool = False,
+                     reference: Sequence[Path] = ()) -> AdaptResult:
+    """Load ``checkpoint``, adapt its batch norms to ``inputs``, write ``out``.
+
+    Args:
+        out: The adapted checkpoint (a temporary file renamed into place).
+        inputs: Bags and split directories (labels, if any, are not read).
+        checkpoint: The checkpoint to adapt (default: the shipped weights).
+        settings: How the statistics are taken and applied.
+        reading: Topics and pairing of the bags.
+        progress: Show a progress bar.
+        reference: Data like the model's training data to measure the reference on
+            (``shift``); empty: the reference the checkpoint carries.
+
+    Returns:
+        What was done (:class:`AdaptResult`); ``out`` carries the statistics of
+        ``inputs`` as its reference.
+
+    Raises:
+        ConfigError: The model has no batch norm, the data no usable crop, or a ``shift``
+            has no reference (or one of another model); nothing is written.
+        BagIOError: An input is missing or unreadable.
+        CheckpointError: The checkpoint cannot be loaded or ``out`` written.
+    """
+    from signal_light_node.model.checkpoint import save_checkpoint
+
+    inputs, reference = [Path(p) for p in inputs], [Path(p) for p in reference]
+    check_inputs(inputs)
+    if reference:
+        check_inputs(reference)
+    source, loaded = _load_adaptable(checkpoint, settings.device)
+    ref_entry = loaded.meta.get(REFERENCE_KEY)
+    if settings.method == "shift" and not reference and stored_reference(loaded.meta) is None:
+        raise ConfigError(f"{source} carries no reference statistics ({REFERENCE_KEY}) to "
+                          "shift from: give --reference with data like its training data, "
+                          "or --method replace")
+    if reference:
+        ref_entry = _measured_reference(loaded, reference, settings, reading, progress)
+    if settings.method == "shift":
+        check_stats(ref_entry["layers"], loaded.model, f"the reference statistics of {source}")
+    sequences = _stepped(inputs, loaded, settings, reading)
     before = {k: v.detach().cpu().clone() for k, v in loaded.model.state_dict().items()}
-    frames = reestimate_batch_norms(loaded.model, sequences, settings, progress)
+    target = measure_batch_norms(loaded.model, sequences, settings, progress)
+    apply_stats(loaded.model, target, settings.method,
+                ref_entry["layers"] if settings.method == "shift" else None)
+    frames = sum(len(s) for s in sequences)
     shift, ratio = _changes(before, loaded.model)
     result = AdaptResult(out=Path(out), source=source, inputs=inputs,
                          layers=len(shift), tracks=len(sequences), frames=frames,
-                         mean_shift=shift, var_ratio=ratio)
-    save_checkpoint(out, loaded.model, loaded.config,
-                    adapted_meta(loaded.meta, source, result, settings))
-    logger.info("adapted %s: %d batch-norm layers on %d frames of %d tracks -> %s", source,
-                result.layers, frames, result.tracks, out)
+                         mean_shift=shift, var_ratio=ratio, method=settings.method,
+                         reference=list(ref_entry["data"]) if settings.method == "shift"
+                         else [])
+    meta = adapted_meta(loaded.meta, source, result, settings)
+    meta[REFERENCE_KEY] = reference_entry(target, inputs, len(sequences), frames)
+    save_checkpoint(out, loaded.model, loaded.config, meta)
+    logger.info("adapted %s (%s): %d batch-norm layers on %d frames of %d tracks -> %s",
+                source, settings.method, result.layers, frames, result.tracks, out)
     return result
+
+
+def record_reference(out: Path, data: Sequence[Path], checkpoint: Optional[Path] = None,
+                     settings: AdaptSettings = AdaptSettings(),
+                     reading: InputReading = InputReading(),
+                     progress: bool = False) -> ReferenceResult:
+    """Write a copy of ``checkpoint`` that carries reference statistics measured on
+    ``data`` (data like its training data), its weights and statistics unchanged.
+
+    Raises:
+        ConfigError: The model has no batch norm, or the data no usable crop.
+        BagIOError: An input is missing or unreadable.
+        CheckpointError: The checkpoint cannot be loaded or ``out`` written.
+    """
+    from signal_light_node.model.checkpoint import save_checkpoint
+
+    data = [Path(p) for p in data]
+    check_inputs(data)
+    source, loaded = _load_adaptable(checkpoint, settings.device)
+    entry = _measured_reference(loaded, data, settings, reading, progress)
+    meta = dict(loaded.meta, **{REFERENCE_KEY: entry})  # the same model: all else kept
+    save_checkpoint(out, loaded.model, loaded.config, meta)
+    return ReferenceResult(out=Path(out), source=source, data=data,
+                           layers=len(entry["layers"]), tracks=entry["tracks"],
+                           frames=entry["frames"])
