@@ -291,6 +291,12 @@ def test_nothing_to_adapt_on_is_refused(tmp_path: Path, capsys) -> None:
     assert "at least one bag" in err
 
 
+def test_a_reference_with_a_replacement_is_refused(tmp_path: Path, capsys) -> None:
+    err = _refused(capsys, [BAG, "--method", "replace", "--reference", NIGHT],
+                   tmp_path / "a.pt")
+    assert "--reference" in err and "replace" in err
+
+
 def test_a_missing_bag_is_refused(tmp_path: Path, capsys) -> None:
     err = _refused(capsys, [tmp_path / "nowhere"], tmp_path / "a.pt")
     assert "does not exist" in err

@@ -82,6 +82,9 @@ def run(args: argparse.Namespace) -> int:
     if not args.inputs and not args.reference:
         raise ConfigError("give at least one bag or split directory to adapt on (or "
                           "--reference alone to record a reference)")
+    if args.inputs and args.reference and args.method == "replace":
+        raise ConfigError("--reference is what a shift starts from; --method replace "
+                          "does not use one")
     settings = AdaptSettings(batch_tracks=args.batch_tracks, window_frames=args.window,
                              max_frames=args.max_frames, seed=args.seed, device=args.device,
                              method=args.method)
