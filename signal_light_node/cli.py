@@ -22,6 +22,8 @@ SUBCOMMANDS = {
     "train": ("train", "train the light-state model"),
     "adapt": ("adapt", "move a model's batch-norm statistics to unlabelled recordings of "
                        "your camera (no labels; nothing else refit)"),
+    "calibrate": ("calibrate", "fit how readily the model says UNKNOWN on your labelled "
+                               "recordings (one margin; before/after on held-out tracks)"),
     "evaluate": ("evaluate", "score a checkpoint on a synthetic split or on labelled bags"),
     "replay": ("replay", "run the detector engine over a bag without ROS, writing an output bag"),
     "export": ("export", "export a checkpoint's model step to ONNX (for the onnxruntime backend)"),

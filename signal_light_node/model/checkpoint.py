@@ -51,6 +51,11 @@ class LoadedModel(NamedTuple):
     meta: Dict[str, Any]
 
 
+#: The metadata keys that describe the file itself (:func:`save_checkpoint` fills them in
+#: when absent): a file derived from a checkpoint drops them so that they are refilled.
+FILE_META = ("created", "package_version", "torch_version")
+
+
 def _plain(value: Any, where: str) -> Any:
     """Copy of ``value`` made of plain types only, so ``weights_only`` loading accepts it."""
     # Exact builtin types: subclasses (torch's TorchVersion, numpy.float64) would be pickled

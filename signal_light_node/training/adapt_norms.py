@@ -64,14 +64,13 @@ from torch import nn
 from signal_light_node.errors import BagIOError, ConfigError
 from signal_light_node.evaluation.streaming import chunks
 from signal_light_node.evaluation.tracks import TrackSequence
+from signal_light_node.model.checkpoint import FILE_META
 from signal_light_node.model.interface import State, select_state, to_input
 from signal_light_node.runtime.crops import CropConfig
 from signal_light_node.runtime.pairing import PairingConfig
 
 logger = logging.getLogger(__name__)
 
-#: The checkpoint metadata keys that describe the file itself; refilled when it is written.
-_FILE_META = ("created", "package_version", "torch_version")
 #: How adapted statistics are formed (see the module doc).
 METHODS = ("shift", "replace")
 #: Where a checkpoint keeps the reference statistics a ``shift`` starts from.
@@ -441,7 +440,7 @@ def adapted_meta(meta: Dict[str, Any], source: Path, result: AdaptResult,
                  settings: AdaptSettings) -> Dict[str, Any]:
     """The adapted checkpoint's metadata: the source's (training data, metrics, notes),
     less what describes the file itself, plus ``adapted`` (from what, on what, how)."""
-    info = {k: v for k, v in meta.items() if k not in _FILE_META}
+    info = {k: v for k, v in meta.items() if k not in FILE_META}
     info["adapted"] = {
         "method": ("batch-norm running means shifted by the data's mean less the "
                    "reference's, variances kept" if settings.method == "shift" else

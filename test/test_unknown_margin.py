@@ -1,0 +1,119 @@
+"""``signal-light calibrate``: one UNKNOWN margin fitted on labelled tracks, carried by the
+heads' biases; before/after on held-out tracks; refusals in one line, nothing written."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from signal_light_node.cli import main
+from signal_light_node.model import load_checkpoint
+from signal_light_node.model.checkpoint import DEFAULT_WEIGHTS
+from signal_light_node.model.interface import to_input
+from signal_light_node.training.unknown_bias import (MARGIN_HEADS, META_KEY,
+                                                     apply_unknown_margin, fit_unknown_margin,
+                                                     unknown_index)
+
+REPO = Path(__file__).resolve().parents[1]
+BAG = REPO / "bags" / "day_street"
+
+needs_bag = pytest.mark.skipif(not (BAG / "metadata.yaml").exists(),
+                               reason="bags/day_street is not committed")
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def test_the_margin_lowers_only_the_unknown_logits_and_their_probability() -> None:
+    model = load_checkpoint(DEFAULT_WEIGHTS).model
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    crops = np.random.default_rng(0).integers(0, 255, (4, 64, 64, 3), dtype=np.uint8)
+    p0, _ = model.step(to_input(crops), model.initial_state(4))
+    apply_unknown_margin(model, 1.5)
+    p1, _ = model.step(to_input(crops), model.initial_state(4))
+    after = model.state_dict()
+    moved = {f"heads.{t}.bias" for t in MARGIN_HEADS}
+    for key in before:
+        if key in moved:
+            task = key.split(".")[1]
+            k = unknown_index(model, task)
+            delta = before[key] - after[key]
+            assert torch.allclose(delta[k], torch.tensor(1.5)), key
+            assert torch.count_nonzero(delta) == 1, key
+        else:
+            assert torch.equal(before[key], after[key]), key
+    for task in MARGIN_HEADS:
+        k = unknown_index(model, task)
+        assert bool((p1[task][:, k] < p0[task][:, k]).all()), task
+    assert torch.equal(p0["view"], p1["view"])
+
+
+@needs_bag
+def test_the_fit_keeps_the_best_margin_and_ties_go_to_the_smaller(monkeypatch) -> None:
+    from signal_light_node.training import unknown_bias
+    from signal_light_node.training.sources import load_bag_tracks
+
+    model = load_checkpoint(DEFAULT_WEIGHTS).model
+    tracks = load_bag_tracks(BAG, model.config.crop_config())[:2]
+    fit = fit_unknown_margin(model, tracks, (2.0, 0.0, 1.0))
+    assert sorted(fit.scores) == [0.0, 1.0, 2.0]
+    assert fit.scores[fit.margin] == max(fit.scores.values())
+    monkeypatch.setattr(unknown_bias, "score", lambda result: 0.5)
+    assert fit_unknown_margin(model, tracks, (2.0, 1.0)).margin == 1.0
+
+
+@needs_bag
+def test_calibrate_writes_the_margin_and_a_held_out_report(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "cal.pt"
+    assert main(["calibrate", str(BAG), "--grid", "0,3", "--holdout-fraction", "0.5",
+                 "--out", str(out), "--threads", "1"]) == 0
+    printed = capsys.readouterr().out
+    loaded = load_checkpoint(out)
+    info = loaded.meta[META_KEY]
+    margin = info["margin"]
+    assert set(info["scores"]) == {"0", "3"} and margin in (0.0, 3.0)
+    assert info["scores"][f"{margin:g}"] == max(info["scores"].values())
+    assert info["held_out_tracks"] > 0 and info["fit_tracks"] > 0
+    shipped = load_checkpoint(DEFAULT_WEIGHTS).model
+    for task in MARGIN_HEADS:
+        k = unknown_index(shipped, task)
+        expected = shipped.heads[task].bias[k] - margin
+        assert torch.isclose(loaded.model.heads[task].bias[k], expected), task
+    report = json.loads(out.with_suffix(".report.json").read_text())
+    assert set(report) == {"held_out_tracks", "before", "after"}
+    assert report["before"]["scored_frames"] == report["after"]["scored_frames"] > 0
+    assert "UNKNOWN margin" in out.with_suffix(".report.md").read_text()
+    assert f"UNKNOWN margin {margin:g}" in printed and "held-out after" in printed
+
+
+def _refused(capsys, args, out: Path) -> str:
+    assert main(["calibrate", *map(str, args), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("signal-light calibrate: error:") and "\n" not in err
+    assert not out.exists()
+    return err
+
+
+def test_a_missing_bag_is_refused(tmp_path: Path, capsys) -> None:
+    assert "does not exist" in _refused(capsys, [tmp_path / "nowhere"], tmp_path / "a.pt")
+
+
+@needs_bag
+def test_a_negative_margin_is_refused(tmp_path: Path, capsys) -> None:
+    err = _refused(capsys, [BAG, "--grid=-1,0"], tmp_path / "a.pt")
+    assert ">= 0" in err
+
+
+@needs_bag
+def test_holding_out_everything_is_refused(tmp_path: Path, capsys) -> None:
+    err = _refused(capsys, [BAG, "--holdout-fraction", "1"], tmp_path / "a.pt")
+    assert "--holdout-fraction" in err
