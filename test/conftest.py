@@ -41,3 +41,15 @@ def rclpy_isolated_env() -> Callable[..., Dict[str, str]]:
     """
     domain = random.SystemRandom().randint(0, 101)
     return lambda: isolated_ros_env(domain)
+
+
+@pytest.fixture()
+def one_torch_thread():
+    """Run the test with one torch thread (results that depend on the thread count's
+    rounding stay comparable), restoring the count after."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

@@ -33,12 +33,7 @@ needs_bag = pytest.mark.skipif(not (BAG / "metadata.yaml").exists()
                                reason="bags/day_street and bags/night_street are not committed")
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -25,12 +25,7 @@ needs_bag = pytest.mark.skipif(not (BAG / "metadata.yaml").exists(),
                                reason="bags/day_street is not committed")
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def test_the_margin_lowers_only_the_unknown_logits_and_their_probability() -> None:
