@@ -79,9 +79,9 @@ def before_after(before: Any, after: Any, held_out: Sequence[TrackSequence],
             "after": {"model": after_name, **rows["after"]}}
 
 
-def report_markdown(report: Mapping[str, Any]) -> str:
-    """The before/after report as Markdown."""
-    lines = [f"## Fine-tuning: before / after on {len(report['held_out_tracks'])} held-out "
+def report_markdown(report: Mapping[str, Any], what: str = "Fine-tuning") -> str:
+    """The before/after report as Markdown, titled by ``what`` was done between them."""
+    lines = [f"## {what}: before / after on {len(report['held_out_tracks'])} held-out "
              "tracks", "",
              f"Held-out tracks: {', '.join(report['held_out_tracks'])}", "",
              "| model | intent macro-F1 | brake F1 | UNKNOWN share | frames scored |",

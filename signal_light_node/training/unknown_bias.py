@@ -190,7 +190,7 @@ def calibrate_checkpoint(out: Path, inputs: Sequence[Path],
     if report is not None:
         path_json, path_md = report_paths(Path(out))
         path_json.write_text(json.dumps(report, indent=2) + "\n")
-        path_md.write_text(report_markdown(report).replace("Fine-tuning", "UNKNOWN margin"))
+        path_md.write_text(report_markdown(report, what="UNKNOWN margin"))
     return fit, report
 
 
