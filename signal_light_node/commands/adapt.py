@@ -27,7 +27,8 @@ import argparse
 from pathlib import Path
 
 from signal_light_node.commands.options import (add_input_topic_options, add_pairing_options,
-                                                add_torch_options, pairing_from_args)
+                                                add_torch_options, pairing_from_args,
+                                                require_pt_checkpoints)
 from signal_light_node.errors import ConfigError
 
 
@@ -72,11 +73,8 @@ def run(args: argparse.Namespace) -> int:
     from signal_light_node.training.adapt_norms import (AdaptSettings, InputReading,
                                                         adapt_checkpoint, record_reference)
 
-    if args.out.suffix != ".pt":
-        raise ConfigError(f"--out must name a .pt checkpoint, got {str(args.out)!r}")
-    if args.checkpoint is not None and args.checkpoint.suffix.lower() == ".onnx":
-        raise ConfigError("adapt needs the .pt checkpoint (an ONNX export has its batch norms "
-                          "folded into the convolutions); adapt the .pt, then export it")
+    require_pt_checkpoints(args, "adapt", "an ONNX export has its batch norms folded into "
+                                          "the convolutions")
     if args.threads:
         torch.set_num_threads(int(args.threads))
     if not args.inputs and not args.reference:

@@ -20,7 +20,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from signal_light_node.commands.options import add_torch_options
+from signal_light_node.commands.options import add_torch_options, require_pt_checkpoints
 from signal_light_node.errors import ConfigError
 
 
@@ -58,10 +58,7 @@ def run(args: argparse.Namespace) -> int:
 
     from signal_light_node.training.unknown_bias import calibrate_checkpoint, summary_lines
 
-    if args.out.suffix != ".pt":
-        raise ConfigError(f"--out must name a .pt checkpoint, got {str(args.out)!r}")
-    if args.checkpoint is not None and args.checkpoint.suffix.lower() == ".onnx":
-        raise ConfigError("calibrate needs the .pt checkpoint; calibrate it, then export it")
+    require_pt_checkpoints(args, "calibrate")
     if not 0.0 <= args.holdout_fraction < 1.0:
         raise ConfigError(f"--holdout-fraction must be in [0, 1), got {args.holdout_fraction}")
     if args.threads:

@@ -157,3 +157,26 @@ def engine_from_args(args: argparse.Namespace,
                                   threads=args.threads, thresholds=dict(thresholds or {}),
                                   track_timeout_s=args.track_timeout,
                                   intent_filter=intent_filter_from_args(args))
+
+
+def require_pt_checkpoints(args: argparse.Namespace, verb: str, why: str = "") -> None:
+    """Refuse an ``--out`` that is not a ``.pt`` and a ``--checkpoint`` that is an ONNX
+    export: the commands that rewrite a checkpoint's tensors (``adapt``, ``calibrate``)
+    need the torch file, and their result is exported afterwards.
+
+    Args:
+        args: Parsed options with ``out`` and ``checkpoint``.
+        verb: The command, as in "adapt needs the .pt checkpoint".
+        why: Why an export will not do, appended in parentheses.
+
+    Raises:
+        ConfigError: Naming the option at fault.
+    """
+    from signal_light_node.errors import ConfigError
+
+    if args.out.suffix != ".pt":
+        raise ConfigError(f"--out must name a .pt checkpoint, got {str(args.out)!r}")
+    if args.checkpoint is not None and args.checkpoint.suffix.lower() == ".onnx":
+        because = f" ({why})" if why else ""
+        raise ConfigError(f"{verb} needs the .pt checkpoint{because}; {verb} the .pt, then "
+                          "export it")
