@@ -18,15 +18,34 @@ def repo_root() -> Path:
     return REPO_ROOT
 
 
+#: Every domain ID valid on every platform (0..101), in one random order per test session.
+_DOMAINS = random.SystemRandom().sample(range(102), 102)
+_handed_out = 0
+
+
+def fresh_domain_id() -> int:
+    """A ``ROS_DOMAIN_ID`` this test session has not handed out in its last 101 calls.
+
+    Random IDs per call met now and then: a module-scoped node and a test's own node on one
+    domain see each other's topics and /diagnostics, and their books mix (a CI run failed on
+    it). Walking one random permutation keeps the nodes of one session apart for certain and
+    concurrent sessions apart by chance.
+    """
+    global _handed_out
+    domain = _DOMAINS[_handed_out % len(_DOMAINS)]
+    _handed_out += 1
+    return domain
+
+
 def isolated_ros_env(domain_id: int | None = None) -> Dict[str, str]:
     """A copy of ``os.environ`` for an rclpy subprocess that sees only its own peers.
 
-    A random ``ROS_DOMAIN_ID`` (0..101, the range valid on every platform) keeps
-    concurrent test runs apart; discovery stays on this machine.
+    Args:
+        domain_id: The ``ROS_DOMAIN_ID``; None: a :func:`fresh_domain_id`. Discovery stays
+            on this machine.
     """
     env = dict(os.environ)
-    env["ROS_DOMAIN_ID"] = str(random.SystemRandom().randint(0, 101)
-                               if domain_id is None else domain_id)
+    env["ROS_DOMAIN_ID"] = str(fresh_domain_id() if domain_id is None else domain_id)
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     env.pop("ROS_STATIC_PEERS", None)
     env["PYTHONUNBUFFERED"] = "1"
@@ -35,11 +54,11 @@ def isolated_ros_env(domain_id: int | None = None) -> Dict[str, str]:
 
 @pytest.fixture()
 def rclpy_isolated_env() -> Callable[..., Dict[str, str]]:
-    """Factory of subprocess environments; every call of one test shares one random domain.
+    """Factory of subprocess environments; every call of one test shares one fresh domain.
 
     Usage: ``env = rclpy_isolated_env()``, then ``subprocess.Popen(..., env=env)``.
     """
-    domain = random.SystemRandom().randint(0, 101)
+    domain = fresh_domain_id()
     return lambda: isolated_ros_env(domain)
 
 

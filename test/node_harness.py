@@ -1,7 +1,7 @@
 """Helpers of the live-node tests: a model to load, a bag to feed, the node as a subprocess,
 and an in-process rclpy client that feeds frames and collects the node's outputs.
 
-The client uses a private rclpy context without signal handlers, on the same random
+The client uses a private rclpy context without signal handlers, on the same
 ``ROS_DOMAIN_ID`` as the subprocesses it talks to.
 """
 

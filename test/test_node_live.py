@@ -1,6 +1,6 @@
 """The ``detector`` node in its own process, fed by a test publisher replaying a bag.
 
-Each test starts the real executable on a random ROS domain and talks to it over rclpy
+Each test starts the real executable on a fresh ROS domain and talks to it over rclpy
 (reliable QoS, frame by frame, so a slow CI machine drops nothing): one output per input
 frame, stamped and ordered like the inputs, track IDs equal to the detections', only the
 codes 100/101/102; a frame without detections gives an empty array, an undecodable image
