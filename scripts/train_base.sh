@@ -62,7 +62,7 @@ SEED=${SEED:-1}                      # model init and sampling
 POOL_SEEDS=${POOL_SEEDS:-"11 12 13 14"}  # training pool: one split per seed
 POOL_TRACKS=${POOL_TRACKS:-800}      # whole tracks per pool seed
 POOL_FRAMES=${POOL_FRAMES:-150}      # frames per rendered scene
-FRAME_POOL_SEEDS=${FRAME_POOL_SEEDS:-"21 22 23 24"}  # short tracks, stage 1 only ("" = none)
+FRAME_POOL_SEEDS=${FRAME_POOL_SEEDS-"21 22 23 24"}  # short tracks, stage 1 only ("" = none)
 FRAME_POOL_TRACKS=${FRAME_POOL_TRACKS:-2400}  # tracks per seed
 FRAME_POOL_FRAMES=${FRAME_POOL_FRAMES:-40}    # frames per rendered scene
 VAL_SEED=${VAL_SEED:-700001}         # validation split
