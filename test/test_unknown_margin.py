@@ -16,7 +16,7 @@ from signal_light_node.model.checkpoint import DEFAULT_WEIGHTS
 from signal_light_node.model.interface import to_input
 from signal_light_node.training.unknown_bias import (MARGIN_HEADS, META_KEY,
                                                      apply_unknown_margin, fit_unknown_margin,
-                                                     unknown_index)
+                                                     unknown_index, with_unknown_margin)
 
 REPO = Path(__file__).resolve().parents[1]
 BAG = REPO / "bags" / "day_street"
@@ -50,6 +50,42 @@ def test_the_margin_lowers_only_the_unknown_logits_and_their_probability() -> No
         k = unknown_index(model, task)
         assert bool((p1[task][:, k] < p0[task][:, k]).all()), task
     assert torch.equal(p0["view"], p1["view"])
+
+
+def test_the_margin_applied_to_outputs_equals_the_margin_in_the_biases() -> None:
+    """The fit runs the model once and moves its outputs; that must be what the moved
+    biases give, temperatures included."""
+    import dataclasses
+
+    loaded = load_checkpoint(DEFAULT_WEIGHTS)
+    model = loaded.model.eval()
+    model.config = dataclasses.replace(model.config, temperatures={"left": 1.7, "brake": 0.6})
+    crops = np.random.default_rng(1).integers(0, 255, (5, 64, 64, 3), dtype=np.uint8)
+    with torch.no_grad():
+        p0, _ = model.step(to_input(crops), model.initial_state(5))
+        apply_unknown_margin(model, 1.25)
+        p1, _ = model.step(to_input(crops), model.initial_state(5))
+    names = {t: tuple(model.config.class_names[t]) for t in MARGIN_HEADS}
+    moved = with_unknown_margin({t: v.numpy() for t, v in p0.items()}, 1.25, names,
+                                dict(model.config.temperatures))
+    for task in p0:
+        np.testing.assert_allclose(moved[task], p1[task].numpy(), atol=1e-5, err_msg=task)
+
+
+@needs_bag
+def test_the_fit_scores_each_margin_as_evaluate_scores_the_moved_model() -> None:
+    from signal_light_node.evaluation.streaming import evaluate_tracks
+    from signal_light_node.training.sources import load_bag_tracks
+    from signal_light_node.training.unknown_bias import score
+
+    model = load_checkpoint(DEFAULT_WEIGHTS).model.eval()
+    tracks = load_bag_tracks(BAG, model.config.crop_config())[:3]
+    fit = fit_unknown_margin(model, tracks, (0.0, 2.5))
+    for margin in (0.0, 2.5):
+        moved = load_checkpoint(DEFAULT_WEIGHTS).model.eval()
+        apply_unknown_margin(moved, margin)
+        assert fit.scores[margin] == pytest.approx(
+            score(evaluate_tracks(moved, tracks, progress=False)), abs=1e-9), margin
 
 
 @needs_bag

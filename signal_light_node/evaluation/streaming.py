@@ -58,26 +58,60 @@ def predict_track_probs(model: Any, tracks: Sequence[TrackSequence],
         frames that are not stepped, mask False, are -1), and per light head the
         published probabilities ``[T_i, K]`` (NaN where not stepped).
     """
+    return filter_track_probs(model_track_probs(model, tracks, device), tracks, intent_filter)
+
+
+def _active(tracks: Sequence[TrackSequence], i: int) -> np.ndarray:
+    """Indices of the tracks stepped at frame index ``i`` (they have it, its mask is set)."""
+    return np.array([k for k, t in enumerate(tracks) if i < len(t) and bool(t.mask[i])],
+                    np.int64)
+
+
+def model_track_probs(model: Any, tracks: Sequence[TrackSequence],
+                      device: "str | torch.device" = "cpu") -> Dict[str, np.ndarray]:
+    """Step a batch of tracks frame by frame: every head's probabilities as the model
+    gives them, before any filter.
+
+    Each track's state is a row of the backend's row store, as in the state bank.
+
+    Returns:
+        Task -> float32 ``[len(tracks), longest track, K]``, NaN where a track has no
+        stepped frame; :func:`filter_track_probs` turns it into what the node publishes.
+    """
     backend = as_backend(model, str(device))
-    n = len(tracks)
-    length = max(len(t) for t in tracks)
-    preds = [np.full((len(t), len(TASKS)), -1, np.int64) for t in tracks]
-    probs: List[Dict[str, np.ndarray]] = [
-        {task: np.full((len(t), len(CLASS_NAMES[task])), np.nan) for task in LIGHT_TASKS}
-        for t in tracks]
-    # Each track's state is a row of the backend's row store, as in the state bank.
+    n, length = len(tracks), max(len(t) for t in tracks)
+    raw = {task: np.full((n, length, len(CLASS_NAMES[task])), np.nan, np.float32)
+           for task in TASKS}
     states = backend.new_rows(n)
-    light_filter = IntentFilter(intent_filter)
-    rows = light_filter.initial_rows(n)
     for i in range(length):
-        active = np.array([k for k, t in enumerate(tracks) if i < len(t) and bool(t.mask[i])],
-                          np.int64)
+        active = _active(tracks, i)
         if not len(active):
             continue
         crops = np.stack([tracks[k].crop_window(i, i + 1)[0] for k in active])
         out = backend.step(crops, backend.gather_rows(states, active))
         backend.store_rows(states, active, out.state)
-        filtered = light_filter.step(out.probs,
+        for task in TASKS:
+            raw[task][active, i] = out.probs[task]
+    return raw
+
+
+def filter_track_probs(raw: Dict[str, np.ndarray], tracks: Sequence[TrackSequence],
+                       intent_filter: Optional[IntentFilterConfig] = None
+                       ) -> Tuple[List[np.ndarray], List[Dict[str, np.ndarray]]]:
+    """The intent filter over :func:`model_track_probs`'s outputs, driven by each track's
+    stamps as in the engine: :func:`predict_track_probs`'s two lists. Cheap next to the
+    model, so one model pass can be filtered and scored under many settings."""
+    preds = [np.full((len(t), len(TASKS)), -1, np.int64) for t in tracks]
+    probs: List[Dict[str, np.ndarray]] = [
+        {task: np.full((len(t), len(CLASS_NAMES[task])), np.nan) for task in LIGHT_TASKS}
+        for t in tracks]
+    light_filter = IntentFilter(intent_filter)
+    rows = light_filter.initial_rows(len(tracks))
+    for i in range(max(len(t) for t in tracks)):
+        active = _active(tracks, i)
+        if not len(active):
+            continue
+        filtered = light_filter.step({task: raw[task][active, i] for task in TASKS},
                                      np.array([tracks[k].stamps_ns[i] for k in active], np.int64),
                                      rows[active])
         rows[active] = filtered.rows
@@ -139,11 +173,27 @@ def evaluate_tracks(model: Any, tracks: Iterable[TrackSequence],
     scorer = TrackScorer(settings)
     bar = tqdm(total=total, desc="evaluate", unit="track", disable=not progress)
     for batch in chunks(tracks, settings.batch_tracks):
-        preds, probs = predict_track_probs(backend, batch, intent_filter=intent_filter)
-        for track, pred, prob in zip(batch, preds, probs):
-            scorer.add(track, pred, probs=prob)
+        score_batch(scorer, batch, model_track_probs(backend, batch), intent_filter)
         bar.update(len(batch))
     bar.close()
+    return scorer_result(scorer, intent_filter)
+
+
+def score_batch(scorer: TrackScorer, tracks: Sequence[TrackSequence], raw: Dict[str, np.ndarray],
+                intent_filter: IntentFilterConfig) -> None:
+    """Add a batch of tracks to ``scorer``: their :func:`model_track_probs` outputs ``raw``
+    through the intent filter, as published."""
+    preds, probs = filter_track_probs(raw, tracks, intent_filter)
+    for track, pred, prob in zip(tracks, preds, probs):
+        scorer.add(track, pred, probs=prob)
+
+
+def scorer_result(scorer: TrackScorer, intent_filter: IntentFilterConfig) -> Dict[str, Any]:
+    """:func:`evaluate_tracks`'s result of a filled scorer.
+
+    Raises:
+        ConfigError: No track was added.
+    """
     if scorer.counts["tracks"] == 0:
         raise ConfigError("nothing to evaluate: no tracks")
     return {**scorer.result(), "intent_filter": asdict(intent_filter)}

@@ -12,11 +12,13 @@ to lower it is a property of the camera, so it is fitted on the user's labelled 
 * reads labelled bags (``annotate import`` writes them) or materialised splits, and holds
   out ``--holdout-fraction`` of the track IDs (:func:`.holdout.split_by_track_id`, the
   fine-tune's rule);
-* for every margin ``b`` of the grid subtracts ``b`` from the UNKNOWN logit of the brake,
-  left, right and intent heads (:func:`apply_unknown_margin`: the heads' bias, so the
-  checkpoint, its ONNX export and its int8 export all carry it) and scores the fit tracks
-  as ``evaluate`` does (the node's intent filter): the mean of intent macro-F1 and brake
-  F1. The best margin wins; ties go to the smaller margin;
+* runs the model once over the fit tracks; for every margin ``b`` of the grid it moves
+  those outputs as subtracting ``b`` from the UNKNOWN logit of the brake, left, right and
+  intent heads would (:func:`with_unknown_margin`; :func:`apply_unknown_margin` then
+  writes the chosen one into the heads' biases, so the checkpoint, its ONNX export and
+  its int8 export all carry it) and scores them as ``evaluate`` does (the node's intent
+  filter): the mean of intent macro-F1 and brake F1. The best margin wins; ties go to the
+  smaller margin;
 * writes the checkpoint with ``meta["unknown_margin"]`` (the margin, the grid's scores, the
   data) and, with held-out tracks, the before/after report beside it
   (``MODEL.report.json`` / ``.md``, as the fine-tune's).
@@ -29,10 +31,12 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -98,27 +102,62 @@ def score(result: Dict[str, Any]) -> float:
     return 0.5 * (float(h["intent_macro_f1"] or 0.0) + float(h["brake_f1"] or 0.0))
 
 
+def with_unknown_margin(raw: Dict[str, np.ndarray], margin: float, names: Dict[str, Sequence[str]],
+                        temperatures: Dict[str, float]) -> Dict[str, np.ndarray]:
+    """What a model would output after :func:`apply_unknown_margin`, from what it output
+    before: the heads' probabilities are a softmax of (logit + bias) / temperature, so
+    lowering a bias by ``margin`` multiplies that class's probability by
+    ``exp(-margin / T)`` before renormalising (exact, no second model pass).
+
+    Args:
+        raw: Task -> probabilities ``[..., K]`` (``evaluation.streaming.model_track_probs``).
+        margin: The UNKNOWN margin.
+        names: Task -> class names of the model's heads.
+        temperatures: The model config's temperatures (missing tasks 1.0).
+    """
+    out = dict(raw)
+    for task in MARGIN_HEADS:
+        scale = np.ones(len(names[task]), np.float64)
+        scale[list(names[task]).index("UNKNOWN")] = math.exp(
+            -float(margin) / float(temperatures.get(task, 1.0)))
+        moved = raw[task].astype(np.float64) * scale
+        out[task] = (moved / moved.sum(axis=-1, keepdims=True)).astype(raw[task].dtype)
+    return out
+
+
 def fit_unknown_margin(model: nn.Module, tracks: Sequence[TrackSequence],
                        grid: Sequence[float] = DEFAULT_GRID) -> MarginFit:
-    """Score ``tracks`` at every margin of ``grid`` (a copy of ``model`` each) and keep
-    the best; ``model`` itself is not changed.
+    """Score ``tracks`` at every margin of ``grid`` and keep the best; ``model`` itself is
+    not changed. The model runs once; each margin is applied to its outputs
+    (:func:`with_unknown_margin`) and filtered and scored as ``evaluate`` does.
 
     Raises:
         ConfigError: An empty grid, a negative margin, or no track to fit on.
     """
-    import copy
-
-    from signal_light_node.evaluation.streaming import evaluate_tracks
+    from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
+    from signal_light_node.evaluation.streaming import (chunks, model_track_probs, score_batch,
+                                                        scorer_result)
+    from signal_light_node.runtime.intent_filter import IntentFilterConfig
 
     if not grid or min(grid) < 0:
         raise ConfigError(f"the margins to try must be >= 0, got {list(grid)}")
     if not tracks:
         raise ConfigError("no labelled track to fit the UNKNOWN margin on")
+    for task in MARGIN_HEADS:
+        unknown_index(model, task)
+    settings, light_filter = EvalSettings(), IntentFilterConfig()
+    model = model.eval()
+    outputs = [(batch, model_track_probs(model, batch))
+               for batch in chunks(tracks, settings.batch_tracks)]
+    names = {t: tuple(model.config.class_names[t]) for t in MARGIN_HEADS}
+    temperatures = dict(model.config.temperatures)
     fit = MarginFit(margin=0.0, fit_tracks=len(tracks))
     for margin in sorted({float(m) for m in grid}):
-        candidate = copy.deepcopy(model).eval()
-        apply_unknown_margin(candidate, margin)
-        result = evaluate_tracks(candidate, tracks, progress=False)
+        scorer = TrackScorer(settings)
+        for batch, raw in outputs:
+            score_batch(scorer, batch, with_unknown_margin(raw, margin, names, temperatures),
+                        light_filter)
+        result = scorer_result(scorer, light_filter)
         fit.scores[margin] = score(result)
         fit.fit_frames = int(result["counts"]["scored"])
         logger.info("UNKNOWN margin %.2f: score %.4f", margin, fit.scores[margin])
