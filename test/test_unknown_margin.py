@@ -14,9 +14,10 @@ from signal_light_node.cli import main
 from signal_light_node.model import load_checkpoint
 from signal_light_node.model.checkpoint import DEFAULT_WEIGHTS
 from signal_light_node.model.interface import to_input
-from signal_light_node.training.unknown_bias import (MARGIN_HEADS, META_KEY,
-                                                     apply_unknown_margin, fit_unknown_margin,
-                                                     unknown_index, with_unknown_margin)
+from signal_light_node.training.unknown_bias import (MARGIN_HEADS, META_KEY, ON_HEADS,
+                                                     apply_offsets, apply_unknown_margin,
+                                                     fit_unknown_margin, head_offsets,
+                                                     unknown_index, with_offsets)
 
 REPO = Path(__file__).resolve().parents[1]
 BAG = REPO / "bags" / "day_street"
@@ -52,7 +53,7 @@ def test_the_margin_lowers_only_the_unknown_logits_and_their_probability() -> No
     assert torch.equal(p0["view"], p1["view"])
 
 
-def test_the_margin_applied_to_outputs_equals_the_margin_in_the_biases() -> None:
+def test_offsets_applied_to_outputs_equal_the_offsets_in_the_biases() -> None:
     """The fit runs the model once and moves its outputs; that must be what the moved
     biases give, temperatures included."""
     import dataclasses
@@ -61,52 +62,61 @@ def test_the_margin_applied_to_outputs_equals_the_margin_in_the_biases() -> None
     model = loaded.model.eval()
     model.config = dataclasses.replace(model.config, temperatures={"left": 1.7, "brake": 0.6})
     crops = np.random.default_rng(1).integers(0, 255, (5, 64, 64, 3), dtype=np.uint8)
+    offsets = head_offsets(model, 1.25, -0.5)
     with torch.no_grad():
         p0, _ = model.step(to_input(crops), model.initial_state(5))
-        apply_unknown_margin(model, 1.25)
+        apply_offsets(model, offsets)
         p1, _ = model.step(to_input(crops), model.initial_state(5))
-    names = {t: tuple(model.config.class_names[t]) for t in MARGIN_HEADS}
-    moved = with_unknown_margin({t: v.numpy() for t, v in p0.items()}, 1.25, names,
-                                dict(model.config.temperatures))
+    moved = with_offsets({t: v.numpy() for t, v in p0.items()}, offsets,
+                         dict(model.config.temperatures))
     for task in p0:
         np.testing.assert_allclose(moved[task], p1[task].numpy(), atol=1e-5, err_msg=task)
+    assert offsets["left"].tolist() == [0.0, -0.5, -1.25]  # OFF, ON, UNKNOWN
+    assert offsets["right"].tolist() == [0.0, -0.5, -1.25]
+    assert offsets["brake"].tolist() == [0.0, 0.0, -1.25] and ON_HEADS == ("left", "right")
 
 
 @needs_bag
-def test_the_fit_scores_each_margin_as_evaluate_scores_the_moved_model() -> None:
+def test_the_fit_scores_as_evaluate_scores_the_model_moved_by_its_choice() -> None:
     from signal_light_node.evaluation.streaming import evaluate_tracks
     from signal_light_node.training.sources import load_bag_tracks
     from signal_light_node.training.unknown_bias import score
 
     model = load_checkpoint(DEFAULT_WEIGHTS).model.eval()
     tracks = load_bag_tracks(BAG, model.config.crop_config())[:3]
-    fit = fit_unknown_margin(model, tracks, (0.0, 2.5))
-    for margin in (0.0, 2.5):
-        moved = load_checkpoint(DEFAULT_WEIGHTS).model.eval()
-        apply_unknown_margin(moved, margin)
-        assert fit.scores[margin] == pytest.approx(
-            score(evaluate_tracks(moved, tracks, progress=False)), abs=1e-9), margin
+    fit = fit_unknown_margin(model, tracks, (0.0, 2.5), (-1.0, 0.0, 1.5))
+    moved = load_checkpoint(DEFAULT_WEIGHTS).model.eval()
+    apply_offsets(moved, head_offsets(moved, fit.margin, fit.on_offset))
+    assert fit.scores[fit.margin] == pytest.approx(
+        score(evaluate_tracks(moved, tracks, progress=False)), abs=1e-9)
+    plain = fit_unknown_margin(model, tracks, (0.0,))
+    assert plain.on_offset == 0.0
+    assert plain.scores[0.0] == pytest.approx(score(evaluate_tracks(model, tracks,
+                                                                    progress=False)))
 
 
 @needs_bag
-def test_the_fit_keeps_the_best_margin_and_ties_go_to_the_smaller(monkeypatch) -> None:
+def test_the_fit_keeps_the_best_and_ties_go_to_the_smaller_margin_and_offset_0(
+        monkeypatch) -> None:
     from signal_light_node.training import unknown_bias
     from signal_light_node.training.sources import load_bag_tracks
 
     model = load_checkpoint(DEFAULT_WEIGHTS).model
     tracks = load_bag_tracks(BAG, model.config.crop_config())[:2]
-    fit = fit_unknown_margin(model, tracks, (2.0, 0.0, 1.0))
+    fit = fit_unknown_margin(model, tracks, (2.0, 0.0, 1.0), (0.5, -0.5))
     assert sorted(fit.scores) == [0.0, 1.0, 2.0]
     assert fit.scores[fit.margin] == max(fit.scores.values())
     monkeypatch.setattr(unknown_bias, "score", lambda result: 0.5)
-    assert fit_unknown_margin(model, tracks, (2.0, 1.0)).margin == 1.0
+    tied = fit_unknown_margin(model, tracks, (2.0, 1.0), (1.0, -0.5, 0.5))
+    assert tied.margin == 1.0 and tied.on_offset == -0.5
+    assert fit_unknown_margin(model, tracks, (1.0,), (1.0, 0.0, -1.0)).on_offset == 0.0
 
 
 @needs_bag
 def test_calibrate_writes_the_margin_and_a_held_out_report(tmp_path: Path, capsys) -> None:
     out = tmp_path / "cal.pt"
-    assert main(["calibrate", str(BAG), "--grid", "0,3", "--holdout-fraction", "0.5",
-                 "--out", str(out), "--threads", "1"]) == 0
+    assert main(["calibrate", str(BAG), "--grid", "0,3", "--on-grid=-1,0,1",
+                 "--holdout-fraction", "0.5", "--out", str(out), "--threads", "1"]) == 0
     printed = capsys.readouterr().out
     loaded = load_checkpoint(out)
     info = loaded.meta[META_KEY]
@@ -114,16 +124,20 @@ def test_calibrate_writes_the_margin_and_a_held_out_report(tmp_path: Path, capsy
     assert set(info["scores"]) == {"0", "3"} and margin in (0.0, 3.0)
     assert info["scores"][f"{margin:g}"] == max(info["scores"].values())
     assert info["held_out_tracks"] > 0 and info["fit_tracks"] > 0
+    on = info["on_offset"]
+    assert on in (-1.0, 0.0, 1.0) and info["on_heads"] == list(ON_HEADS)
     shipped = load_checkpoint(DEFAULT_WEIGHTS).model
+    expected = head_offsets(shipped, margin, on)
     for task in MARGIN_HEADS:
-        k = unknown_index(shipped, task)
-        expected = shipped.heads[task].bias[k] - margin
-        assert torch.isclose(loaded.model.heads[task].bias[k], expected), task
+        moved = (loaded.model.heads[task].bias - shipped.heads[task].bias).detach()
+        assert torch.allclose(moved, torch.as_tensor(expected[task], dtype=moved.dtype)), task
+        assert moved[unknown_index(shipped, task)] == pytest.approx(-margin), task
     report = json.loads(out.with_suffix(".report.json").read_text())
     assert set(report) == {"held_out_tracks", "before", "after"}
     assert report["before"]["scored_frames"] == report["after"]["scored_frames"] > 0
-    assert "UNKNOWN margin" in out.with_suffix(".report.md").read_text()
+    assert "UNKNOWN margin and ON offsets" in out.with_suffix(".report.md").read_text()
     assert f"UNKNOWN margin {margin:g}" in printed and "held-out after" in printed
+    assert f"blinker ON offset {on:+g}" in printed
 
 
 def _refused(capsys, args, out: Path) -> str:

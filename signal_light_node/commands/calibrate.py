@@ -1,10 +1,10 @@
 """``signal-light calibrate LABELLED... --out MODEL``: fit how readily the model says
-UNKNOWN, on your labelled recordings.
+UNKNOWN and ON, on your labelled recordings.
 
-One number per checkpoint: the margin by which the UNKNOWN logit of the brake, left,
-right and intent heads is lowered, chosen on a grid by the mean of intent macro-F1 and
-brake F1 through the node's intent filter
-(:mod:`signal_light_node.training.unknown_bias`). ``--holdout-fraction`` keeps a share of
+Two numbers per checkpoint: the margin by which the UNKNOWN logit of the brake, left,
+right and intent heads is lowered, and the offset added to the ON logit of both blinkers
+(how readily the filter turns a blinker on), chosen on grids by the mean of intent macro-F1 and brake F1 through the
+node's intent filter (:mod:`signal_light_node.training.unknown_bias`). ``--holdout-fraction`` keeps a share of
 the track IDs out of the fit and writes the before/after report beside the checkpoint.
 Examples::
 
@@ -34,7 +34,7 @@ def _grid(text: str) -> tuple:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``signal-light calibrate``."""
-    from signal_light_node.training.unknown_bias import DEFAULT_GRID
+    from signal_light_node.training.unknown_bias import DEFAULT_GRID, DEFAULT_ON_GRID
 
     parser.formatter_class = argparse.ArgumentDefaultsHelpFormatter
     parser.add_argument("inputs", nargs="+", type=Path, metavar="LABELLED",
@@ -49,6 +49,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the held-out draw")
     parser.add_argument("--grid", type=_grid, default=DEFAULT_GRID, metavar="M,M,...",
                         help="UNKNOWN margins to try (logit units, >= 0)")
+    parser.add_argument("--on-grid", type=_grid, default=DEFAULT_ON_GRID, metavar="O,O,...",
+                        help="blinker ON offsets to try (logit "
+                             "units; 0 alone keeps the ON logits; write --on-grid=-1,0,1)")
     add_torch_options(parser)
 
 
@@ -64,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
     if args.threads:
         torch.set_num_threads(int(args.threads))
     fit, report = calibrate_checkpoint(args.out, args.inputs, args.checkpoint,
-                                       args.holdout_fraction, args.seed, args.grid)
+                                       args.holdout_fraction, args.seed, args.grid,
+                                       args.on_grid)
     print("\n".join(summary_lines(fit, args.out, report)))
     return 0

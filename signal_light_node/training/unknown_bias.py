@@ -1,4 +1,5 @@
-"""Adapting with labels, cheaply: fit how readily the model says UNKNOWN on your camera.
+"""Adapting with labels, cheaply: fit how readily the model says UNKNOWN and ON on your
+camera.
 
 A light or an intent is UNKNOWN when the model cannot see the lamps. On crops unlike its
 training renders the model says so far too often: on the independent generator's renders
@@ -6,25 +7,31 @@ the shipped weights publish UNKNOWN on 58 % of the frames where a lamp is visibl
 lowering the UNKNOWN logit by 2 would halve the intent errors there, while on the training
 renderer's held-out colour family the best margin is 0 (measured: docs/model.md). How far
 to lower it is a property of the camera, so it is fitted on the user's labelled tracks.
+The same holds for how readily a lamp is called ON: the intent filter turns a blinker on
+from a fixed P(ON), and a fine-tune on a few tracks moves the blinkers' probabilities
+against it (after one, a blinker ON offset of -0.5 gave back what the filter lost;
+docs/model.md).
 
 ``signal-light calibrate LABELLED... --out MODEL`` (``commands/calibrate.py``):
 
 * reads labelled bags (``annotate import`` writes them) or materialised splits, and holds
   out ``--holdout-fraction`` of the track IDs (:func:`.holdout.split_by_track_id`, the
   fine-tune's rule);
-* runs the model once over the fit tracks; for every margin ``b`` of the grid it moves
-  those outputs as subtracting ``b`` from the UNKNOWN logit of the brake, left, right and
-  intent heads would (:func:`with_unknown_margin`; :func:`apply_unknown_margin` then
-  writes the chosen one into the heads' biases, so the checkpoint, its ONNX export and
-  its int8 export all carry it) and scores them as ``evaluate`` does (the node's intent
-  filter): the mean of intent macro-F1 and brake F1. The best margin wins; ties go to the
-  smaller margin;
-* writes the checkpoint with ``meta["unknown_margin"]`` (the margin, the grid's scores, the
-  data) and, with held-out tracks, the before/after report beside it
-  (``MODEL.report.json`` / ``.md``, as the fine-tune's).
+* runs the model once over the fit tracks; for every margin ``b`` of the grid and ON
+  offset ``o`` of the ON grid it moves those outputs as subtracting ``b`` from the
+  UNKNOWN logit of the brake, left, right and intent heads and adding ``o`` to the ON
+  logit of both blinkers would
+  (:func:`with_offsets`), and scores them as ``evaluate`` does (the node's intent
+  filter): the mean of intent macro-F1 and brake F1. The best setting wins; ties go to
+  the smaller margin and the offset nearest 0;
+* writes the chosen setting into the heads' biases (:func:`apply_offsets`: the
+  checkpoint, its ONNX export and its int8 export all carry it) and the checkpoint's
+  ``meta["unknown_margin"]`` (margin, ON offset, the grid's scores, the data) and, with
+  held-out tracks, the before/after report beside it (``MODEL.report.json`` / ``.md``,
+  as the fine-tune's).
 
-Nothing else changes: one number per checkpoint, fitted on labels, so a handful of
-labelled tracks is enough and it cannot overfit the way a fine-tune can.
+Nothing else changes: two numbers per checkpoint, fitted on labels, so a handful of
+labelled tracks is enough and they cannot overfit the way a fine-tune can.
 """
 
 from __future__ import annotations
@@ -51,6 +58,12 @@ logger = logging.getLogger(__name__)
 MARGIN_HEADS = ("brake", "left", "right", "intent")
 #: The grid tried by default: 0 (the model as it is) to 3 nats.
 DEFAULT_GRID: Tuple[float, ...] = (0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
+#: Heads whose ON logit the blinker offset moves (one offset for both): the intent filter's
+#: on-threshold acts on them. The brake has none: on the held-out family a brake offset
+#: fitted on one half lowered brake F1 on the other every time (docs/model.md).
+ON_HEADS = ("left", "right")
+#: The blinker ON offsets tried by default (logit units; 0 = the model as it is).
+DEFAULT_ON_GRID: Tuple[float, ...] = (-1.0, -0.5, 0.0, 0.5, 1.0)
 #: Checkpoint metadata key of the fit.
 META_KEY = "unknown_margin"
 
@@ -61,36 +74,61 @@ class MarginFit:
 
     Attributes:
         margin: The margin chosen.
-        scores: Per margin tried, the fit tracks' ``(intent macro-F1 + brake F1) / 2``.
+        on_offset: The ON offset of the blinkers chosen (:data:`ON_HEADS`).
+        scores: Per margin tried, the fit tracks' ``(intent macro-F1 + brake F1) / 2`` with
+            that margin's best ON offsets.
         fit_tracks: Tracks it was fitted on.
         fit_frames: Their frames scored.
     """
 
     margin: float
+    on_offset: float = 0.0
     scores: Dict[float, float] = field(default_factory=dict)
     fit_tracks: int = 0
     fit_frames: int = 0
 
 
 def unknown_index(model: nn.Module, task: str) -> int:
-    """Index of UNKNOWN among ``task``'s classes.
+    """Index of UNKNOWN among ``task``'s classes (:func:`class_index`)."""
+    return class_index(model, task, "UNKNOWN")
+
+
+def class_index(model: nn.Module, task: str, name: str) -> int:
+    """Index of class ``name`` among ``task``'s classes.
 
     Raises:
-        ConfigError: The head has no UNKNOWN class, or is not a layer with a bias.
+        ConfigError: The head has no such class, or is not a layer with a bias.
     """
     names = tuple(model.config.class_names[task])
-    head = model.heads[task]
-    if "UNKNOWN" not in names or getattr(head, "bias", None) is None:
-        raise ConfigError(f"the {task} head has no UNKNOWN class with a bias to move")
-    return names.index("UNKNOWN")
+    if name not in names or getattr(model.heads[task], "bias", None) is None:
+        raise ConfigError(f"the {task} head has no {name} class with a bias to move")
+    return names.index(name)
+
+
+def head_offsets(model: nn.Module, margin: float,
+                 on_offset: float = 0.0) -> Dict[str, np.ndarray]:
+    """Per head, what to add to each class's logit: ``-margin`` on UNKNOWN of
+    :data:`MARGIN_HEADS`, ``on_offset`` on ON of :data:`ON_HEADS`."""
+    out = {t: np.zeros(len(model.config.class_names[t])) for t in MARGIN_HEADS}
+    for task in MARGIN_HEADS:
+        out[task][unknown_index(model, task)] -= float(margin)
+    for task in ON_HEADS:
+        out[task][class_index(model, task, "ON")] += float(on_offset)
+    return out
+
+
+def apply_offsets(model: nn.Module, offsets: Dict[str, np.ndarray]) -> None:
+    """Add :func:`head_offsets` to the heads' biases (in place; temperatures apply after,
+    as to every logit)."""
+    with torch.no_grad():
+        for task, delta in offsets.items():
+            bias = model.heads[task].bias
+            bias += torch.as_tensor(delta, dtype=bias.dtype)
 
 
 def apply_unknown_margin(model: nn.Module, margin: float) -> None:
-    """Lower the UNKNOWN logit of every head of :data:`MARGIN_HEADS` by ``margin`` (in
-    place, on the heads' biases; temperatures apply after, as to every logit)."""
-    with torch.no_grad():
-        for task in MARGIN_HEADS:
-            model.heads[task].bias[unknown_index(model, task)] -= float(margin)
+    """Lower the UNKNOWN logit of every head of :data:`MARGIN_HEADS` by ``margin``."""
+    apply_offsets(model, head_offsets(model, margin))
 
 
 def score(result: Dict[str, Any]) -> float:
@@ -102,34 +140,40 @@ def score(result: Dict[str, Any]) -> float:
     return 0.5 * (float(h["intent_macro_f1"] or 0.0) + float(h["brake_f1"] or 0.0))
 
 
-def with_unknown_margin(raw: Dict[str, np.ndarray], margin: float, names: Dict[str, Sequence[str]],
-                        temperatures: Dict[str, float]) -> Dict[str, np.ndarray]:
-    """What a model would output after :func:`apply_unknown_margin`, from what it output
-    before: the heads' probabilities are a softmax of (logit + bias) / temperature, so
-    lowering a bias by ``margin`` multiplies that class's probability by
-    ``exp(-margin / T)`` before renormalising (exact, no second model pass).
+def with_offsets(raw: Dict[str, np.ndarray], offsets: Dict[str, np.ndarray],
+                 temperatures: Dict[str, float]) -> Dict[str, np.ndarray]:
+    """What a model would output after :func:`apply_offsets`, from what it output before:
+    the heads' probabilities are a softmax of (logit + bias) / temperature, so adding
+    ``d`` to a class's bias multiplies its probability by ``exp(d / T)`` before
+    renormalising (exact, no second model pass).
 
     Args:
         raw: Task -> probabilities ``[..., K]`` (``evaluation.streaming.model_track_probs``).
-        margin: The UNKNOWN margin.
-        names: Task -> class names of the model's heads.
+        offsets: :func:`head_offsets`.
         temperatures: The model config's temperatures (missing tasks 1.0).
     """
     out = dict(raw)
-    for task in MARGIN_HEADS:
-        scale = np.ones(len(names[task]), np.float64)
-        scale[list(names[task]).index("UNKNOWN")] = math.exp(
-            -float(margin) / float(temperatures.get(task, 1.0)))
+    for task, delta in offsets.items():
+        scale = np.exp(np.asarray(delta, np.float64) / float(temperatures.get(task, 1.0)))
         moved = raw[task].astype(np.float64) * scale
         out[task] = (moved / moved.sum(axis=-1, keepdims=True)).astype(raw[task].dtype)
     return out
 
 
+def _best(values: Dict[float, float]) -> float:
+    """The key of the largest value; ties go to the key nearest 0, then the smaller."""
+    top = max(values.values())
+    return min((k for k, v in values.items() if v == top), key=lambda k: (abs(k), k))
+
+
 def fit_unknown_margin(model: nn.Module, tracks: Sequence[TrackSequence],
-                       grid: Sequence[float] = DEFAULT_GRID) -> MarginFit:
-    """Score ``tracks`` at every margin of ``grid`` and keep the best; ``model`` itself is
-    not changed. The model runs once; each margin is applied to its outputs
-    (:func:`with_unknown_margin`) and filtered and scored as ``evaluate`` does.
+                       grid: Sequence[float] = DEFAULT_GRID,
+                       on_grid: Sequence[float] = (0.0,)) -> MarginFit:
+    """Score ``tracks`` at every margin of ``grid`` and ON offset of ``on_grid``; keep the
+    best. ``model`` itself is not changed.
+
+    The model runs once; each setting is applied to its outputs (:func:`with_offsets`)
+    and filtered and scored as ``evaluate`` does.
 
     Raises:
         ConfigError: An empty grid, a negative margin, or no track to fit on.
@@ -141,28 +185,36 @@ def fit_unknown_margin(model: nn.Module, tracks: Sequence[TrackSequence],
 
     if not grid or min(grid) < 0:
         raise ConfigError(f"the margins to try must be >= 0, got {list(grid)}")
+    if not on_grid:
+        raise ConfigError("no ON offset to try (give 0 to keep the ON logits)")
     if not tracks:
         raise ConfigError("no labelled track to fit the UNKNOWN margin on")
-    for task in MARGIN_HEADS:
-        unknown_index(model, task)
+    head_offsets(model, 0.0)  # every head has the classes moved
     settings, light_filter = EvalSettings(), IntentFilterConfig()
     model = model.eval()
     outputs = [(batch, model_track_probs(model, batch))
                for batch in chunks(tracks, settings.batch_tracks)]
-    names = {t: tuple(model.config.class_names[t]) for t in MARGIN_HEADS}
     temperatures = dict(model.config.temperatures)
     fit = MarginFit(margin=0.0, fit_tracks=len(tracks))
+    chosen: Dict[float, float] = {}
     for margin in sorted({float(m) for m in grid}):
-        scorer = TrackScorer(settings)
-        for batch, raw in outputs:
-            score_batch(scorer, batch, with_unknown_margin(raw, margin, names, temperatures),
-                        light_filter)
-        result = scorer_result(scorer, light_filter)
-        fit.scores[margin] = score(result)
-        fit.fit_frames = int(result["counts"]["scored"])
-        logger.info("UNKNOWN margin %.2f: score %.4f", margin, fit.scores[margin])
+        by_offset: Dict[float, float] = {}
+        for on in sorted({float(o) for o in on_grid}):
+            offsets = head_offsets(model, margin, on)
+            scorer = TrackScorer(settings)
+            for batch, raw in outputs:
+                score_batch(scorer, batch, with_offsets(raw, offsets, temperatures),
+                            light_filter)
+            result = scorer_result(scorer, light_filter)
+            by_offset[on] = score(result)
+            fit.fit_frames = int(result["counts"]["scored"])
+        chosen[margin] = _best(by_offset)
+        fit.scores[margin] = by_offset[chosen[margin]]
+        logger.info("UNKNOWN margin %.2f: score %.4f with blinker ON offset %+g", margin,
+                    fit.scores[margin], chosen[margin])
     best = max(fit.scores.values())
     fit.margin = min(m for m, s in fit.scores.items() if s == best)
+    fit.on_offset = chosen[fit.margin]
     return fit
 
 
@@ -191,10 +243,11 @@ def report_paths(out: Path) -> Tuple[Path, Path]:
 
 def calibrate_checkpoint(out: Path, inputs: Sequence[Path],
                          checkpoint: Optional[Path] = None, holdout_fraction: float = 0.0,
-                         seed: int = 0, grid: Sequence[float] = DEFAULT_GRID
+                         seed: int = 0, grid: Sequence[float] = DEFAULT_GRID,
+                         on_grid: Sequence[float] = DEFAULT_ON_GRID
                          ) -> Tuple[MarginFit, Optional[Dict[str, Any]]]:
-    """Fit the UNKNOWN margin of ``checkpoint`` on ``inputs``, write ``out`` (and, with
-    held-out tracks, its before/after report); returns the fit and the report.
+    """Fit the UNKNOWN margin and ON offsets of ``checkpoint`` on ``inputs``, write ``out``
+    (and, with held-out tracks, its before/after report); returns the fit and the report.
 
     Raises:
         ConfigError: Bad grid or fraction, no track, or a head without UNKNOWN.
@@ -208,14 +261,15 @@ def calibrate_checkpoint(out: Path, inputs: Sequence[Path],
 
     source = Path(DEFAULT_WEIGHTS if checkpoint is None else checkpoint)
     loaded = load_checkpoint(source, map_location="cpu")
-    for task in MARGIN_HEADS:
-        unknown_index(loaded.model, task)
+    head_offsets(loaded.model, 0.0)  # the heads have the classes moved
     tracks = load_labelled(inputs, loaded.config.crop_config())
     kept, held = split_by_track_id(tracks, holdout_fraction, seed)
-    fit = fit_unknown_margin(loaded.model, kept, grid)
-    apply_unknown_margin(loaded.model, fit.margin)
+    fit = fit_unknown_margin(loaded.model, kept, grid, on_grid)
+    apply_offsets(loaded.model, head_offsets(loaded.model, fit.margin, fit.on_offset))
     meta = {k: v for k, v in loaded.meta.items() if k not in FILE_META}
-    meta[META_KEY] = {"margin": fit.margin, "from": str(source),
+    meta[META_KEY] = {"margin": fit.margin, "on_offset": fit.on_offset,
+                      "on_heads": list(ON_HEADS),
+                      "from": str(source),
                       "previous": loaded.meta.get(META_KEY),
                       "heads": list(MARGIN_HEADS), "data": [str(p) for p in inputs],
                       "fit_tracks": fit.fit_tracks, "fit_frames": fit.fit_frames,
@@ -229,7 +283,7 @@ def calibrate_checkpoint(out: Path, inputs: Sequence[Path],
     if report is not None:
         path_json, path_md = report_paths(Path(out))
         path_json.write_text(json.dumps(report, indent=2) + "\n")
-        path_md.write_text(report_markdown(report, what="UNKNOWN margin"))
+        path_md.write_text(report_markdown(report, what="UNKNOWN margin and ON offsets"))
     return fit, report
 
 
@@ -237,9 +291,10 @@ def summary_lines(fit: MarginFit, out: Path, report: Optional[Dict[str, Any]]) -
     """What ``signal-light calibrate`` prints."""
     grid = ", ".join(f"{m:g}: {100 * s:.1f} %" for m, s in sorted(fit.scores.items()))
     lines = [f"fitted on {fit.fit_frames} frames of {fit.fit_tracks} tracks; score (mean of "
-             f"intent macro-F1 and brake F1) per UNKNOWN margin: {grid}",
+             f"intent macro-F1 and brake F1, best blinker ON offset) per UNKNOWN margin: {grid}",
              f"UNKNOWN margin {fit.margin:g} (UNKNOWN logit of {', '.join(MARGIN_HEADS)} "
-             f"lowered by it); wrote {out}"]
+             f"lowered by it); blinker ON offset {fit.on_offset:+g} (added to the ON logit "
+             f"of {', '.join(ON_HEADS)}); wrote {out}"]
     if report is not None:
         for key in ("before", "after"):
             r = report[key]
