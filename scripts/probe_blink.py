@@ -45,7 +45,7 @@ WARMUP = 10
 def load(path: Path) -> List[TrackSequence]:
     """Tracks of a split directory or a labelled bag."""
     from signal_light_node.training import sources
-    from signal_light_node.training.adapt_norms import is_split_dir
+    from signal_light_node.training.sources import is_split_dir
 
     if is_split_dir(path):
         return sources.split_tracks(path)

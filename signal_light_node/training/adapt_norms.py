@@ -204,13 +204,6 @@ class ReferenceResult:
 # ---------------------------------------------------------------------------- data
 
 
-def is_split_dir(path: Path) -> bool:
-    """Whether ``path`` is a materialised split (a directory with the split's manifest)."""
-    from signal_light_node.data.split import MANIFEST
-
-    return Path(path).is_dir() and (Path(path) / MANIFEST).is_file()
-
-
 def check_inputs(paths: Sequence[Path]) -> None:
     """Refuse an empty list or a path that does not exist (before anything is loaded).
 
@@ -233,17 +226,10 @@ def load_unlabelled_tracks(paths: Sequence[Path], crop: CropConfig,
         BagIOError: A bag cannot be read or has no image with detections.
         ConfigError: A split was cropped with other settings than ``crop``.
     """
-    from signal_light_node.training.sources import load_unlabelled_bag_tracks, split_tracks
+    from signal_light_node.training.sources import load_unlabelled_bag_tracks, tracks_from
 
-    tracks: List[TrackSequence] = []
-    for path in paths:
-        if is_split_dir(path):
-            tracks += split_tracks(Path(path), crop, role="adaptation data")
-        else:
-            tracks += load_unlabelled_bag_tracks(Path(path), crop, reading.image_topic,
-                                                 reading.detection_topic,
-                                                 pairing=reading.pairing)
-    return tracks
+    return tracks_from(paths, crop, "adaptation data", lambda path: load_unlabelled_bag_tracks(
+        path, crop, reading.image_topic, reading.detection_topic, pairing=reading.pairing))
 
 
 def stepped_crops(tracks: Sequence[TrackSequence]) -> List[np.ndarray]:

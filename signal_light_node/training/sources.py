@@ -335,6 +335,34 @@ def split_tracks(split_dir: Path, crop: Optional[CropConfig] = None,
             for i in range(len(split))]
 
 
+def is_split_dir(path: Path) -> bool:
+    """Whether ``path`` is a materialised split (a directory with the split's manifest)."""
+    from signal_light_node.data.split import MANIFEST
+
+    return Path(path).is_dir() and (Path(path) / MANIFEST).is_file()
+
+
+def tracks_from(paths: Sequence[Path], crop: CropConfig, role: str,
+                bag_tracks: Callable[[Path], List[TrackSequence]]) -> List[TrackSequence]:
+    """Every track of the split directories and bags of ``paths``, in the order given.
+
+    Args:
+        paths: Materialised splits (:func:`is_split_dir`) and bags.
+        crop: The model's crop settings; every split must have been cropped with them.
+        role: What the splits are used as, for the mismatch message.
+        bag_tracks: Reads one bag (:func:`load_bag_tracks` with labels, or
+            :func:`load_unlabelled_bag_tracks`).
+
+    Raises:
+        ConfigError: A split was cropped with other settings than ``crop``.
+        BagIOError: What ``bag_tracks`` raises.
+    """
+    tracks: List[TrackSequence] = []
+    for path in map(Path, paths):
+        tracks += split_tracks(path, crop, role=role) if is_split_dir(path) else bag_tracks(path)
+    return tracks
+
+
 # ----------------------------------------------------------------------------- windows
 
 Augment = Callable[[Dict[str, Any], np.random.Generator], Dict[str, Any]]

@@ -225,15 +225,11 @@ def load_labelled(paths: Sequence[Path], crop: CropConfig) -> List[TrackSequence
         BagIOError: A path is missing, or a bag unreadable or without ground truth.
         ConfigError: A split cropped with other settings than ``crop``.
     """
-    from signal_light_node.training.adapt_norms import check_inputs, is_split_dir
-    from signal_light_node.training.sources import load_bag_tracks, split_tracks
+    from signal_light_node.training.adapt_norms import check_inputs
+    from signal_light_node.training.sources import load_bag_tracks, tracks_from
 
     check_inputs(paths)
-    tracks: List[TrackSequence] = []
-    for path in map(Path, paths):
-        tracks += (split_tracks(path, crop, role="calibration data") if is_split_dir(path)
-                   else load_bag_tracks(path, crop))
-    return tracks
+    return tracks_from(paths, crop, "calibration data", lambda path: load_bag_tracks(path, crop))
 
 
 def report_paths(out: Path) -> Tuple[Path, Path]:
