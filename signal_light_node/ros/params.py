@@ -221,7 +221,8 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
     "filter_on_threshold": ParamSpec("P(ON) from which a frame counts as a flash of a light.",
                                      low=0.01, high=1.0),
     "filter_hold_s": ParamSpec("A blinker stays ON this many seconds (stamp time) after its "
-                               "last flash: about one blink period.", low=0.0, high=10.0),
+                               "last flash, through the dark half of a blink.", low=0.0,
+                               high=10.0),
     "filter_confirm_s": ParamSpec("A blinker turns ON only once its flashes span this many "
                                   "seconds, so a single spike never makes one.",
                                   low=0.0, high=5.0),
