@@ -76,7 +76,7 @@ class MarginFit:
         margin: The margin chosen.
         on_offset: The ON offset of the blinkers chosen (:data:`ON_HEADS`).
         scores: Per margin tried, the fit tracks' ``(intent macro-F1 + brake F1) / 2`` with
-            that margin's best ON offsets.
+            that margin's best blinker ON offset.
         fit_tracks: Tracks it was fitted on.
         fit_frames: Their frames scored.
     """
