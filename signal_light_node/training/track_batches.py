@@ -59,7 +59,8 @@ def _usable(tracks: Sequence[TrackSequence]) -> List[TrackSequence]:
             track_id=track.track_id, labels=track.labels[keep], mask=np.ones(int(keep.sum()), bool),
             stamps_ns=track.stamps_ns[keep], box_size=track.box_size[keep],
             occlusion=track.occlusion[keep], lighting=track.lighting, source=track.source,
-            crops=track.crops[keep], crop_config=track.crop_config))
+            crops=track.crops[keep], crop_config=track.crop_config,
+            lamp_maps=None if track.lamp_maps is None else track.lamp_maps[keep]))
     if not out:
         raise ConfigError("no track has a usable frame")
     return out
@@ -73,9 +74,12 @@ def _rng(seed: int, rank: int, salt: int) -> np.random.Generator:
 
 def _item(track: TrackSequence, start: int, stop: int) -> Dict[str, Any]:
     n = stop - start
-    return {"crops": np.ascontiguousarray(track.crops[start:stop]),
+    item = {"crops": np.ascontiguousarray(track.crops[start:stop]),
             "labels": track.labels[start:stop].astype(np.int64),
             "mask": np.ones(n, bool), "meta": {"fps": track.fps}}
+    if track.lamp_maps is not None:
+        item["lamp_maps"] = track.lamp_maps[start:stop]
+    return item
 
 
 class FrameBatches(torch.utils.data.IterableDataset):
@@ -108,10 +112,13 @@ class FrameBatches(torch.utils.data.IterableDataset):
             for ti, f in zip(which, flat - self._offsets[which]):
                 item = _item(self.tracks[int(ti)], int(f), int(f) + 1)
                 items.append(self.augment(item, rng) if self.augment else item)
-            yield {"crops": torch.from_numpy(np.stack([i["crops"] for i in items])),
-                   "labels": torch.from_numpy(np.stack([i["labels"] for i in items])),
-                   "mask": torch.ones((self.batch, 1), dtype=torch.bool),
-                   "meta": {"fps": [i["meta"]["fps"] for i in items]}}
+            batch = {"crops": torch.from_numpy(np.stack([i["crops"] for i in items])),
+                     "labels": torch.from_numpy(np.stack([i["labels"] for i in items])),
+                     "mask": torch.ones((self.batch, 1), dtype=torch.bool),
+                     "meta": {"fps": [i["meta"]["fps"] for i in items]}}
+            if all("lamp_maps" in i for i in items):
+                batch["lamp_maps"] = torch.from_numpy(np.stack([i["lamp_maps"] for i in items]))
+            yield batch
 
 
 @dataclass
