@@ -43,7 +43,9 @@
 #     VAL_SEQUENCES=16 TEST_TRACKS=12 TEST_FRAMES=40 WEIGHTS=runs/smoke/default.pt \
 #     scripts/train_base.sh
 # DATA keeps the rendered splits apart from RUN (the checkpoints), TRAIN_ARGS adds options
-# to both stages and FRAME_STEPS / LANE_STEPS cap them by steps: scripts/ablations.sh uses
+# to both stages, FRAME_ARGS to stage 1 only, LAMP_MAPS=1 renders the pools with lamp maps
+# (where each vehicle's lamps are lit: FRAME_ARGS="--model lamp_map_head=true
+# --lamp-map-weight 1" trains on them, docs/model.md) and FRAME_STEPS / LANE_STEPS cap them by steps: scripts/ablations.sh uses
 # these to train variants on the same data with the same number of steps; DATA_ONLY=1
 # stops after rendering the splits.
 set -euo pipefail
@@ -86,6 +88,8 @@ TEST_FRAMES=${TEST_FRAMES:-150}
 ANNEAL=${ANNEAL:-0.3}             # final share of each stage with a cosine LR decay
 PRECISION=${PRECISION:-auto}         # --precision: auto = bf16 where the CPU has AVX512-BF16
 THREADS=${THREADS:-2}
+FRAME_ARGS=${FRAME_ARGS:-}           # extra `signal-light train` options for stage 1 only
+LAMP_MAPS=${LAMP_MAPS:-0}            # 1: render the pools with --lamp-maps
 
 mkdir -p "$RUN" "$DATA"
 start=$(date +%s)
@@ -94,10 +98,12 @@ echo "== 1/4 data: pool (seeds $POOL_SEEDS), short-track pool (seeds $FRAME_POOL
 pools=()        # both stages
 frame_pools=()  # stage 1 only
 pids=()
+map_flag=""
+[[ "$LAMP_MAPS" == 1 ]] && map_flag=--lamp-maps
 render_pool() {  # render_pool SEED TRACKS FRAMES: one pool split in the background
   if [[ ! -f "$DATA/pool_$1/manifest.json" ]]; then
     python -m signal_light_node.data.split "$DATA/pool_$1" --seed "$1" \
-      --sequences "$2" --seq-len "$3" --full-tracks --overwrite > "$DATA/pool_$1.log" 2>&1 &
+      --sequences "$2" --seq-len "$3" --full-tracks --overwrite $map_flag > "$DATA/pool_$1.log" 2>&1 &
     pids+=($!)
   fi
 }
@@ -154,7 +160,7 @@ stage() {  # stage NAME MINUTES STEPS ARGS...: train unless it finished; resume 
 
 echo "== 2/4 stage 1: single frames for $FRAME_MINUTES minutes (batch $FRAME_BATCH)"
 stage frames "$FRAME_MINUTES" "$FRAME_STEPS" --mode frames --batch "$FRAME_BATCH" --lr "$FRAME_LR" \
-  --frame-targets "$FRAME_TARGETS" --val-every "$VAL_EVERY" "${frame_pools[@]}"
+  --frame-targets "$FRAME_TARGETS" --val-every "$VAL_EVERY" "${frame_pools[@]}" $FRAME_ARGS
 echo "== 2/4 stage 2: lanes for $LANE_MINUTES minutes ($LANES lanes x $SEQ_LEN frames)"
 freeze=()
 if [[ "$LANE_FREEZE" == 1 ]]; then
