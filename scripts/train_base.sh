@@ -43,9 +43,10 @@
 #     VAL_SEQUENCES=16 TEST_TRACKS=12 TEST_FRAMES=40 WEIGHTS=runs/smoke/default.pt \
 #     scripts/train_base.sh
 # DATA keeps the rendered splits apart from RUN (the checkpoints), TRAIN_ARGS adds options
-# to both stages, FRAME_ARGS to stage 1 only, LAMP_MAPS=1 renders the pools with lamp maps
-# (where each vehicle's lamps are lit: FRAME_ARGS="--model lamp_map_head=true
-# --lamp-map-weight 1" trains on them, docs/model.md) and FRAME_STEPS / LANE_STEPS cap them by steps: scripts/ablations.sh uses
+# to both stages, FRAME_ARGS to stage 1 only, LIT_MAPS=1 renders the pools with lit maps
+# (where each vehicle's lamps are lit: FRAME_ARGS="--model lit_map_head=true
+# --lit-map-weight 1" trains on them, docs/model.md) and FRAME_STEPS / LANE_STEPS cap
+# them by steps: scripts/ablations.sh uses
 # these to train variants on the same data with the same number of steps; DATA_ONLY=1
 # stops after rendering the splits.
 set -euo pipefail
@@ -89,7 +90,7 @@ ANNEAL=${ANNEAL:-0.3}             # final share of each stage with a cosine LR d
 PRECISION=${PRECISION:-auto}         # --precision: auto = bf16 where the CPU has AVX512-BF16
 THREADS=${THREADS:-2}
 FRAME_ARGS=${FRAME_ARGS:-}           # extra `signal-light train` options for stage 1 only
-LAMP_MAPS=${LAMP_MAPS:-0}            # 1: render the pools with --lamp-maps
+LIT_MAPS=${LIT_MAPS:-0}              # 1: render the pools with --lit-maps
 
 mkdir -p "$RUN" "$DATA"
 start=$(date +%s)
@@ -99,7 +100,7 @@ pools=()        # both stages
 frame_pools=()  # stage 1 only
 pids=()
 map_flag=""
-[[ "$LAMP_MAPS" == 1 ]] && map_flag=--lamp-maps
+[[ "$LIT_MAPS" == 1 ]] && map_flag=--lit-maps
 render_pool() {  # render_pool SEED TRACKS FRAMES: one pool split in the background
   if [[ ! -f "$DATA/pool_$1/manifest.json" ]]; then
     python -m signal_light_node.data.split "$DATA/pool_$1" --seed "$1" \

@@ -113,9 +113,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    default=_default("frame_targets"),
                    help="--mode frames only: state: the lights' logical states; lit: what "
                    "each frame shows (a blink's dark half counts as off; --pool splits only)")
-    g.add_argument("--lamp-map-weight", type=float, default=_default("lamp_map_weight"),
+    g.add_argument("--lit-map-weight", type=float, default=_default("lit_map_weight"),
                    help="--mode frames only: weight of the loss on where the lamps are lit "
-                   "(needs --model lamp_map_head=true and pools written with --lamp-maps)")
+                   "(needs --model lit_map_head=true and pools written with --lit-maps)")
     g.add_argument("--batch", type=int, default=_default("batch"),
                    help="sequences (frames in --mode frames, lanes in --mode lanes) per step "
                    "per process")
@@ -219,7 +219,7 @@ def options_from_args(args: argparse.Namespace) -> TrainOptions:
         grown_init_scale=args.grown_init_scale, bags=list(args.bags),
         ucm=list(args.ucm), pools=list(args.pools), mode=args.mode,
         frame_targets=args.frame_targets,
-        lamp_map_weight=args.lamp_map_weight,
+        lit_map_weight=args.lit_map_weight,
         synthetic_fraction=args.synthetic_fraction,
         mirror_prob=0.0 if args.no_mirror else _default("mirror_prob"),
         jitter=not args.no_jitter,

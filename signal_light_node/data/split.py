@@ -70,8 +70,8 @@ def _write_shard(path: Path, items: List[Item]) -> None:
         "fps": np.array([item["meta"]["fps"] for item in items], dtype=np.float64),
         "seed": np.array([item["meta"]["seed"] for item in items], dtype=np.int64),
     }
-    if all("lamp_maps" in item for item in items):
-        arrays["lamp_maps"] = ragged(lambda it: it["lamp_maps"])
+    if all("lit_maps" in item for item in items):
+        arrays["lit_maps"] = ragged(lambda it: it["lit_maps"])
     for key in _PER_FRAME_META:
         arrays[key] = ragged(lambda it, k=key: it["meta"][k])
     for key in _STRING_META:
@@ -261,10 +261,10 @@ class SequenceSplit(Dataset):
             lit_labels = np.full((t, len(TASKS)), PAD_LABEL, dtype=np.int64)
             lit_labels[:n] = shard["lit_labels"][a:b]
             item["lit_labels"] = lit_labels
-        if "lamp_maps" in shard:  # only splits written with --lamp-maps
-            maps = shard["lamp_maps"]
-            item["lamp_maps"] = np.zeros((t,) + maps.shape[1:], dtype=np.uint8)
-            item["lamp_maps"][:n] = maps[a:b]
+        if "lit_maps" in shard:  # only splits written with --lit-maps
+            maps = shard["lit_maps"]
+            item["lit_maps"] = np.zeros((t,) + maps.shape[1:], dtype=np.uint8)
+            item["lit_maps"][:n] = maps[a:b]
         mask = np.zeros(t, dtype=bool)
         mask[:n] = True
         meta: Dict[str, Any] = {"fps": float(shard["fps"][i]), "seed": int(shard["seed"][i]),
@@ -300,7 +300,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--crop-margin", type=float, default=CropConfig.margin)
     parser.add_argument("--lighting", choices=("day", "dusk", "night"), default=None,
                         help="one lighting for every scene (default: drawn per scene)")
-    parser.add_argument("--lamp-maps", action="store_true",
+    parser.add_argument("--lit-maps", action="store_true",
                         help="store where each vehicle's signal lamps are lit (training target)")
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
@@ -309,7 +309,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         path = write_split(args.out, args.seed, args.sequences, args.seq_len,
                            CropConfig(args.crop_size, args.crop_margin),
                            full_tracks=args.full_tracks, overwrite=args.overwrite,
-                           lighting=args.lighting, lamp_maps=args.lamp_maps)
+                           lighting=args.lighting, lit_maps=args.lit_maps)
     except SignalLightError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

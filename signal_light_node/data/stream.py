@@ -18,9 +18,9 @@ Items are dicts of numpy arrays (``collate_sequences`` turns a batch into tensor
     lit_labels int64 [T, 5]     the same as the single frame shows it: a blinker is ON only in
                                 the lit half of a blink and the intent follows (per-frame
                                 pre-training targets; ``labels`` holds the logical states)
-    lamp_maps uint8 [T, M, M, 3] only from a stream with ``lamp_maps``: where the vehicle's own
-                                brake, left and right lamps are lit (``synth.lamp_maps``),
-                                cut like the crop and shrunk to M = crop size / LAMP_MAP_SCALE
+    lit_maps uint8 [T, M, M, 3] only from a stream with ``lit_maps``: where the vehicle's own
+                                brake, left and right lamps are lit (``synth.lit_maps``),
+                                cut like the crop and shrunk to M = crop size / LIT_MAP_SCALE
     mask    bool  [T]           True for real observations (padding only at the end)
     meta    dict                lighting (str), box_size float32 [T] (sqrt(w*h) of the tracker
                                 box), occlusion float32 [T], frame_index int64 [T] (-1 = padding),
@@ -54,8 +54,8 @@ PAD_LABEL = -100
 DEFAULT_SIZES: Tuple[Tuple[int, int], ...] = ((640, 360), (960, 540), (1280, 720))
 DEFAULT_SIZE_WEIGHTS: Tuple[float, ...] = (0.5, 0.35, 0.15)
 
-#: A lamp map is this many times smaller than the crop (16 px for a 64 px crop).
-LAMP_MAP_SCALE = 4
+#: A lit map is this many times smaller than the crop (16 px for a 64 px crop).
+LIT_MAP_SCALE = 4
 
 #: Consecutive scenes without a single sequence after which the options are deemed unusable.
 MAX_EMPTY_SCENES = 50
@@ -70,7 +70,7 @@ class _Track:
     crops: List[np.ndarray] = field(default_factory=list)
     labels: List[Tuple[int, ...]] = field(default_factory=list)
     lit_labels: List[Tuple[int, ...]] = field(default_factory=list)
-    lamp_maps: List[np.ndarray] = field(default_factory=list)
+    lit_maps: List[np.ndarray] = field(default_factory=list)
     box_size: List[float] = field(default_factory=list)
     occlusion: List[float] = field(default_factory=list)
     frame_index: List[int] = field(default_factory=list)
@@ -112,9 +112,9 @@ def mirror_sequence(item: Item) -> Item:
            "mask": item["mask"].copy(), "meta": meta}
     if "lit_labels" in item:
         out["lit_labels"] = _mirror_rows(item["lit_labels"], item["mask"])
-    if "lamp_maps" in item:
+    if "lit_maps" in item:
         # Flipped like the crop; the vehicle's left lamp is now on the right.
-        out["lamp_maps"] = np.ascontiguousarray(item["lamp_maps"][:, :, ::-1][..., [0, 2, 1]])
+        out["lit_maps"] = np.ascontiguousarray(item["lit_maps"][:, :, ::-1][..., [0, 2, 1]])
     return out
 
 
@@ -176,7 +176,7 @@ class SyntheticSequenceStream(IterableDataset):
             ``seq_len`` (windows) or 1 (full tracks).
         rank: Distributed rank; None reads ``torch.distributed`` when it is initialised.
         renderer_overrides: Extra keyword arguments for ``SceneRenderer``.
-        lamp_maps: Give every item its ``lamp_maps`` (see the module docstring).
+        lit_maps: Give every item its ``lit_maps`` (see the module docstring).
 
     Raises:
         ConfigError: If an argument is out of range.
@@ -191,7 +191,7 @@ class SyntheticSequenceStream(IterableDataset):
                  scene_frames: Optional[int] = None, full_tracks: bool = False,
                  min_observations: Optional[int] = None, rank: Optional[int] = None,
                  renderer_overrides: Optional[Dict[str, Any]] = None,
-                 lamp_maps: bool = False) -> None:
+                 lit_maps: bool = False) -> None:
         super().__init__()
         if not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ConfigError(f"seed must be a non-negative integer, got {seed!r}")
@@ -242,7 +242,7 @@ class SyntheticSequenceStream(IterableDataset):
         self.min_observations = int(min_obs)
         self.rank = rank
         self.renderer_overrides = dict(renderer_overrides or {})
-        self.lamp_maps = bool(lamp_maps)
+        self.lit_maps = bool(lit_maps)
 
     def __iter__(self) -> Iterator[Item]:
         info = get_worker_info()
@@ -308,7 +308,7 @@ class SyntheticSequenceStream(IterableDataset):
             options["night_fraction"] = self.night_fraction
         renderer = SceneRenderer(scene_seed, width=width, height=height, fps=self.fps,
                                  n_vehicles=n_vehicles, lighting=self.lighting,
-                                 lamp_maps=self.lamp_maps, **options)
+                                 lit_maps=self.lit_maps, **options)
         tracks: Dict[str, _Track] = {}
         lighting = None
         for frame in renderer.frames(self.scene_frames):
@@ -317,7 +317,7 @@ class SyntheticSequenceStream(IterableDataset):
             if not seen:
                 continue
             crops, reasons = crop_vehicles(frame.image, [v.tracker_box for v in seen], self.crop)
-            maps = self._lamp_maps(frame.image.shape, seen) if self.lamp_maps else None
+            maps = self._lit_maps(frame.image.shape, seen) if self.lit_maps else None
             for k, (vehicle, crop, reason) in enumerate(zip(seen, crops, reasons)):
                 if reason is not None:
                     continue  # the node could not judge this frame of the track either
@@ -328,7 +328,7 @@ class SyntheticSequenceStream(IterableDataset):
                 track.labels.append(_labels_of(vehicle))
                 track.lit_labels.append(_labels_of(vehicle, lit=True))
                 if maps is not None:
-                    track.lamp_maps.append(maps[k])
+                    track.lit_maps.append(maps[k])
                 track.box_size.append(math.sqrt(box.width * box.height))
                 track.occlusion.append(float(vehicle.occlusion))
                 track.frame_index.append(int(frame.index))
@@ -360,10 +360,10 @@ class SyntheticSequenceStream(IterableDataset):
         mask = np.zeros(t, dtype=bool)
         mask[:n] = True
         extra: Item = {}
-        if track.lamp_maps:
-            m = s // LAMP_MAP_SCALE
-            extra["lamp_maps"] = np.zeros((t, m, m, 3), dtype=np.uint8)
-            extra["lamp_maps"][:n] = np.stack(track.lamp_maps[a:b])
+        if track.lit_maps:
+            m = s // LIT_MAP_SCALE
+            extra["lit_maps"] = np.zeros((t, m, m, 3), dtype=np.uint8)
+            extra["lit_maps"][:n] = np.stack(track.lit_maps[a:b])
         box_size = np.zeros(t, dtype=np.float32)
         box_size[:n] = track.box_size[a:b]
         occlusion = np.zeros(t, dtype=np.float32)
@@ -376,19 +376,19 @@ class SyntheticSequenceStream(IterableDataset):
         return {"crops": crops, "labels": labels, "lit_labels": lit_labels, "mask": mask,
                 "meta": meta, **extra}
 
-    def _lamp_maps(self, shape: Tuple[int, ...], vehicles: Sequence[Any]) -> np.ndarray:
-        """Each vehicle's lamp map cut from its tracker box like its crop, then shrunk:
+    def _lit_maps(self, shape: Tuple[int, ...], vehicles: Sequence[Any]) -> np.ndarray:
+        """Each vehicle's lit map cut from its tracker box like its crop, then shrunk:
         uint8 ``[N, M, M, 3]`` (all zeros where the box cannot be cut)."""
         canvas = np.zeros(shape[:2] + (3,), np.uint8)
         crops = []
         for vehicle in vehicles:
-            lamp_map = vehicle.lamp_map
-            h, w = lamp_map.image.shape[:2]
-            region = canvas[lamp_map.y0:lamp_map.y0 + h, lamp_map.x0:lamp_map.x0 + w]
-            region[...] = lamp_map.image
+            lit_map = vehicle.lit_map
+            h, w = lit_map.image.shape[:2]
+            region = canvas[lit_map.y0:lit_map.y0 + h, lit_map.x0:lit_map.x0 + w]
+            region[...] = lit_map.image
             crops.append(crop_vehicles(canvas, [vehicle.tracker_box], self.crop)[0][0])
             region[...] = 0
-        m = self.crop.size // LAMP_MAP_SCALE
+        m = self.crop.size // LIT_MAP_SCALE
         return np.stack([cv2.resize(c, (m, m), interpolation=cv2.INTER_AREA) for c in crops])
 
 

@@ -42,8 +42,8 @@ class TrackSequence:
         crops: uint8 ``[T, S, S, 3]`` when held in memory, else None.
         frame_paths: Image files cropped on demand when ``crops`` is None.
         crop_config: Crop settings for ``frame_paths``.
-        lamp_maps: uint8 ``[T, M, M, 3]`` where the vehicle's lamps are lit (rendered
-            training tracks with lamp maps only; ``data.stream``), else None.
+        lit_maps: uint8 ``[T, M, M, 3]`` where the vehicle's lamps are lit (rendered
+            training tracks with lit maps only; ``data.stream``), else None.
     """
 
     track_id: str
@@ -57,7 +57,7 @@ class TrackSequence:
     crops: Optional[np.ndarray] = None
     frame_paths: Optional[List[Path]] = None
     crop_config: CropConfig = field(default_factory=CropConfig)
-    lamp_maps: Optional[np.ndarray] = None
+    lit_maps: Optional[np.ndarray] = None
 
     def __len__(self) -> int:
         return int(self.labels.shape[0])
@@ -158,4 +158,4 @@ def track_from_item(item: Mapping[str, Any], track_id: str, source: str = "synth
                          stamps_ns=stamps, box_size=per_frame("box_size"),
                          occlusion=per_frame("occlusion"),
                          lighting=str(meta.get("lighting", "unknown")),
-                         source=source, crops=crops, lamp_maps=item.get("lamp_maps"))
+                         source=source, crops=crops, lit_maps=item.get("lit_maps"))

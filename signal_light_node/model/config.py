@@ -102,9 +102,9 @@ class ModelConfig:
         lamp_detail: The lamp maps are computed on a grid this many times finer than the
             trunk's and stacked into channels per trunk cell (space to depth), so a small
             lamp keeps its own cell; 1 keeps one lamp-map cell per trunk cell.
-        lamp_map_head: Give the CNN a training-only 1x1 convolution on the backbone's
+        lit_map_head: Give the CNN a training-only 1x1 convolution on the backbone's
             features that draws where the vehicle's brake, left and right lamps are lit
-            (``lamp_maps`` of the training tracks, ``synth.lamp_maps``): it teaches the
+            (``lit_maps`` of the training tracks, ``synth.lit_maps``): it teaches the
             per-frame part where lamps are, not just whether one is lit. Steps never run it.
         temperatures: Per-task logit temperature of the heads (missing tasks 1.0), fitted
             on a held-out style family by ``training.calibrate``.
@@ -147,7 +147,7 @@ class ModelConfig:
     lamp_detail: int = 1
     cell_periods: bool = False
     cell_pooled: bool = False
-    lamp_map_head: bool = False
+    lit_map_head: bool = False
     temperatures: Mapping[str, float] = field(default_factory=dict, hash=False)
 
     def __post_init__(self) -> None:
@@ -168,7 +168,7 @@ class ModelConfig:
         # bool("false") is True: refuse anything but a real boolean (CLI values are JSON).
         for name in ("use_attention", "temporal_input", "relative_evidence", "frequency_evidence",
                      "lit_head", "lit_periods", "blink_levels", "cell_periods",
-                     "cell_pooled", "lamp_map_head"):
+                     "cell_pooled", "lit_map_head"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"model config {name} must be true or false, got "
                                   f"{getattr(self, name)!r}")

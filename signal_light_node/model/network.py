@@ -42,10 +42,10 @@ MEMORY_FORMAT = torch.channels_last
 if TYPE_CHECKING:  # pragma: no cover - typing only
     from signal_light_node.model.config import ModelConfig
 
-#: Output key of the training-only lamp-map head (``lamp_map_head``), channels: brake,
-#: left, right (``synth.lamp_maps.LAMP_MAP_CHANNELS``); flattened to ``[N, T, 3 F F]``.
-LAMP_MAP_KEY = "lamp_map"
-LAMP_MAP_OUTPUTS = 3
+#: Output key of the training-only lit-map head (``lit_map_head``), channels: brake,
+#: left, right (``synth.lit_maps.LIT_MAP_CHANNELS``); flattened to ``[N, T, 3 F F]``.
+LIT_MAP_KEY = "lit_map"
+LIT_MAP_OUTPUTS = 3
 
 #: Dilations of the attention FCN's four 3x3 layers (as in the research design).
 ATTENTION_DILATIONS: Tuple[int, ...] = (1, 2, 2, 1)
@@ -195,9 +195,9 @@ class LightStateNet(nn.Module):
             c_in = width
         self.backbone = nn.Sequential(*stages)
 
-        # Training only (``lamp_map_head``): where each signal's lamps are lit, per cell.
-        self.lamp_map_head: Optional[nn.Conv2d] = (
-            nn.Conv2d(c_in, LAMP_MAP_OUTPUTS, 1) if config.lamp_map_head else None)
+        # Training only (``lit_map_head``): where each signal's lamps are lit, per cell.
+        self.lit_map_head: Optional[nn.Conv2d] = (
+            nn.Conv2d(c_in, LIT_MAP_OUTPUTS, 1) if config.lit_map_head else None)
 
         self.cells = convlstm_stack(c_in, config)
         self.lstm_dropout = nn.Dropout(config.lstm_dropout)
@@ -434,7 +434,7 @@ class LightStateNet(nn.Module):
             if state is not None:
                 state = state[:len(self.cells)]
         features = self.encode(crops.flatten(0, 1), evidence)
-        lamp_map = None if self.lamp_map_head is None else self.lamp_map_head(features)
+        lit_map = None if self.lit_map_head is None else self.lit_map_head(features)
         features = features.reshape((n, t) + tuple(features.shape[1:]))
         hidden = []
         for i in range(t):
@@ -444,8 +444,8 @@ class LightStateNet(nn.Module):
             state = state + (history,)
         # Heads have no state either: run them once on every frame.
         logits = self._heads(torch.stack(hidden, 1).flatten(0, 1))
-        if lamp_map is not None:
-            logits[LAMP_MAP_KEY] = lamp_map.contiguous()
+        if lit_map is not None:
+            logits[LIT_MAP_KEY] = lit_map.contiguous()
         return {k: v.reshape(n, t, -1) for k, v in logits.items()}, state
 
     def forward(self, crops: Tensor, state: Optional[State] = None

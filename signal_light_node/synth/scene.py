@@ -29,7 +29,7 @@ from signal_light_node.errors import ConfigError
 from signal_light_node.synth.camera import Camera, sample_camera
 from signal_light_node.synth.environment import (GLOW_SCALE, LIGHTINGS, Environment, Lighting, Occluder, StreetGeometry,
                                                  blur_glow, sample_lighting)
-from signal_light_node.synth.lamp_maps import draw_lamp_map
+from signal_light_node.synth.lit_maps import draw_lit_map
 from signal_light_node.synth.lamps import STYLE_FAMILIES, TRAIN_FAMILIES
 from signal_light_node.synth.tracker import tracker_box
 from signal_light_node.synth.traffic import Traffic
@@ -57,7 +57,7 @@ class SceneRenderer:
         n_vehicles: Number of labelled vehicles in the scene at a time; None draws 3..6.
         lighting: "day", "dusk" or "night"; None draws one (night with ``night_fraction``).
         night_fraction: Probability of night when ``lighting`` is None.
-        lamp_maps: Give every listed vehicle's truth its ``lamp_map`` (``synth.lamp_maps``):
+        lit_maps: Give every listed vehicle's truth its ``lit_map`` (``synth.lit_maps``):
             where its signal lamps are lit. The image is the same either way.
         **overrides: Scene controls for tests and tools. Scene keys: ``vehicles`` (list of
             per-vehicle dicts, see below), ``occluders`` (list of static (x0, y0, x1, y1)
@@ -79,7 +79,7 @@ class SceneRenderer:
 
     def __init__(self, seed: int, width: int = 640, height: int = 360, fps: Optional[float] = None,
                  n_vehicles: Optional[int] = None, lighting: Optional[str] = None, night_fraction: float = 0.35,
-                 lamp_maps: bool = False, **overrides: Any) -> None:
+                 lit_maps: bool = False, **overrides: Any) -> None:
         unknown = set(overrides) - _SCENE_KEYS
         if unknown:
             raise ConfigError(f"unknown SceneRenderer overrides {sorted(unknown)}; allowed: {sorted(_SCENE_KEYS)}")
@@ -98,7 +98,7 @@ class SceneRenderer:
         self.seed = int(seed)
         self.width, self.height = int(width), int(height)
         self._overrides = overrides
-        self.lamp_maps = bool(lamp_maps)
+        self.lit_maps = bool(lit_maps)
         rng = np.random.default_rng([self.seed, 0x5CE7E])
         self.fps = float(fps) if fps is not None else float(rng.uniform(10.0, 30.0))
         if lighting is None:
@@ -229,9 +229,9 @@ class SceneRenderer:
         box, occlusion = listed
         tracker = tracker_box(d.v, box, d.box, self.width, self.height, frng)
         truth = vehicle_truth(d.v, box, occlusion, states, seen, tracker)
-        if not self.lamp_maps:
+        if not self.lit_maps:
             return truth
         lit = states.flash_lit
-        lamp_map = draw_lamp_map(d, states.levels, states.brake, states.left_on and lit,
+        lit_map = draw_lit_map(d, states.levels, states.brake, states.left_on and lit,
                                  states.right_on and lit)
-        return dataclasses.replace(truth, lamp_map=lamp_map)
+        return dataclasses.replace(truth, lit_map=lit_map)

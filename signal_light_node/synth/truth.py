@@ -20,7 +20,7 @@ import numpy as np
 
 from signal_light_node.boxes import TrackBox
 from signal_light_node.labels import Intent, LightStatus, View, intent_from_lights
-from signal_light_node.synth.lamp_maps import LampMap
+from signal_light_node.synth.lit_maps import LitMap
 from signal_light_node.synth.lamps import flasher_level
 from signal_light_node.synth.traffic import Box, Vehicle
 from signal_light_node.synth.vehicle_drawing import Drawn
@@ -62,8 +62,8 @@ class VehicleTruth:
         left_lit: The left blinker as this one frame shows it: ON only while its flasher
             is in the lit half of a blink (OFF in the dark half), UNKNOWN when not visible.
         right_lit: The same for the right blinker.
-        lamp_map: Where its signal lamps are lit (``synth.lamp_maps``), only from a
-            renderer asked for lamp maps, else None.
+        lit_map: Where its signal lamps are lit (``synth.lit_maps``), only from a
+            renderer asked for lit maps, else None.
     """
 
     track_id: str
@@ -80,7 +80,7 @@ class VehicleTruth:
     class_id: str
     left_lit: LightStatus = LightStatus.UNKNOWN
     right_lit: LightStatus = LightStatus.UNKNOWN
-    lamp_map: Optional[LampMap] = None
+    lit_map: Optional[LitMap] = None
 
 
 @dataclass(frozen=True)

@@ -42,7 +42,7 @@ from torch import nn
 
 from signal_light_node.errors import ConfigError
 from signal_light_node.model import save_checkpoint
-from signal_light_node.model.network import LAMP_MAP_KEY
+from signal_light_node.model.network import LIT_MAP_KEY
 from signal_light_node.training.checkpointing import (
     RunCounters,
     checkpoint_meta,
@@ -60,7 +60,7 @@ from signal_light_node.training.distributed import (
     wrap_model,
 )
 from signal_light_node.training.loaders import training_loader
-from signal_light_node.training.loss import batch_loss_warmup, lamp_map_loss, multitask_loss
+from signal_light_node.training.loss import batch_loss_warmup, lit_map_loss, multitask_loss
 from signal_light_node.training.model_inputs import LaneState, batch_input
 from signal_light_node.training.optimizer import build_optimizer
 from signal_light_node.training.options import TrainOptions
@@ -162,22 +162,22 @@ class Trainer:
         self.synthetic_share = synthetic_share(opts, self.tracks)
         self.train_tracks, held_out = hold_out_tracks(
             self.tracks, opts.val_fraction if opts.val_split is None else 0.0)
-        if opts.lamp_map_weight > 0:
-            self._check_lamp_maps()
+        if opts.lit_map_weight > 0:
+            self._check_lit_maps()
         self.val_items = (validation_items(opts, self.crop, held_out, self.synthetic_share)
                           if self.dist.main else [])
         self.loader = training_loader(opts, self.crop, self.train_tracks, self.synthetic_share,
                                       data_seed(opts.seed, self.start_step), self.dist.rank)
 
-    def _check_lamp_maps(self) -> None:
-        """``--lamp-map-weight`` needs the model's lamp-map head and maps on every track."""
-        if getattr(self.model, "lamp_map_head", None) is None:
-            raise ConfigError("--lamp-map-weight needs a model with a lamp-map head: "
-                              "--model lamp_map_head=true")
-        bare = [t.track_id for t in self.train_tracks if t.lamp_maps is None]
+    def _check_lit_maps(self) -> None:
+        """``--lit-map-weight`` needs the model's lit-map head and maps on every track."""
+        if getattr(self.model, "lit_map_head", None) is None:
+            raise ConfigError("--lit-map-weight needs a model with a lit-map head: "
+                              "--model lit_map_head=true")
+        bare = [t.track_id for t in self.train_tracks if t.lit_maps is None]
         if bare:
-            raise ConfigError(f"--lamp-map-weight: {len(bare)} training tracks have no lamp "
-                              "maps; write the pools with --lamp-maps")
+            raise ConfigError(f"--lit-map-weight: {len(bare)} training tracks have no lit "
+                              "maps; write the pools with --lit-maps")
 
     # ------------------------------------------------------------------------ loop
 
@@ -236,9 +236,9 @@ class Trainer:
                                  self.opts.mode == "frames", self.device)
         loss, _ = multitask_loss(logits, labels, mask, self.opts.task_weights,
                                  self.freq.tensors(self.device), warm)
-        if self.opts.lamp_map_weight > 0:
-            loss = loss + self.opts.lamp_map_weight * lamp_map_loss(
-                logits[LAMP_MAP_KEY], batch["lamp_maps"])
+        if self.opts.lit_map_weight > 0:
+            loss = loss + self.opts.lit_map_weight * lit_map_loss(
+                logits[LIT_MAP_KEY], batch["lit_maps"])
         self._optimise(loss, share)
         self.counters.step += 1
         self.counters.train_seconds += time.monotonic() - t0

@@ -109,21 +109,21 @@ def batch_loss_warmup(batch: Mapping[str, Any], frames: int, seconds: float, per
     return warm.to(device)
 
 
-#: Weight of a lit cell against a dark one in :func:`lamp_map_loss`: lit lamps cover a
+#: Weight of a lit cell against a dark one in :func:`lit_map_loss`: lit lamps cover a
 #: few cells of the map, and a loss dominated by dark cells would learn "nothing is lit".
-LAMP_MAP_POS_WEIGHT = 10.0
+LIT_MAP_POS_WEIGHT = 10.0
 
 
-def lamp_map_loss(logits: torch.Tensor, maps: torch.Tensor,
-                  pos_weight: float = LAMP_MAP_POS_WEIGHT) -> torch.Tensor:
-    """Binary cross-entropy of the lamp-map head against the rendered lamp maps.
+def lit_map_loss(logits: torch.Tensor, maps: torch.Tensor,
+                  pos_weight: float = LIT_MAP_POS_WEIGHT) -> torch.Tensor:
+    """Binary cross-entropy of the lit-map head against the rendered lit maps.
 
     A cell's target is the brightest map value inside it (a lamp covering part of a
     cell makes the cell lit, in proportion to how much of the finer map pixel it fills).
 
     Args:
-        logits: ``[B, T, C F F]`` from the model's lamp-map head (C channels, F x F cells).
-        maps: uint8 ``[B, T, M, M, C]`` lamp maps, M a multiple of F.
+        logits: ``[B, T, C F F]`` from the model's lit-map head (C channels, F x F cells).
+        maps: uint8 ``[B, T, M, M, C]`` lit maps, M a multiple of F.
         pos_weight: Weight of the lit part of a target.
 
     Raises:
@@ -133,7 +133,7 @@ def lamp_map_loss(logits: torch.Tensor, maps: torch.Tensor,
     cells = logits.shape[-1] // c
     f = int(round(cells ** 0.5))
     if logits.shape[:2] != maps.shape[:2] or f * f * c != logits.shape[-1] or m % f:
-        raise ConfigError(f"lamp-map logits {tuple(logits.shape)} do not fit maps "
+        raise ConfigError(f"lit-map logits {tuple(logits.shape)} do not fit maps "
                           f"{tuple(maps.shape)}")
     target = maps.to(logits.device).reshape(b * t, m, m, c).permute(0, 3, 1, 2).float() / 255.0
     target = F.max_pool2d(target, m // f)

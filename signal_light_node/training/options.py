@@ -91,10 +91,10 @@ class TrainOptions:
             only in the lit half of a blink, intent following; pools and the validation
             split give these as ``lit_labels``). A blink's dark half is otherwise label
             noise for a model that sees one frame.
-        lamp_map_weight: Weight of the lamp-map loss (``training.loss.lamp_map_loss``) in
-            ``mode`` "frames": the model's ``lamp_map_head`` draws where the vehicle's
-            lamps are lit, against the pools' ``lamp_maps`` (splits written with
-            ``--lamp-maps``). 0: off.
+        lit_map_weight: Weight of the lit-map loss (``training.loss.lit_map_loss``) in
+            ``mode`` "frames": the model's ``lit_map_head`` draws where the vehicle's
+            lamps are lit, against the pools' ``lit_maps`` (splits written with
+            ``--lit-maps``). 0: off.
         synthetic_fraction: Share of sequences from the synthetic stream; None means 1
             without bags/UCM and 0 with them.
         mirror_prob: Probability that a sequence is mirrored.
@@ -153,7 +153,7 @@ class TrainOptions:
     pools: List[Path] = field(default_factory=list)
     mode: str = "windows"
     frame_targets: str = "state"
-    lamp_map_weight: float = 0.0
+    lit_map_weight: float = 0.0
     synthetic_fraction: Optional[float] = None
     mirror_prob: float = 0.5
     jitter: bool = True
@@ -256,19 +256,19 @@ class TrainOptions:
             raise ConfigError("--frame-targets lit is for --mode frames on --pool splits: "
                               "only single frames are judged by what they show, and only "
                               "rendered splits carry per-frame lamp labels")
-        self._check_lamp_maps()
+        self._check_lit_maps()
 
-    def _check_lamp_maps(self) -> None:
-        if self.lamp_map_weight < 0:
-            raise ConfigError(f"--lamp-map-weight must be >= 0, got {self.lamp_map_weight}")
-        if self.lamp_map_weight == 0:
+    def _check_lit_maps(self) -> None:
+        if self.lit_map_weight < 0:
+            raise ConfigError(f"--lit-map-weight must be >= 0, got {self.lit_map_weight}")
+        if self.lit_map_weight == 0:
             return
         if self.mode != "frames" or self.bags or self.ucm:
-            raise ConfigError("--lamp-map-weight is for --mode frames on --pool splits written "
-                              "with --lamp-maps")
+            raise ConfigError("--lit-map-weight is for --mode frames on --pool splits written "
+                              "with --lit-maps")
         if self.shape_warp:
             # The warp moves the crop's pixels; the maps would no longer lie under them.
-            raise ConfigError("--lamp-map-weight cannot be combined with --shape-warp")
+            raise ConfigError("--lit-map-weight cannot be combined with --shape-warp")
 
     def _check_device(self) -> None:
         if not str(self.device).startswith(("cpu", "cuda")):

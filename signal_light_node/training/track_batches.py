@@ -60,7 +60,7 @@ def _usable(tracks: Sequence[TrackSequence]) -> List[TrackSequence]:
             stamps_ns=track.stamps_ns[keep], box_size=track.box_size[keep],
             occlusion=track.occlusion[keep], lighting=track.lighting, source=track.source,
             crops=track.crops[keep], crop_config=track.crop_config,
-            lamp_maps=None if track.lamp_maps is None else track.lamp_maps[keep]))
+            lit_maps=None if track.lit_maps is None else track.lit_maps[keep]))
     if not out:
         raise ConfigError("no track has a usable frame")
     return out
@@ -77,8 +77,8 @@ def _item(track: TrackSequence, start: int, stop: int) -> Dict[str, Any]:
     item = {"crops": np.ascontiguousarray(track.crops[start:stop]),
             "labels": track.labels[start:stop].astype(np.int64),
             "mask": np.ones(n, bool), "meta": {"fps": track.fps}}
-    if track.lamp_maps is not None:
-        item["lamp_maps"] = track.lamp_maps[start:stop]
+    if track.lit_maps is not None:
+        item["lit_maps"] = track.lit_maps[start:stop]
     return item
 
 
@@ -116,8 +116,8 @@ class FrameBatches(torch.utils.data.IterableDataset):
                      "labels": torch.from_numpy(np.stack([i["labels"] for i in items])),
                      "mask": torch.ones((self.batch, 1), dtype=torch.bool),
                      "meta": {"fps": [i["meta"]["fps"] for i in items]}}
-            if all("lamp_maps" in i for i in items):
-                batch["lamp_maps"] = torch.from_numpy(np.stack([i["lamp_maps"] for i in items]))
+            if all("lit_maps" in i for i in items):
+                batch["lit_maps"] = torch.from_numpy(np.stack([i["lit_maps"] for i in items]))
             yield batch
 
 

@@ -1,12 +1,12 @@
 """Where a vehicle's signal lamps are lit, pixel by pixel: a training target for sight.
 
-A frame's labels say *whether* the brake or a blinker is lit; a lamp map also says
-*where*: one channel per signal (:data:`LAMP_MAP_CHANNELS`), 255 on the visible pixels of
+A frame's labels say *whether* the brake or a blinker is lit; a lit map also says
+*where*: one channel per signal (:data:`LIT_MAP_CHANNELS`), 255 on the visible pixels of
 the vehicle's own lamps that show that signal lit in this very frame (a blink's dark half
 is dark, as in ``lit_labels``), 0 elsewhere. Other vehicles' lamps inside the box stay 0:
 they are exactly what the model must learn to ignore.
 
-The renderer draws the lamp outlines it just lit (``SceneRenderer(lamp_maps=True)``),
+The renderer draws the lamp outlines it just lit (``SceneRenderer(lit_maps=True)``),
 so the map costs a few polygon fills per vehicle and changes nothing in the image.
 """
 
@@ -20,21 +20,21 @@ import numpy as np
 
 from signal_light_node.synth.vehicle_drawing import Drawn
 
-#: Channels of a lamp map, in order. Left and right are the vehicle's own sides.
-LAMP_MAP_CHANNELS: Tuple[str, ...] = ("brake", "left", "right")
+#: Channels of a lit map, in order. Left and right are the vehicle's own sides.
+LIT_MAP_CHANNELS: Tuple[str, ...] = ("brake", "left", "right")
 #: A turn-lamp segment counts as lit from this flasher level on (as ``flash_lit``).
 LIT_LEVEL = 0.5
 _SHIFT = 3
 
 
 @dataclass(frozen=True)
-class LampMap:
-    """One vehicle's lamp map in frame pixels.
+class LitMap:
+    """One vehicle's lit map in frame pixels.
 
     Attributes:
         x0: Left edge of ``image`` in the frame.
         y0: Top edge of ``image`` in the frame.
-        image: uint8 ``[h, w, len(LAMP_MAP_CHANNELS)]``.
+        image: uint8 ``[h, w, len(LIT_MAP_CHANNELS)]``.
     """
 
     x0: int
@@ -47,9 +47,9 @@ def _shows_brake(role: str, side: str) -> bool:
     return role == "chmsl" or (role in ("tail", "turn_tail") and side != "C")
 
 
-def draw_lamp_map(d: Drawn, levels: List[List[float]], brake: bool, left_lit: bool,
-                  right_lit: bool) -> LampMap:
-    """The lamp map of a drawn vehicle (its ``vis`` set: occluded pixels stay 0).
+def draw_lit_map(d: Drawn, levels: List[List[float]], brake: bool, left_lit: bool,
+                  right_lit: bool) -> LitMap:
+    """The lit map of a drawn vehicle (its ``vis`` set: occluded pixels stay 0).
 
     Args:
         d: The vehicle as drawn this frame.
@@ -59,7 +59,7 @@ def draw_lamp_map(d: Drawn, levels: List[List[float]], brake: bool, left_lit: bo
         right_lit: The same for the right blinker.
     """
     rx0, ry0, rx1, ry1 = d.roi
-    out = np.zeros((ry1 - ry0, rx1 - rx0, len(LAMP_MAP_CHANNELS)), np.uint8)
+    out = np.zeros((ry1 - ry0, rx1 - rx0, len(LIT_MAP_CHANNELS)), np.uint8)
     points = np.round(d.lamp_px * (1 << _SHIFT)).astype(np.int32)
     lit_side = {"L": left_lit, "R": right_lit}
     for lamp, polys, levs in zip(d.v.lamps, d.v.lamp_ranges_poly, levels):
@@ -79,4 +79,4 @@ def draw_lamp_map(d: Drawn, levels: List[List[float]], brake: bool, left_lit: bo
             out[..., channel] = plane
     if d.vis is not None:
         out[~d.vis] = 0
-    return LampMap(rx0, ry0, out)
+    return LitMap(rx0, ry0, out)
