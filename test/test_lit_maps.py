@@ -3,6 +3,7 @@ and augmentation to the model's training-only head and its loss."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -21,6 +22,7 @@ from signal_light_node.training.options import TrainOptions
 
 CROP = CropConfig(size=32, margin=0.15)
 BRAKE, LEFT, RIGHT = 0, 1, 2
+CROP_SIZE = 64
 
 
 def _one_vehicle(**vehicle) -> list:
@@ -154,3 +156,31 @@ def test_a_frames_run_learns_the_lit_maps(tmp_path):
     before = map_loss()
     trainer.run()
     assert map_loss() < 0.7 * before
+
+
+def test_stream_cuts_the_maps_where_the_crop_shows_the_lit_lamps():
+    from signal_light_node.data import SyntheticSequenceStream
+
+    vehicle = dict(view=View.BEHIND, kind="car", width_px=160, center_x=320, speed=0.0,
+                   lamp_design="amber", brake=True, intent=Intent.OFF, lights_on=True)
+    stream = SyntheticSequenceStream(
+        4, 8, CropConfig(CROP_SIZE, 0.15), mirror_prob=0.0, lit_maps=True, sizes=((640, 360),),
+        vehicles=(1, 1), lighting="night", full_tracks=True,
+        renderer_overrides=dict(vehicles=[vehicle], occluders=[], poles=0,
+                                distractors=False, effects=False))
+    item = next(stream.sequences())
+    n = int(item["mask"].sum())
+    crops = item["crops"][:n].astype(np.float32)
+    red = np.clip(crops[..., 2] - crops[..., :2].max(-1), 0, None)  # BGR: red over the rest
+    size = CROP_SIZE // LIT_MAP_SCALE
+    for frame_red, lit in zip(red, item["lit_maps"][:n, ..., BRAKE].astype(np.float32)):
+        seen = cv2.resize(frame_red, (size, size), interpolation=cv2.INTER_AREA)
+
+        def match(dy: int, dx: int) -> float:
+            moved = np.roll(lit, (dy, dx), axis=(0, 1))
+            return float(np.corrcoef(seen.ravel(), moved.ravel())[0, 1])
+
+        # The brake channel lies on the red lamps of the crop (their glow spreads wider),
+        # and better where it is than one cell off in any direction.
+        assert match(0, 0) > 0.5
+        assert match(0, 0) > max(match(-1, 0), match(1, 0), match(0, -1), match(0, 1))
