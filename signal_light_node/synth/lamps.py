@@ -35,6 +35,14 @@ LAMP_DESIGNS: Tuple[str, ...] = ("amber", "red_combined", "led_strip", "sequenti
 #: signal lamps but never signal: they are there so that a lit amber or red patch is not
 #: automatically a blinker or a brake light.
 ROLES = ("tail", "turn", "turn_tail", "chmsl", "head", "drl", "position", "marker", "reflector")
+#: Roles of the lamps that show a blinker.
+TURN_ROLES = ("turn", "turn_tail")
+
+
+def shows_brake(role: str, side: str) -> bool:
+    """Whether a lamp brightens on braking: the centre brake lamp and the side tail lamps
+    (a centre tail bar never does)."""
+    return role == "chmsl" or (role in ("tail", "turn_tail") and side != "C")
 
 Colour = Tuple[float, float, float]
 

@@ -18,6 +18,7 @@ from typing import List, Tuple
 import cv2
 import numpy as np
 
+from signal_light_node.synth.lamps import TURN_ROLES, shows_brake
 from signal_light_node.synth.vehicle_drawing import Drawn
 
 #: Channels of a lit map, in order. Left and right are the vehicle's own sides.
@@ -42,11 +43,6 @@ class LitMap:
     image: np.ndarray
 
 
-def _shows_brake(role: str, side: str) -> bool:
-    """Whether a lamp lights up on braking (a centre tail bar does not, as in ``truth``)."""
-    return role == "chmsl" or (role in ("tail", "turn_tail") and side != "C")
-
-
 def draw_lit_map(d: Drawn, levels: List[List[float]], brake: bool, left_lit: bool,
                   right_lit: bool) -> LitMap:
     """The lit map of a drawn vehicle (its ``vis`` set: occluded pixels stay 0).
@@ -66,9 +62,9 @@ def draw_lit_map(d: Drawn, levels: List[List[float]], brake: bool, left_lit: boo
         # A braking combined lamp that also blinks is on both channels. A sequential
         # indicator's segments light one by one: each counts from LIT_LEVEL on.
         targets = []
-        if brake and _shows_brake(lamp.role, lamp.side):
+        if brake and shows_brake(lamp.role, lamp.side):
             targets.append((0, 0.0))
-        if lamp.role in ("turn", "turn_tail") and lit_side.get(lamp.side, False):
+        if lamp.role in TURN_ROLES and lit_side.get(lamp.side, False):
             targets.append((1 if lamp.side == "L" else 2,
                             LIT_LEVEL if lamp.role == "turn" else 0.0))
         for channel, min_level in targets:

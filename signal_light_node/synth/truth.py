@@ -21,7 +21,7 @@ import numpy as np
 from signal_light_node.boxes import TrackBox
 from signal_light_node.labels import Intent, LightStatus, View, intent_from_lights
 from signal_light_node.synth.lit_maps import LitMap
-from signal_light_node.synth.lamps import flasher_level
+from signal_light_node.synth.lamps import TURN_ROLES, flasher_level, shows_brake
 from signal_light_node.synth.traffic import Box, Vehicle
 from signal_light_node.synth.vehicle_drawing import Drawn
 from signal_light_node.synth.vehicles import CLASS_IDS
@@ -241,11 +241,11 @@ def vehicle_truth(v: Vehicle, box: Box, occlusion: float, states: LampStates, se
     for role, side, pixels in seen:
         if pixels < min_px:
             continue
-        if role in ("turn", "turn_tail") and side in ("L", "R"):
+        if role in TURN_ROLES and side in ("L", "R"):
             visible[side] = True
         # The centre brake lamp shows the brake on its own; a centre tail bar does not
         # (it never brightens on braking).
-        if role == "chmsl" or (role in ("tail", "turn_tail") and side != "C"):
+        if shows_brake(role, side):
             visible["brake"] = True
     left = light_status(states.left_on, visible["L"])
     right = light_status(states.right_on, visible["R"])
