@@ -44,7 +44,7 @@ class LitMap:
 
 
 def draw_lit_map(d: Drawn, levels: List[List[float]], brake: bool, left_lit: bool,
-                  right_lit: bool) -> LitMap:
+                 right_lit: bool) -> LitMap:
     """The lit map of a drawn vehicle (its ``vis`` set: occluded pixels stay 0).
 
     Args:

@@ -29,8 +29,8 @@ from signal_light_node.errors import ConfigError
 from signal_light_node.synth.camera import Camera, sample_camera
 from signal_light_node.synth.environment import (GLOW_SCALE, LIGHTINGS, Environment, Lighting, Occluder, StreetGeometry,
                                                  blur_glow, sample_lighting)
-from signal_light_node.synth.lit_maps import draw_lit_map
 from signal_light_node.synth.lamps import STYLE_FAMILIES, TRAIN_FAMILIES
+from signal_light_node.synth.lit_maps import draw_lit_map
 from signal_light_node.synth.tracker import tracker_box
 from signal_light_node.synth.traffic import Traffic
 from signal_light_node.synth.truth import (RenderedFrame, VehicleTruth, lamp_states, lamp_visibility, listed_box, mark_visible,
@@ -233,5 +233,5 @@ class SceneRenderer:
             return truth
         lit = states.flash_lit
         lit_map = draw_lit_map(d, states.levels, states.brake, states.left_on and lit,
-                                 states.right_on and lit)
+                                states.right_on and lit)
         return dataclasses.replace(truth, lit_map=lit_map)

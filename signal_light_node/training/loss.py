@@ -115,7 +115,7 @@ LIT_MAP_POS_WEIGHT = 10.0
 
 
 def lit_map_loss(logits: torch.Tensor, maps: torch.Tensor,
-                  pos_weight: float = LIT_MAP_POS_WEIGHT) -> torch.Tensor:
+                 pos_weight: float = LIT_MAP_POS_WEIGHT) -> torch.Tensor:
     """Binary cross-entropy of the lit-map head against the rendered lit maps.
 
     A cell's target is the brightest map value inside it (a lamp covering part of a
