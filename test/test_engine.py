@@ -10,6 +10,7 @@ import torch
 
 from fake_light_model import FakeLightModel
 from signal_light_node.boxes import TrackBox
+from signal_light_node.runtime import flash_gate
 from signal_light_node.runtime.crops import CropConfig, clip_roi
 from signal_light_node.runtime.engine import (EngineConfig, LightStateEngine, engine_from_checkpoint,
                                       normalize_thresholds)
@@ -31,6 +32,8 @@ def _box(tid: str, x: float = 20.0, y: float = 30.0, size: float = 40.0) -> Trac
 
 
 def _engine(**kwargs) -> LightStateEngine:
+    # The fake model's blinker outputs count steps, not lamps: no flash gate unless asked.
+    kwargs.setdefault("intent_filter", IntentFilterConfig(flash_min_evidence=0.0))
     return LightStateEngine(FakeLightModel(), EngineConfig(**kwargs))
 
 
@@ -219,13 +222,19 @@ class _BlinkModel(FakeLightModel):
         return probs, new_state
 
 
+AMBER = (20, 150, 250)  # BGR: a lamp colour the flash gate sees (grey and white have none)
+
+
 def _blink_frames(n=40, fps=10.0, hz=1.5, stop_s=2.5):
-    """A 1.5 Hz, 50 % duty blink of track "a" until ``stop_s``; "b" stays dark."""
+    """A 1.5 Hz, 50 % duty amber blink of track "a" until ``stop_s``; "b" stays dark."""
     frames = []
     for k in range(n):
         t = k / fps
         lit = t < stop_s and (t * hz) % 1.0 < 0.5
-        frames.append((_image(250 if lit else 10), int(t * 1e9)))
+        image = _image(10)
+        if lit:
+            image[:] = AMBER
+        frames.append((image, int(t * 1e9)))
     return frames
 
 
@@ -244,7 +253,7 @@ def test_engine_publishes_the_filtered_lights_and_intent():
         for task in ("brake", "left", "right"):
             light = getattr(want, task)
             probs[task] = np.array([[light.off, light.on, light.unknown]])
-        out = filt.step(probs, stamp, rows)
+        out = filt.step(probs, stamp, rows, flash_gate.lamp_levels(image[None, :64, :64]))
         rows = out.rows
         for task in ("brake", "left", "right"):
             light = getattr(got, task)
@@ -258,6 +267,20 @@ def test_engine_publishes_the_filtered_lights_and_intent():
     # Held through every dark half: OFF, then LEFT without a gap, then OFF for good.
     runs = [k for k, prev in zip(intents[1:], intents) if k != prev]
     assert runs == [Intent.LEFT, Intent.OFF]
+
+
+@pytest.mark.parametrize("min_evidence, state", [(0.1, LightStatus.OFF), (0.0, LightStatus.ON)])
+def test_engine_gates_a_steady_lamp_from_its_crops(min_evidence, state):
+    """The model is sure of a left blinker, but the lamp never goes dark: with the flash
+    gate (the default) the engine publishes OFF, without it ON."""
+    engine = LightStateEngine(_BlinkModel(), EngineConfig(
+        intent_filter=IntentFilterConfig(flash_min_evidence=min_evidence)))
+    steady = _image(10)
+    steady[:] = AMBER
+    for k in range(20):
+        last = engine.process(steady, k * 100 * MS, [_box("a")]).results[0]
+    assert last.left.on > 0 if state == LightStatus.ON else last.left.on == 0.0
+    assert last.left.state == state
 
 
 @pytest.mark.parametrize("back_ms, state", [(2_150, LightStatus.ON), (2_250, LightStatus.OFF)])

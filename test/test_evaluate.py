@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from signal_light_node.cli import main
+from signal_light_node.runtime import flash_gate
 from signal_light_node.runtime.crops import CropConfig
 from signal_light_node.runtime.intent_filter import IntentFilter, IntentFilterConfig
 from signal_light_node.labels import TASKS, Intent
@@ -110,6 +111,9 @@ def test_streaming_evaluation_counts_and_scores():
     assert groups["occlusion"]["none"]["intent"]["n"] == 39
 
 
+AMBER = (20, 150, 250)  # BGR
+
+
 class BlinkModel(CountingModel):
     """Fake model: the left blinker's P(ON) is the crop's brightness, the rest OFF."""
 
@@ -125,7 +129,7 @@ def blink_track(name, fps, n, masked=()):
     track = make_track(name, n=n, fps=fps, change_at=n, masked=masked)
     t = track.stamps_ns / 1e9
     lit = (t >= 1.0) & (t < 3.0) & (((t - 1.0) * 1.5) % 1.0 < 0.5)
-    track.crops[lit] = 255
+    track.crops[lit] = AMBER  # a flash the flash gate sees (white has no lamp colour)
     return track
 
 
@@ -139,7 +143,8 @@ def test_evaluation_applies_the_engine_filter_with_each_tracks_stamps():
             b = track.crops[i].mean() / 255 * 0.98
             probs = {t: np.eye(k)[[0]] for t, k in zip(TASKS, (5, 3, 3, 3, 4))}
             probs["left"] = np.array([[0.98 - b, b, 0.02]])
-            out = filt.step(probs, track.stamps_ns[i], rows)
+            out = filt.step(probs, track.stamps_ns[i], rows,
+                            flash_gate.lamp_levels(track.crops[i][None]))
             rows = out.rows
             assert pred[i].tolist() == [int(out.states[t][0]) for t in TASKS], (track.track_id, i)
         assert (pred[~track.mask] == -1).all()

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from signal_light_node.errors import ConfigError
+from signal_light_node.runtime import flash_gate
 from signal_light_node.runtime.intent_filter import (INTENT_OF, ROW_WIDTH, IntentFilter,
                                              IntentFilterConfig)
 from signal_light_node.labels import LIGHT_TASKS, TASKS, Intent, LightStatus, intent_from_lights
@@ -197,10 +198,10 @@ def test_disabled_filter_is_the_raw_model():
 
 def test_rows_are_fixed_size_and_not_modified_in_place():
     rows = IntentFilter.initial_rows(3)
-    assert rows.shape == (3, ROW_WIDTH) and ROW_WIDTH == 3 * len(LIGHT_TASKS)
+    assert rows.shape == (3, ROW_WIDTH) and ROW_WIDTH == 3 * len(LIGHT_TASKS) + flash_gate.WIDTH
     before = rows.copy()
     probs = {t: np.repeat(p, 3, axis=0) for t, p in _probs(0.9, 0.9).items()}
-    out = IntentFilter(CONFIG).step(probs, 0, rows)
+    out = IntentFilter(CONFIG).step(probs, 0, rows, np.full((3, 2), 50.0))
     np.testing.assert_array_equal(rows, before)
     assert out.rows.shape == rows.shape and not np.array_equal(out.rows, rows, equal_nan=True)
 
@@ -209,6 +210,9 @@ def test_rows_are_fixed_size_and_not_modified_in_place():
     ({"on_threshold": 0.0}, "on_threshold"), ({"on_threshold": 1.5}, "on_threshold"),
     ({"hold_s": -0.1}, "hold_s"), ({"confirm_s": float("nan")}, "confirm_s"),
     ({"brake_hold_s": "x"}, "brake_hold_s"), ({"enabled": "yes"}, "enabled"),
+    ({"flash_min_evidence": 1.0}, "flash_min_evidence"),
+    ({"flash_min_evidence": -0.1}, "flash_min_evidence"),
+    ({"flash_window_s": 0.0}, "flash_window_s"), ({"flash_window_s": -1.0}, "flash_window_s"),
 ])
 def test_bad_settings_are_config_errors(kwargs, word):
     with pytest.raises(ConfigError, match=word):

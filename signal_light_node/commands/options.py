@@ -90,6 +90,11 @@ def add_intent_filter_options(group: ArgumentContainer) -> None:
     group.add_argument("--filter-brake-hold", type=float, default=d.brake_hold_s, metavar="S",
                        help="seconds the brake stays ON after its last ON frame (0: as the "
                             "model says)")
+    group.add_argument("--filter-flash-min", type=float, default=d.flash_min_evidence,
+                       metavar="E", help="flash evidence (0..1) a blinker's side needs before "
+                       "the blinker can be ON: a steady lamp is never a blinker (0: no gate)")
+    group.add_argument("--filter-flash-window", type=float, default=d.flash_window_s,
+                       metavar="S", help="seconds the flash evidence looks back")
 
 
 def intent_filter_from_args(args: argparse.Namespace) -> Any:
@@ -102,7 +107,9 @@ def intent_filter_from_args(args: argparse.Namespace) -> Any:
 
     return IntentFilterConfig(enabled=args.intent_filter, on_threshold=args.filter_on_threshold,
                               hold_s=args.filter_hold, confirm_s=args.filter_confirm,
-                              brake_hold_s=args.filter_brake_hold)
+                              brake_hold_s=args.filter_brake_hold,
+                              flash_min_evidence=args.filter_flash_min,
+                              flash_window_s=args.filter_flash_window)
 
 
 def add_pairing_options(group: ArgumentContainer) -> None:

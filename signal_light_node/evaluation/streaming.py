@@ -28,7 +28,12 @@ from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
 from signal_light_node.evaluation.tracks import TrackSequence
 from signal_light_node.labels import CLASS_NAMES, LIGHT_TASKS, TASKS
 from signal_light_node.model.backends.registry import as_backend
+from signal_light_node.runtime import flash_gate
 from signal_light_node.runtime.intent_filter import IntentFilter, IntentFilterConfig
+
+
+#: Key of :func:`model_track_probs`'s lamp levels (beside the tasks' probabilities).
+LAMP_LEVELS = "lamp_levels"
 
 
 def predict_track_batch(model: Any, tracks: Sequence[TrackSequence],
@@ -76,12 +81,15 @@ def model_track_probs(model: Any, tracks: Sequence[TrackSequence],
 
     Returns:
         Task -> float32 ``[len(tracks), longest track, K]``, NaN where a track has no
-        stepped frame; :func:`filter_track_probs` turns it into what the node publishes.
+        stepped frame, and :data:`LAMP_LEVELS` -> ``[..., 2]`` the crops' lamp levels (the
+        flash gate's input, as the engine computes them);
+        :func:`filter_track_probs` turns it into what the node publishes.
     """
     backend = as_backend(model, str(device))
     n, length = len(tracks), max(len(t) for t in tracks)
     raw = {task: np.full((n, length, len(CLASS_NAMES[task])), np.nan, np.float32)
            for task in TASKS}
+    raw[LAMP_LEVELS] = np.full((n, length, 2), np.nan, np.float32)
     states = backend.new_rows(n)
     for i in range(length):
         active = _active(tracks, i)
@@ -92,6 +100,7 @@ def model_track_probs(model: Any, tracks: Sequence[TrackSequence],
         backend.store_rows(states, active, out.state)
         for task in TASKS:
             raw[task][active, i] = out.probs[task]
+        raw[LAMP_LEVELS][active, i] = flash_gate.lamp_levels(crops)
     return raw
 
 
@@ -111,9 +120,10 @@ def filter_track_probs(raw: Dict[str, np.ndarray], tracks: Sequence[TrackSequenc
         active = _active(tracks, i)
         if not len(active):
             continue
+        levels = raw[LAMP_LEVELS][active, i] if LAMP_LEVELS in raw else None
         filtered = light_filter.step({task: raw[task][active, i] for task in TASKS},
                                      np.array([tracks[k].stamps_ns[i] for k in active], np.int64),
-                                     rows[active])
+                                     rows[active], levels)
         rows[active] = filtered.rows
         labels = np.stack([filtered.states[t] for t in TASKS], axis=1)
         for row, k in enumerate(active):

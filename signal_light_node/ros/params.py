@@ -77,6 +77,9 @@ class DetectorParams:
         filter_confirm_s: A blinker's flashes must span this long before it turns ON.
         filter_brake_hold_s: The brake stays ON this long after its last ON frame (0: as
             the model says).
+        filter_flash_min_evidence: Flash evidence a blinker's side needs before the
+            blinker can be ON (``runtime.flash_gate``; 0: no gate).
+        filter_flash_window_s: How far back the flash evidence looks.
         publish_debug_image: Publish the annotated frame on ``~/output/debug/image``.
         publish_markers: Publish the results drawn for RViz on ``~/output/markers``
             (``visualization_msgs/MarkerArray``, see :mod:`signal_light_node.outputs.markers`).
@@ -113,6 +116,8 @@ class DetectorParams:
     filter_hold_s: float = IntentFilterConfig.hold_s
     filter_confirm_s: float = IntentFilterConfig.confirm_s
     filter_brake_hold_s: float = IntentFilterConfig.brake_hold_s
+    filter_flash_min_evidence: float = IntentFilterConfig.flash_min_evidence
+    filter_flash_window_s: float = IntentFilterConfig.flash_window_s
     publish_debug_image: bool = False
     publish_markers: bool = False
     diagnostics_period_s: float = 1.0
@@ -133,7 +138,9 @@ class DetectorParams:
         return IntentFilterConfig(enabled=self.intent_filter,
                                   on_threshold=self.filter_on_threshold,
                                   hold_s=self.filter_hold_s, confirm_s=self.filter_confirm_s,
-                                  brake_hold_s=self.filter_brake_hold_s)
+                                  brake_hold_s=self.filter_brake_hold_s,
+                                  flash_min_evidence=self.filter_flash_min_evidence,
+                                  flash_window_s=self.filter_flash_window_s)
 
     @property
     def pairing_ns(self) -> Tuple[int, int]:
@@ -228,6 +235,13 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
                                   low=0.0, high=5.0),
     "filter_brake_hold_s": ParamSpec("The brake stays ON this many seconds after its last ON "
                                      "frame; 0 = as the model says.", low=0.0, high=10.0),
+    "filter_flash_min_evidence": ParamSpec("A blinker can be ON only when its side's lamps "
+                                           "changed from dark to lit by at least this share "
+                                           "within filter_flash_window_s (a steady lamp is "
+                                           "never a blinker); 0 = no such gate.", low=0.0,
+                                           high=0.99),
+    "filter_flash_window_s": ParamSpec("How many seconds back the flash evidence looks (at "
+                                       "least one blink period).", low=0.1, high=10.0),
     "publish_debug_image": ParamSpec("Publish the annotated frame on ~/output/debug/image "
                                      "(costs CPU)."),
     "publish_markers": ParamSpec("Publish the results drawn for RViz on ~/output/markers "

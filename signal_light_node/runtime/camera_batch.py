@@ -29,6 +29,7 @@ import numpy as np
 from signal_light_node.boxes import TrackBox
 from signal_light_node.errors import ConfigError, CropError
 from signal_light_node.labels import LIGHT_CODES, LIGHT_TASKS, Intent, LightStatus, View
+from signal_light_node.runtime import flash_gate
 from signal_light_node.runtime.crops import CropConfig, clip_roi, crop_vehicles
 from signal_light_node.runtime.intent_filter import IntentFilter
 from signal_light_node.runtime.results import LightEstimate, VehicleResult
@@ -226,7 +227,8 @@ class FramePath:
             step = self.backend.step(crops, batch.state, attention=self.keep_attention)
             self.counts["model_steps"] += 1
             t_step = clock()
-            filtered = self.filter.step(step.probs, batch.stamps_ns, batch.filter_rows)
+            levels = flash_gate.lamp_levels(crops) if self.filter.gates_flashes else None
+            filtered = self.filter.step(step.probs, batch.stamps_ns, batch.filter_rows, levels)
             t_filter = clock()
             frames_observed = bank.store_cameras(batch, step.state, filtered.rows)
             table = _ProbTable(filtered.probs, filtered.states)
