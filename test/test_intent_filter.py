@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.runtime import flash_gate
+from signal_light_node.runtime import flash_gate, visibility_hold
 from signal_light_node.runtime.intent_filter import (INTENT_OF, ROW_WIDTH, IntentFilter,
                                              IntentFilterConfig)
 from signal_light_node.labels import LIGHT_TASKS, TASKS, Intent, LightStatus, intent_from_lights
@@ -198,7 +198,8 @@ def test_disabled_filter_is_the_raw_model():
 
 def test_rows_are_fixed_size_and_not_modified_in_place():
     rows = IntentFilter.initial_rows(3)
-    assert rows.shape == (3, ROW_WIDTH) and ROW_WIDTH == 3 * len(LIGHT_TASKS) + flash_gate.WIDTH
+    assert rows.shape == (3, ROW_WIDTH)
+    assert ROW_WIDTH == (3 + visibility_hold.FIELDS) * len(LIGHT_TASKS) + flash_gate.WIDTH
     before = rows.copy()
     probs = {t: np.repeat(p, 3, axis=0) for t, p in _probs(0.9, 0.9).items()}
     out = IntentFilter(CONFIG).step(probs, 0, rows, np.full((3, 2), 50.0))

@@ -95,6 +95,10 @@ def add_intent_filter_options(group: ArgumentContainer) -> None:
                        "the blinker can be ON: a steady lamp is never a blinker (0: no gate)")
     group.add_argument("--filter-flash-window", type=float, default=d.flash_window_s,
                        metavar="S", help="seconds the flash evidence looks back")
+    group.add_argument("--filter-visibility-confirm", type=float,
+                       default=d.visibility_confirm_s, metavar="S",
+                       help="seconds the model must say a light turned UNKNOWN (or back) "
+                            "before it is published (0: every frame)")
 
 
 def intent_filter_from_args(args: argparse.Namespace) -> Any:
@@ -109,7 +113,8 @@ def intent_filter_from_args(args: argparse.Namespace) -> Any:
                               hold_s=args.filter_hold, confirm_s=args.filter_confirm,
                               brake_hold_s=args.filter_brake_hold,
                               flash_min_evidence=args.filter_flash_min,
-                              flash_window_s=args.filter_flash_window)
+                              flash_window_s=args.filter_flash_window,
+                              visibility_confirm_s=args.filter_visibility_confirm)
 
 
 def add_pairing_options(group: ArgumentContainer) -> None:

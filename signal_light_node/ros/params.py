@@ -80,6 +80,8 @@ class DetectorParams:
         filter_flash_min_evidence: Flash evidence a blinker's side needs before the
             blinker can be ON (``runtime.flash_gate``; 0: no gate).
         filter_flash_window_s: How far back the flash evidence looks.
+        filter_visibility_confirm_s: A light turns UNKNOWN or back only once the model
+            has said so this long (``runtime.visibility_hold``; 0: every frame).
         publish_debug_image: Publish the annotated frame on ``~/output/debug/image``.
         publish_markers: Publish the results drawn for RViz on ``~/output/markers``
             (``visualization_msgs/MarkerArray``, see :mod:`signal_light_node.outputs.markers`).
@@ -118,6 +120,7 @@ class DetectorParams:
     filter_brake_hold_s: float = IntentFilterConfig.brake_hold_s
     filter_flash_min_evidence: float = IntentFilterConfig.flash_min_evidence
     filter_flash_window_s: float = IntentFilterConfig.flash_window_s
+    filter_visibility_confirm_s: float = IntentFilterConfig.visibility_confirm_s
     publish_debug_image: bool = False
     publish_markers: bool = False
     diagnostics_period_s: float = 1.0
@@ -140,7 +143,8 @@ class DetectorParams:
                                   hold_s=self.filter_hold_s, confirm_s=self.filter_confirm_s,
                                   brake_hold_s=self.filter_brake_hold_s,
                                   flash_min_evidence=self.filter_flash_min_evidence,
-                                  flash_window_s=self.filter_flash_window_s)
+                                  flash_window_s=self.filter_flash_window_s,
+                                  visibility_confirm_s=self.filter_visibility_confirm_s)
 
     @property
     def pairing_ns(self) -> Tuple[int, int]:
@@ -242,6 +246,11 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
                                            high=0.99),
     "filter_flash_window_s": ParamSpec("How many seconds back the flash evidence looks (at "
                                        "least one blink period).", low=0.1, high=10.0),
+    "filter_visibility_confirm_s": ParamSpec("A light turns from judged to UNKNOWN or back "
+                                             "only once the model has said so this many "
+                                             "seconds (fewer swaps, about a point of intent "
+                                             "F1); 0 = every frame as the model says.",
+                                             low=0.0, high=5.0),
     "publish_debug_image": ParamSpec("Publish the annotated frame on ~/output/debug/image "
                                      "(costs CPU)."),
     "publish_markers": ParamSpec("Publish the results drawn for RViz on ~/output/markers "

@@ -50,7 +50,7 @@ from typing import Dict, Mapping, Optional, Union
 import numpy as np
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.runtime import flash_gate
+from signal_light_node.runtime import flash_gate, visibility_hold
 from signal_light_node.labels import (CLASS_NAMES, LIGHT_TASKS, TASKS, Intent, LightStatus,
                                       intent_from_lights)
 
@@ -59,8 +59,10 @@ _LAST, _START, _HELD = range(3)
 _FIELDS = 3
 #: Floats of the hold: the three fields of each of ``LIGHT_TASKS``.
 _HOLD_WIDTH = _FIELDS * len(LIGHT_TASKS)
-#: Floats per track: the hold's, then the flash gate's ring.
-ROW_WIDTH = _HOLD_WIDTH + flash_gate.WIDTH
+#: Floats of the visibility hold, all lights.
+_VISIBILITY_WIDTH = visibility_hold.FIELDS * len(LIGHT_TASKS)
+#: Floats per track: the hold's, the visibility hold's, then the flash gate's ring.
+ROW_WIDTH = _HOLD_WIDTH + _VISIBILITY_WIDTH + flash_gate.WIDTH
 
 _OFF, _ON, _UNKNOWN = int(LightStatus.OFF), int(LightStatus.ON), int(LightStatus.UNKNOWN)
 _LEFT, _RIGHT = LIGHT_TASKS.index("left"), LIGHT_TASKS.index("right")
@@ -105,6 +107,9 @@ class IntentFilterConfig:
             0-0.3 on the held-out family's calibration split (docs/model.md).
         flash_window_s: How far back the flash evidence looks: at least one blink
             period (1 s at the slowest legal 60 per minute) plus its dark part.
+        visibility_confirm_s: A light turns from judged (OFF/ON) to UNKNOWN or back only
+            once the model has said so this long (:mod:`visibility_hold`); 0 publishes
+            the model's verdict every frame.
     """
 
     enabled: bool = True
@@ -114,6 +119,7 @@ class IntentFilterConfig:
     brake_hold_s: float = 0.0
     flash_min_evidence: float = 0.1
     flash_window_s: float = 1.5
+    visibility_confirm_s: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, (bool, np.bool_)):
@@ -124,7 +130,8 @@ class IntentFilterConfig:
             raise ConfigError(f"on_threshold must be a probability in (0, 1], got {value!r}")
         object.__setattr__(self, "enabled", bool(self.enabled))
         object.__setattr__(self, "on_threshold", float(value))
-        for name in ("hold_s", "confirm_s", "brake_hold_s", "flash_window_s"):
+        for name in ("hold_s", "confirm_s", "brake_hold_s", "flash_window_s",
+                     "visibility_confirm_s"):
             object.__setattr__(self, name, _check_seconds(name, getattr(self, name)))
         value = self.flash_min_evidence
         if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
@@ -144,8 +151,10 @@ class IntentFilterConfig:
             else "brake as the model says"
         gate = (f"a blinker must flash (evidence >= {self.flash_min_evidence:g} over "
                 f"{self.flash_window_s:g} s)" if self.flash_min_evidence > 0 else "no flash gate")
+        seen = (f"; visibility changes after {self.visibility_confirm_s:g} s"
+                if self.visibility_confirm_s > 0 else "")
         return (f"on (blinkers ON from P(ON) >= {self.on_threshold:g} over >= "
-                f"{self.confirm_s:g} s, held {self.hold_s:g} s after the last; {gate}; "
+                f"{self.confirm_s:g} s, held {self.hold_s:g} s after the last; {gate}{seen}; "
                 f"intent from the held blinkers; {brake})")
 
 
@@ -197,7 +206,9 @@ class IntentFilter:
         """float64 ``[n, ROW_WIDTH]``: the rows of tracks that have shown nothing yet."""
         rows = np.zeros((n, len(LIGHT_TASKS), _FIELDS))
         rows[:, :, (_LAST, _START)] = np.nan
-        return np.concatenate([rows.reshape(n, _HOLD_WIDTH), flash_gate.initial_rows(n)], axis=1)
+        return np.concatenate([rows.reshape(n, _HOLD_WIDTH),
+                               visibility_hold.initial_rows(n, len(LIGHT_TASKS)),
+                               flash_gate.initial_rows(n)], axis=1)
 
     def step(self, probs: Mapping[str, np.ndarray], stamps_ns: Union[int, np.ndarray],
              rows: np.ndarray, lamp_levels: Optional[np.ndarray] = None) -> FilterOutput:
@@ -225,12 +236,15 @@ class IntentFilter:
         now = np.broadcast_to(np.asarray(stamps_ns, np.int64), (n,)) * 1e-9
         p = np.stack([np.asarray(probs[t], np.float64) for t in LIGHT_TASKS], axis=1)
         state = rows[:, :_HOLD_WIDTH].reshape(n, len(LIGHT_TASKS), _FIELDS).copy()
-        ring = rows[:, _HOLD_WIDTH:]
+        shown = rows[:, _HOLD_WIDTH:_HOLD_WIDTH + _VISIBILITY_WIDTH]
+        ring = rows[:, _HOLD_WIDTH + _VISIBILITY_WIDTH:]
         if lamp_levels is not None and self.config.flash_min_evidence > 0:
             ring = flash_gate.push(ring, now, np.asarray(lamp_levels, np.float64).reshape(n, 2))
             evidence = flash_gate.side_evidence(
                 flash_gate.half_evidence(ring, now, self.config.flash_window_s), probs["view"])
             p = flash_gate.veto(p, evidence, self.config.flash_min_evidence, (_LEFT, _RIGHT))
+        if self.config.visibility_confirm_s > 0:
+            p, shown = visibility_hold.step(p, now, shown, self.config.visibility_confirm_s)
         on = self._advance(state, p, now[:, None])
         q, light_states = _publish(p, on, state[..., _HELD])
         raw = argmax_states({t: p[:, i] for i, t in enumerate(LIGHT_TASKS)})
@@ -241,7 +255,7 @@ class IntentFilter:
             out_states[task] = light_states[:, i] if keep else raw[task]
         out_probs["intent"], out_states["intent"] = _intent(out_probs, out_states)
         return FilterOutput(out_probs, {t: out_states[t] for t in TASKS},
-                            np.concatenate([state.reshape(n, _HOLD_WIDTH), ring], axis=1))
+                            np.concatenate([state.reshape(n, _HOLD_WIDTH), shown, ring], axis=1))
 
     def _advance(self, state: np.ndarray, p: np.ndarray, now: np.ndarray) -> np.ndarray:
         """Update the rows in place with this frame; returns bool ``[N, lights]`` ON."""
