@@ -92,7 +92,7 @@ def add_intent_filter_options(group: ArgumentContainer) -> None:
                             "model says)")
     group.add_argument("--filter-flash-min", type=float, default=d.flash_min_evidence,
                        metavar="E", help="flash evidence (0..1) a blinker's side needs before "
-                       "the blinker can be ON: a steady lamp is never a blinker (0: no gate)")
+                       "the blinker can be ON: a steady lamp is not a blinker (0: no gate)")
     group.add_argument("--filter-flash-window", type=float, default=d.flash_window_s,
                        metavar="S", help="seconds the flash evidence looks back")
     group.add_argument("--filter-visibility-confirm", type=float,

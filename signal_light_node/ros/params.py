@@ -242,7 +242,7 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
     "filter_flash_min_evidence": ParamSpec("A blinker can be ON only when its side's lamps "
                                            "changed from dark to lit by at least this share "
                                            "within filter_flash_window_s (a steady lamp is "
-                                           "never a blinker); 0 = no such gate.", low=0.0,
+                                           "not a blinker); 0 = no such gate.", low=0.0,
                                            high=0.99),
     "filter_flash_window_s": ParamSpec("How many seconds back the flash evidence looks (at "
                                        "least one blink period).", low=0.1, high=10.0),

@@ -31,7 +31,7 @@ stamps (scenes run at 10-30 fps, so frame counts mean nothing):
   (:mod:`~signal_light_node.runtime.flash_gate`): where the engine gives each crop's lamp
   levels, a blinker whose side showed no dark-to-lit change over the last
   ``flash_window_s`` cannot be ON (its P(ON) moves to OFF), so a steady bright lamp is
-  never a blinker.
+  not a blinker.
 
 Everything is vectorised over the tracks of a frame. The per-track state is a fixed
 row of :data:`ROW_WIDTH` floats (per light: stamp of the last strong frame, stamp of
