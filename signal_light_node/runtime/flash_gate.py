@@ -29,12 +29,15 @@ state bank.
 
 from __future__ import annotations
 
+from typing import Tuple
+
 import numpy as np
 
 from signal_light_node.labels import View
 
 #: Levels kept per track: 1.5 s at 32 fps. At higher frame rates the window is the last
-#: SLOTS frames (shorter than ``window_s``: still several blink half-periods at 60 fps).
+#: SLOTS frames, shorter than ``window_s`` (0.8 s at 60 fps: still longer than the lit and
+#: the dark part of the slowest legal blink, 1 Hz at 70 % duty, so it sees both).
 SLOTS = 48
 #: Floats per track: SLOTS stamps (s), then SLOTS left-half and SLOTS right-half levels.
 WIDTH = 3 * SLOTS
@@ -129,7 +132,7 @@ def side_evidence(halves: np.ndarray, view_probs: np.ndarray) -> np.ndarray:
 
 
 def veto(lights: np.ndarray, evidence: np.ndarray, min_evidence: float,
-         blinker_columns: tuple = (1, 2)) -> np.ndarray:
+         blinker_columns: Tuple[int, int] = (1, 2)) -> np.ndarray:
     """The light distributions with P(ON) moved to OFF for every blinker whose side's
     evidence is under ``min_evidence``.
 
