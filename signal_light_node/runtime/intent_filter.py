@@ -74,9 +74,15 @@ INTENT_OF = np.array([[int(intent_from_lights(a, b)) for b in LightStatus] for a
 _INTENT_ONE_HOT = np.eye(len(Intent))[INTENT_OF]
 
 
+def _is_finite_number(value: object) -> bool:
+    """A real, finite number (not a bool): what every setting of the filter must be."""
+    return (not isinstance(value, bool)
+            and isinstance(value, (int, float, np.integer, np.floating))
+            and math.isfinite(value))
+
+
 def _check_seconds(name: str, value: float) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
-            or not math.isfinite(value) or value < 0:
+    if not _is_finite_number(value) or value < 0:
         raise ConfigError(f"{name} must be a finite number of seconds >= 0, got {value!r}")
     return float(value)
 
@@ -125,8 +131,7 @@ class IntentFilterConfig:
         if not isinstance(self.enabled, (bool, np.bool_)):
             raise ConfigError(f"enabled must be true or false, got {self.enabled!r}")
         value = self.on_threshold
-        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
-                or not (math.isfinite(value) and 0.0 < value <= 1.0):
+        if not _is_finite_number(value) or not 0.0 < value <= 1.0:
             raise ConfigError(f"on_threshold must be a probability in (0, 1], got {value!r}")
         object.__setattr__(self, "enabled", bool(self.enabled))
         object.__setattr__(self, "on_threshold", float(value))
@@ -134,8 +139,7 @@ class IntentFilterConfig:
                      "visibility_confirm_s"):
             object.__setattr__(self, name, _check_seconds(name, getattr(self, name)))
         value = self.flash_min_evidence
-        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
-                or not (math.isfinite(value) and 0.0 <= value < 1.0):
+        if not _is_finite_number(value) or not 0.0 <= value < 1.0:
             raise ConfigError(f"flash_min_evidence must be in [0, 1) (0: no flash gate), got "
                               f"{value!r}")
         object.__setattr__(self, "flash_min_evidence", float(value))
