@@ -33,8 +33,9 @@ from typing import Tuple
 
 import numpy as np
 
-from signal_light_node.labels import View
+from signal_light_node.labels import LightStatus, View
 
+_OFF, _ON = int(LightStatus.OFF), int(LightStatus.ON)
 #: Levels kept per track: 1.5 s at 32 fps. At higher frame rates the window is the last
 #: SLOTS frames, shorter than ``window_s`` (0.8 s at 60 fps: still longer than the lit and
 #: the dark part of the slowest legal blink, 1 Hz at 70 % duty, so it sees both).
@@ -145,6 +146,6 @@ def veto(lights: np.ndarray, evidence: np.ndarray, min_evidence: float,
     out = np.array(lights, np.float64, copy=True)
     for side, column in enumerate(blinker_columns):
         weak = evidence[:, side] < min_evidence
-        out[weak, column, 0] += out[weak, column, 1]
-        out[weak, column, 1] = 0.0
+        out[weak, column, _OFF] += out[weak, column, _ON]
+        out[weak, column, _ON] = 0.0
     return out

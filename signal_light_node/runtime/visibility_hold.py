@@ -18,10 +18,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from signal_light_node.labels import LightStatus
+
 #: Floats per light in a filter row.
 FIELDS = 2
 _SHOWN, _SINCE = range(FIELDS)
-_OFF, _ON, _UNKNOWN = range(3)
+_OFF, _ON, _UNKNOWN = int(LightStatus.OFF), int(LightStatus.ON), int(LightStatus.UNKNOWN)
 #: How far past the tie a moved UNKNOWN probability goes (keeps the argmax unambiguous).
 _MARGIN = 1e-3
 
