@@ -34,6 +34,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--night-fraction", type=float, metavar="X",
                         help="with --lighting mix: probability of a night scene "
                              "(default: the renderer's)")
+    parser.add_argument("--family", type=int, metavar="F",
+                        help="style family of lamp colours and camera tone "
+                             "(synth.lamps.STYLE_FAMILIES): the model trains on 0 and 1, 2 "
+                             "is held out, a stand-in for a camera it never saw (default: "
+                             "drawn from the seed among the training families)")
     parser.add_argument("--raw", action="store_true",
                         help="write sensor_msgs/Image bgr8 on /camera/image_raw instead of "
                              "JPEG CompressedImage on /camera/image_raw/compressed")
@@ -59,7 +64,8 @@ def run(args: argparse.Namespace) -> int:
         width=args.width, height=args.height, n_vehicles=args.vehicles,
         lighting=None if args.lighting == "mix" else args.lighting,
         night_fraction=args.night_fraction, raw=args.raw, jpeg_quality=args.jpeg_quality,
-        frame_id=args.frame_id, overwrite=args.overwrite, progress=not args.no_progress)
+        frame_id=args.frame_id, overwrite=args.overwrite, progress=not args.no_progress,
+        **({} if args.family is None else {"family": args.family}))
     print(f"wrote {summary.path}: {summary.frames} frames at {summary.fps:g} Hz, "
           f"{summary.width}x{summary.height}, {summary.lighting}, "
           f"{len(summary.track_ids)} tracks, {summary.detections} detections")
