@@ -121,9 +121,11 @@ def filter_track_probs(raw: Dict[str, np.ndarray], tracks: Sequence[TrackSequenc
         if not len(active):
             continue
         levels = raw[LAMP_LEVELS][active, i] if LAMP_LEVELS in raw else None
+        cover = np.array([np.nan if tracks[k].cover is None else tracks[k].cover[i]
+                          for k in active])
         filtered = light_filter.step({task: raw[task][active, i] for task in TASKS},
                                      np.array([tracks[k].stamps_ns[i] for k in active], np.int64),
-                                     rows[active], levels)
+                                     rows[active], levels, cover)
         rows[active] = filtered.rows
         labels = np.stack([filtered.states[t] for t in TASKS], axis=1)
         for row, k in enumerate(active):

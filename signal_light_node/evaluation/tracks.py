@@ -44,6 +44,10 @@ class TrackSequence:
         crop_config: Crop settings for ``frame_paths``.
         lit_maps: uint8 ``[T, M, M, 3]`` where the vehicle's lamps are lit (rendered
             training tracks with lit maps only; ``data.stream``), else None.
+        cover: float ``[T]`` share of the box outside the image or behind a nearer box
+            (``runtime.box_sight.box_cover``, what the node can tell from the frame's
+            boxes; NaN where not known), or None: tracks read from bags have it, splits
+            keep no other boxes.
     """
 
     track_id: str
@@ -58,6 +62,7 @@ class TrackSequence:
     frame_paths: Optional[List[Path]] = None
     crop_config: CropConfig = field(default_factory=CropConfig)
     lit_maps: Optional[np.ndarray] = None
+    cover: Optional[np.ndarray] = None
 
     def __len__(self) -> int:
         return int(self.labels.shape[0])

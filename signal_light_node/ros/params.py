@@ -25,7 +25,7 @@ from signal_light_node.io.topics import camera_name_problem
 from signal_light_node.model.backends.registry import known_backends
 from signal_light_node.runtime.backend import (AUTO_BACKEND, DEFAULT_BACKEND, DEFAULT_PRECISION,
                                                PRECISIONS)
-from signal_light_node.runtime.intent_filter import IntentFilterConfig
+from signal_light_node.runtime.intent_filter import BLINKER_SIGHTS, IntentFilterConfig
 from signal_light_node.labels import LIGHT_CODES
 
 LOG = logging.getLogger(__name__)
@@ -82,6 +82,10 @@ class DetectorParams:
         filter_flash_window_s: How far back the flash evidence looks.
         filter_visibility_confirm_s: A light turns UNKNOWN or back only once the model
             has said so this long (``runtime.visibility_hold``; 0: every frame).
+        filter_blinker_sight: Where a blinker's UNKNOWN comes from: ``model`` or
+            ``geometry`` (``runtime.box_sight``: the view head and the boxes' cover).
+        filter_cover_max: With ``geometry``: the share of a box that may be covered
+            before the model's own UNKNOWN counts again.
         publish_debug_image: Publish the annotated frame on ``~/output/debug/image``.
         publish_markers: Publish the results drawn for RViz on ``~/output/markers``
             (``visualization_msgs/MarkerArray``, see :mod:`signal_light_node.outputs.markers`).
@@ -121,6 +125,8 @@ class DetectorParams:
     filter_flash_min_evidence: float = IntentFilterConfig.flash_min_evidence
     filter_flash_window_s: float = IntentFilterConfig.flash_window_s
     filter_visibility_confirm_s: float = IntentFilterConfig.visibility_confirm_s
+    filter_blinker_sight: str = IntentFilterConfig.blinker_sight
+    filter_cover_max: float = IntentFilterConfig.cover_max
     publish_debug_image: bool = False
     publish_markers: bool = False
     diagnostics_period_s: float = 1.0
@@ -144,7 +150,9 @@ class DetectorParams:
                                   brake_hold_s=self.filter_brake_hold_s,
                                   flash_min_evidence=self.filter_flash_min_evidence,
                                   flash_window_s=self.filter_flash_window_s,
-                                  visibility_confirm_s=self.filter_visibility_confirm_s)
+                                  visibility_confirm_s=self.filter_visibility_confirm_s,
+                                  blinker_sight=self.filter_blinker_sight,
+                                  cover_max=self.filter_cover_max)
 
     @property
     def pairing_ns(self) -> Tuple[int, int]:
@@ -251,6 +259,16 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
                                              "seconds (fewer swaps, about a point of intent "
                                              "F1); 0 = every frame as the model says.",
                                              low=0.0, high=5.0),
+    "filter_blinker_sight": ParamSpec("Where a blinker's UNKNOWN comes from: model (the "
+                                      "model's own) or geometry (the view head, and the "
+                                      "share of the box outside the image or behind nearer "
+                                      "boxes: for a camera on which the model says UNKNOWN "
+                                      "on lamps in plain sight).",
+                                      choices=BLINKER_SIGHTS),
+    "filter_cover_max": ParamSpec("With filter_blinker_sight geometry: the share of a box "
+                                  "that may be covered (image edge, nearer boxes) before "
+                                  "the model's own UNKNOWN counts again.", low=0.0,
+                                  high=1.0),
     "publish_debug_image": ParamSpec("Publish the annotated frame on ~/output/debug/image "
                                      "(costs CPU)."),
     "publish_markers": ParamSpec("Publish the results drawn for RViz on ~/output/markers "

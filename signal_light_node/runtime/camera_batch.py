@@ -29,7 +29,7 @@ import numpy as np
 from signal_light_node.boxes import TrackBox
 from signal_light_node.errors import ConfigError, CropError
 from signal_light_node.labels import LIGHT_CODES, LIGHT_TASKS, Intent, LightStatus, View
-from signal_light_node.runtime import flash_gate
+from signal_light_node.runtime import box_sight, flash_gate
 from signal_light_node.runtime.crops import CropConfig, clip_roi, crop_vehicles
 from signal_light_node.runtime.intent_filter import IntentFilter
 from signal_light_node.runtime.results import LightEstimate, VehicleResult
@@ -120,6 +120,7 @@ class _Prepared:
     valid: List[int] = field(default_factory=list)
     ids: List[str] = field(default_factory=list)
     crops: Optional[np.ndarray] = None
+    cover: Optional[np.ndarray] = None
     unusable: Optional[str] = None
 
 
@@ -228,7 +229,10 @@ class FramePath:
             self.counts["model_steps"] += 1
             t_step = clock()
             levels = flash_gate.lamp_levels(crops) if self.filter.gates_flashes else None
-            filtered = self.filter.step(step.probs, batch.stamps_ns, batch.filter_rows, levels)
+            cover = (np.concatenate([p.cover for p in usable if p.ids])
+                     if self.filter.uses_cover else None)
+            filtered = self.filter.step(step.probs, batch.stamps_ns, batch.filter_rows, levels,
+                                        cover)
             t_filter = clock()
             frames_observed = bank.store_cameras(batch, step.state, filtered.rows)
             table = _ProbTable(filtered.probs, filtered.states)
@@ -282,6 +286,9 @@ class FramePath:
         prep.valid = [k for k, reason in enumerate(prep.reasons) if reason is None]
         prep.ids = [boxes[prep.unique[k]].track_id for k in prep.valid]
         prep.crops = crops if len(prep.valid) == len(crops) else crops[prep.valid]
+        if self.filter.uses_cover:  # every box of the frame can hide the others
+            cover = box_sight.box_cover(box_sight.boxes_array(boxes), width, height)
+            prep.cover = cover[[prep.unique[k] for k in prep.valid]]
         return prep
 
     def _frame_results(self, p: _Prepared, table: Optional["_ProbTable"], offset: int,

@@ -31,7 +31,8 @@ stamps (scenes run at 10-30 fps, so frame counts mean nothing):
   (:mod:`~signal_light_node.runtime.flash_gate`): where the engine gives each crop's lamp
   levels, a blinker whose side showed no dark-to-lit change over the last
   ``flash_window_s`` cannot be ON (its P(ON) moves to OFF), so a steady bright lamp is
-  not a blinker.
+  not a blinker; and first of all, with ``blinker_sight: geometry``, a blinker's UNKNOWN
+  comes from the view head and the boxes (:mod:`~signal_light_node.runtime.box_sight`).
 
 Everything is vectorised over the tracks of a frame. The per-track state is a fixed
 row of :data:`ROW_WIDTH` floats (per light: stamp of the last strong frame, stamp of
@@ -50,7 +51,7 @@ from typing import Dict, Mapping, Optional, Union
 import numpy as np
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.runtime import flash_gate, visibility_hold
+from signal_light_node.runtime import box_sight, flash_gate, visibility_hold
 from signal_light_node.labels import (CLASS_NAMES, LIGHT_TASKS, TASKS, Intent, LightStatus,
                                       intent_from_lights)
 
@@ -63,6 +64,9 @@ _HOLD_WIDTH = _FIELDS * len(LIGHT_TASKS)
 _VISIBILITY_WIDTH = visibility_hold.FIELDS * len(LIGHT_TASKS)
 #: Floats per track: the hold's, the visibility hold's, then the flash gate's ring.
 ROW_WIDTH = _HOLD_WIDTH + _VISIBILITY_WIDTH + flash_gate.WIDTH
+
+#: Where a blinker's UNKNOWN comes from (``IntentFilterConfig.blinker_sight``).
+BLINKER_SIGHTS = ("model", "geometry")
 
 _OFF, _ON, _UNKNOWN = int(LightStatus.OFF), int(LightStatus.ON), int(LightStatus.UNKNOWN)
 _LEFT, _RIGHT = LIGHT_TASKS.index("left"), LIGHT_TASKS.index("right")
@@ -116,6 +120,12 @@ class IntentFilterConfig:
         visibility_confirm_s: A light turns from judged (OFF/ON) to UNKNOWN or back only
             once the model has said so this long (:mod:`visibility_hold`); 0 publishes
             the model's verdict every frame.
+        blinker_sight: Where a blinker's UNKNOWN comes from: ``model`` (the model's own
+            UNKNOWN) or ``geometry`` (:mod:`box_sight`: the view head and how much of
+            the box is covered by the image edge or nearer boxes; for cameras unlike the
+            training renderer, where the model says UNKNOWN on lamps in plain sight).
+        cover_max: With ``geometry``: the share of a box that may be covered before the
+            model's own UNKNOWN counts again.
     """
 
     enabled: bool = True
@@ -126,6 +136,8 @@ class IntentFilterConfig:
     flash_min_evidence: float = 0.1
     flash_window_s: float = 1.5
     visibility_confirm_s: float = 0.0
+    blinker_sight: str = "model"
+    cover_max: float = 0.1
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, (bool, np.bool_)):
@@ -146,6 +158,13 @@ class IntentFilterConfig:
         if self.flash_min_evidence > 0 and self.flash_window_s <= 0:
             raise ConfigError("flash_window_s must be > 0 while the flash gate is on "
                               "(flash_min_evidence > 0)")
+        if self.blinker_sight not in BLINKER_SIGHTS:
+            raise ConfigError(f"blinker_sight must be one of {', '.join(BLINKER_SIGHTS)}, got "
+                              f"{self.blinker_sight!r}")
+        value = self.cover_max
+        if not _is_finite_number(value) or not 0.0 <= value <= 1.0:
+            raise ConfigError(f"cover_max must be a share in [0, 1], got {value!r}")
+        object.__setattr__(self, "cover_max", float(value))
 
     def describe(self) -> str:
         """One line for reports: what is published."""
@@ -157,6 +176,9 @@ class IntentFilterConfig:
                 f"{self.flash_window_s:g} s)" if self.flash_min_evidence > 0 else "no flash gate")
         seen = (f"; visibility changes after {self.visibility_confirm_s:g} s"
                 if self.visibility_confirm_s > 0 else "")
+        if self.blinker_sight == "geometry":
+            seen += (f"; blinkers UNKNOWN from the view and boxes covered over "
+                     f"{self.cover_max:g}")
         return (f"on (blinkers ON from P(ON) >= {self.on_threshold:g} over >= "
                 f"{self.confirm_s:g} s, held {self.hold_s:g} s after the last; {gate}{seen}; "
                 f"intent from the held blinkers; {brake})")
@@ -199,11 +221,18 @@ class IntentFilter:
         self._hold = np.array([hold[t] for t in LIGHT_TASKS])
         self._confirm = np.array([confirm[t] for t in LIGHT_TASKS])
         self._filtered = [t != "brake" or c.brake_hold_s > 0 for t in LIGHT_TASKS]
+        self._hiding = tuple((LIGHT_TASKS.index(t), face)
+                             for t, face in box_sight.HIDING_FACE.items())
 
     @property
     def gates_flashes(self) -> bool:
         """Whether :meth:`step` uses lamp levels (callers compute them only then)."""
         return self.config.enabled and self.config.flash_min_evidence > 0
+
+    @property
+    def uses_cover(self) -> bool:
+        """Whether :meth:`step` uses box covers (callers compute them only then)."""
+        return self.config.enabled and self.config.blinker_sight == "geometry"
 
     @staticmethod
     def initial_rows(n: int) -> np.ndarray:
@@ -215,7 +244,8 @@ class IntentFilter:
                                flash_gate.initial_rows(n)], axis=1)
 
     def step(self, probs: Mapping[str, np.ndarray], stamps_ns: Union[int, np.ndarray],
-             rows: np.ndarray, lamp_levels: Optional[np.ndarray] = None) -> FilterOutput:
+             rows: np.ndarray, lamp_levels: Optional[np.ndarray] = None,
+             cover: Optional[np.ndarray] = None) -> FilterOutput:
         """Filter one frame of every track.
 
         Args:
@@ -224,6 +254,8 @@ class IntentFilter:
             rows: float64 ``[N, ROW_WIDTH]``: the tracks' filter rows before this frame.
             lamp_levels: ``[N, 2]`` :func:`flash_gate.lamp_levels` of the tracks' crops;
                 None (a caller without crops) leaves the flash gate out of this frame.
+            cover: ``[N]`` :func:`box_sight.box_cover` of the tracks' boxes (NaN where not
+                known); None keeps the model's UNKNOWN (as ``blinker_sight: model``).
 
         Returns:
             The published probabilities and states and the new rows (``rows`` itself is
@@ -242,6 +274,9 @@ class IntentFilter:
         state = rows[:, :_HOLD_WIDTH].reshape(n, len(LIGHT_TASKS), _FIELDS).copy()
         shown = rows[:, _HOLD_WIDTH:_HOLD_WIDTH + _VISIBILITY_WIDTH]
         ring = rows[:, _HOLD_WIDTH + _VISIBILITY_WIDTH:]
+        if cover is not None and self.uses_cover:
+            p = box_sight.judge_blinkers(p, probs["view"], np.asarray(cover).reshape(n),
+                                         self.config.cover_max, self._hiding)
         if lamp_levels is not None and self.config.flash_min_evidence > 0:
             ring = flash_gate.push(ring, now, np.asarray(lamp_levels, np.float64).reshape(n, 2))
             evidence = flash_gate.side_evidence(

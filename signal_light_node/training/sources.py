@@ -41,6 +41,7 @@ import numpy as np
 import torch
 
 from signal_light_node.evaluation.tracks import TrackSequence, track_from_item
+from signal_light_node.runtime.box_sight import box_cover, boxes_array
 from signal_light_node.runtime.crops import CropConfig, crop_vehicle
 from signal_light_node.runtime.pairing import (DETECTIONS, IMAGE, OrderedPairing, PairingConfig,
                                                pair_in_order)
@@ -148,6 +149,7 @@ def load_ucm_tracks(root: Path, crop_config: CropConfig = CropConfig(), fps: flo
             source=f"ucm:{code}",
             frame_paths=paths,
             crop_config=crop_config,
+            cover=np.asarray(rec["cover"], np.float64)[order],
         ))
     logger.info("UCM %s: %d sequences, %d frames", root, len(tracks), sum(len(t) for t in tracks))
     return tracks
@@ -260,12 +262,14 @@ def _read_bag_tracks(path: Path, crop_config: CropConfig,
             stamp = frame.stamp_ns
             image = msg_to_bgr(frame.image, img_t, stamp)
             truth = {str(v.track_id): v for v in gt_msg.vehicles} if labelled else {}
-            for box in detections_to_boxes(frame.detections):
+            boxes = detections_to_boxes(frame.detections)
+            covers = box_cover(boxes_array(boxes), image.shape[1], image.shape[0])
+            for box, cover in zip(boxes, covers):
                 gt = truth.get(box.track_id)
                 if labelled and gt is None:
                     continue
-                rec = per_track.setdefault(box.track_id, {k: [] for k in
-                                                          ("stamp", "crop", "label", "size", "ok")})
+                rec = per_track.setdefault(box.track_id, {k: [] for k in (
+                    "stamp", "crop", "label", "size", "ok", "cover")})
                 try:
                     crop = crop_vehicle(image, box, crop_config)
                     ok = True
@@ -278,6 +282,7 @@ def _read_bag_tracks(path: Path, crop_config: CropConfig,
                 size = math.sqrt(max(box.width, 0.0) * max(box.height, 0.0))
                 rec["size"].append(float(size) if math.isfinite(size) else math.nan)
                 rec["ok"].append(ok)
+                rec["cover"].append(cover)
     counters = ordered.counters
     unpaired = counters["images"] - counters["paired"]
     if unpaired or no_truth or ordered.unpaired_detections:
@@ -300,6 +305,7 @@ def _read_bag_tracks(path: Path, crop_config: CropConfig,
             source=f"bag:{path.name}",
             crops=np.stack(rec["crop"])[order],
             crop_config=crop_config,
+            cover=np.asarray(rec["cover"], np.float64)[order],
         ))
     if not tracks:
         raise BagIOError(f"bag {path}: no frame has an image, detections"
