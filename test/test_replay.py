@@ -562,3 +562,30 @@ def test_trivial_baselines_by_hand():
     assert constant_accuracy(scores) == pytest.approx(0.6)
     # answering class 3: F1 2*0.6/1.6 = 0.75 for it, 0 for the two other present classes
     assert constant_macro_f1(scores) == pytest.approx(0.75 / 3)
+
+
+@pytest.mark.skipif(not (REPO / "bags" / "independent_day").exists(),
+                    reason="bags/independent_day is not committed")
+def test_geometry_judges_blinkers_the_model_calls_unknown_on_another_renderer(tmp_path):
+    """On the independent generator's day bag the shipped model calls most visible blinkers
+    UNKNOWN; with ``blinker_sight: geometry`` (view head and box cover) most are judged, the
+    brake untouched (docs/model.md, "Visibility from geometry")."""
+    from signal_light_node.model import DEFAULT_WEIGHTS
+    from signal_light_node.runtime.engine import engine_from_checkpoint
+    from signal_light_node.runtime.intent_filter import IntentFilterConfig
+
+    if not DEFAULT_WEIGHTS.exists():
+        pytest.skip(f"shipped weights {DEFAULT_WEIGHTS} do not exist yet")
+    bag = REPO / "bags" / "independent_day"
+    shares = {}
+    for sight in ("model", "geometry"):
+        engine = engine_from_checkpoint(
+            threads=1, intent_filter=IntentFilterConfig(blinker_sight=sight))
+        result = score_summary(replay_bag(bag, tmp_path / sight, engine, progress=False))
+        assert result is not None
+        shares[sight] = {light: result["unknown_share"][light]["share"]
+                         for light in ("brake", "left", "right")}
+    model, geometry = shares["model"], shares["geometry"]
+    assert geometry["brake"] == model["brake"]
+    for light in ("left", "right"):  # measured 0.91 -> 0.29 and 0.98 -> 0.59
+        assert geometry[light] <= model[light] - 0.3, shares
