@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import logging
 
 import cv2
 import numpy as np
@@ -160,7 +161,7 @@ def test_evaluation_applies_the_engine_filter_with_each_tracks_stamps():
     assert raw[0][valid, 2].tolist() == np.where(lit[valid], 1, 0).tolist()
 
 
-def test_evaluate_command_writes_reports(tmp_path, capsys):
+def test_evaluate_command_writes_reports(tmp_path, capsys, caplog):
     from signal_light_node.data.split import write_split
 
     config = ModelConfig().replace(**TINY)
@@ -208,6 +209,13 @@ def test_evaluate_command_writes_reports(tmp_path, capsys):
     assert main(["evaluate", "--checkpoint", str(ckpt), "--split", str(split), "--out", str(raw),
                  "--filter-on-threshold", "1.5", "--no-progress"]) == 2
     assert "on_threshold" in capsys.readouterr().err
+    # Geometry needs every box of a frame; a split keeps none, which is said, not hidden.
+    with caplog.at_level(logging.WARNING, logger="signal_light_node.commands.evaluate"):
+        assert main(["evaluate", "--checkpoint", str(ckpt), "--split", str(split), "--out",
+                     str(raw), "--filter-blinker-sight", "geometry", "--no-progress"]) == 0
+    assert "only bags keep them" in caplog.text
+    assert json.loads((raw / "metrics.json").read_text())["intent_filter"]["blinker_sight"] \
+        == "geometry"
     img = cv2.imread(str(out / "confusion_intent.png"))
     assert img is not None and img.shape[0] > 300
     assert (out / "confusion_intent_grace.png").is_file()

@@ -227,6 +227,9 @@ def run(args: argparse.Namespace) -> int:
         checkpoint = "the ideal observer"
     else:
         intent_filter = intent_filter_from_args(args)
+        if intent_filter.blinker_sight == "geometry" and not args.bags:
+            logger.warning("--filter-blinker-sight geometry needs every box of a frame: only "
+                           "bags keep them, so here the blinkers' UNKNOWN stays the model's")
         tracks, total, data = _tracks(args, backend.config.crop_config())
         result = evaluate_tracks(backend, tracks, settings, progress=not args.no_progress,
                                  total=total, intent_filter=intent_filter)
