@@ -65,25 +65,29 @@ def step(p: np.ndarray, now_s: np.ndarray, rows: np.ndarray, confirm_s: float
     return _agree(p, shown == 1.0, seen), state.reshape(n, lights * FIELDS)
 
 
+def with_unknown(p: np.ndarray, unknown: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """``p`` (``[..., 3]`` OFF, ON, UNKNOWN) with P(UNKNOWN) set to ``unknown`` where
+    ``where``, OFF and ON sharing the rest in their ratio; a row whose OFF and ON are both
+    0 has no ratio to keep and stays as it is. ``p`` is not modified."""
+    out = np.array(p, np.float64, copy=True)
+    off_on = out[..., :2].sum(-1)
+    change = where & (off_on > 0)
+    scale = (1.0 - unknown) / np.where(off_on > 0, off_on, 1.0)
+    out[..., :2] = np.where(change[..., None], out[..., :2] * scale[..., None], out[..., :2])
+    out[..., _UNKNOWN] = np.where(change, unknown, out[..., _UNKNOWN])
+    return out
+
+
 def _agree(p: np.ndarray, judged: np.ndarray, seen: np.ndarray) -> np.ndarray:
     """``p`` with P(UNKNOWN) moved just past the larger of OFF and ON where the published
     visibility and the model's argmax differ; OFF and ON share the rest in their ratio."""
-    out = np.array(p, np.float64, copy=True)
-    off_on = out[..., :2].sum(-1)
-    top = out[..., :2].max(-1)
-    safe = np.where(off_on > 0, off_on, 1.0)
-    tie = top / (safe + top)  # P(UNKNOWN) equal to the larger rescaled OFF or ON
-    model_judged = out.argmax(-1) != _UNKNOWN
-    unknown = out[..., _UNKNOWN]
+    off_on = p[..., :2].sum(-1)
+    top = p[..., :2].max(-1)
+    tie = top / (np.where(off_on > 0, off_on, 1.0) + top)  # P(UNKNOWN) = larger rescaled OFF/ON
+    model_judged = p.argmax(-1) != _UNKNOWN
+    unknown = p[..., _UNKNOWN]
     lower = judged & ~model_judged & seen
     raise_ = ~judged & model_judged
     new_unknown = np.where(lower, np.minimum(unknown, tie * (1 - _MARGIN)),
-                           np.where(raise_, np.minimum(1.0, np.maximum(unknown,
-                                                                       tie * (1 + _MARGIN))),
-                                    unknown))
-    scale = np.where(off_on > 0, (1.0 - new_unknown) / safe, 0.0)
-    moved = lower | raise_
-    out[..., _OFF] = np.where(moved, out[..., _OFF] * scale, out[..., _OFF])
-    out[..., _ON] = np.where(moved, out[..., _ON] * scale, out[..., _ON])
-    out[..., _UNKNOWN] = new_unknown
-    return out
+                           np.minimum(1.0, np.maximum(unknown, tie * (1 + _MARGIN))))
+    return with_unknown(p, new_unknown, lower | raise_)
