@@ -149,7 +149,6 @@ def load_ucm_tracks(root: Path, crop_config: CropConfig = CropConfig(), fps: flo
             source=f"ucm:{code}",
             frame_paths=paths,
             crop_config=crop_config,
-            cover=np.asarray(rec["cover"], np.float64)[order],
         ))
     logger.info("UCM %s: %d sequences, %d frames", root, len(tracks), sum(len(t) for t in tracks))
     return tracks
