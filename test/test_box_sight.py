@@ -1,4 +1,4 @@
-"""Tests of runtime.box_sight: a blinker's UNKNOWN from the view head and the boxes."""
+"""Tests of runtime.box_sight: a light's UNKNOWN from the view head and the boxes."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from signal_light_node.runtime.engine import EngineConfig, LightStateEngine
 from signal_light_node.runtime.intent_filter import IntentFilter, IntentFilterConfig
 
 MS = 1_000_000
-LEFT, RIGHT = LIGHT_TASKS.index("left"), LIGHT_TASKS.index("right")
+BRAKE, LEFT, RIGHT = (LIGHT_TASKS.index(t) for t in ("brake", "left", "right"))
 COLUMNS = ((LEFT, View.RIGHT), (RIGHT, View.LEFT))
 #: The model is nearly sure it cannot see the lamps, and leans ON where it can.
 UNSURE = [0.04, 0.06, 0.90]
@@ -72,10 +72,39 @@ def test_the_side_facing_away_is_unknown_and_a_covered_box_keeps_the_model():
     np.testing.assert_array_equal(out[2], p[2])
 
 
+def _mixed_view(behind: float, side: float, front: float) -> np.ndarray:
+    view = np.zeros(len(View))
+    view[[int(View.BEHIND), int(View.LEFT), int(View.FRONT)]] = behind, side, front
+    return view
+
+
+def test_the_brake_is_judged_from_behind_hidden_from_the_front_the_model_s_from_a_side():
+    p = np.array([[UNSURE, UNSURE, UNSURE]] * 4)
+    view = np.stack([_view(View.BEHIND), _view(View.FRONT), _view(View.LEFT),
+                     _mixed_view(0.5, 0.3, 0.2)])
+    out = box_sight.judge_brake(p, view, np.zeros(4), 0.1, BRAKE)
+    unknown = out[:, BRAKE, 2]
+    assert unknown[0] == pytest.approx(0.01 + 0.02 * 0.90)  # FRONT + sides * model's UNKNOWN
+    assert out[0, BRAKE].argmax() == int(LightStatus.ON)
+    assert out[0, BRAKE, 1] / out[0, BRAKE, 0] == pytest.approx(0.06 / 0.04)
+    assert unknown[1] > 0.97
+    assert unknown[2] == pytest.approx(0.01 + 0.98 * 0.90)
+    assert unknown[3] == pytest.approx(0.2 + 0.3 * 0.90)
+    np.testing.assert_array_equal(out[:, LEFT], p[:, LEFT])  # the blinkers are the model's
+    # A covered box keeps at least the model's UNKNOWN; an unknown cover, the model's.
+    covered = box_sight.judge_brake(p[:2], view[:2], np.array([0.5, math.nan]), 0.1, BRAKE)
+    np.testing.assert_allclose(covered[:, BRAKE], p[:2, BRAKE])
+
+
 def test_config_checks_the_sight_and_the_cover():
     assert IntentFilterConfig().blinker_sight == "model"
-    with pytest.raises(ConfigError, match="blinker_sight"):
-        IntentFilterConfig(blinker_sight="eyes")
+    assert IntentFilterConfig().brake_sight == "model"
+    for name in ("blinker_sight", "brake_sight"):
+        with pytest.raises(ConfigError, match=name):
+            IntentFilterConfig(**{name: "eyes"})
+    brake = IntentFilterConfig(brake_sight="geometry")
+    assert IntentFilter(brake).uses_cover
+    assert "brake UNKNOWN from the view" in brake.describe()
     for bad in (-0.1, 1.5, math.nan, True):
         with pytest.raises(ConfigError, match="cover_max"):
             IntentFilterConfig(cover_max=bad)
@@ -102,6 +131,18 @@ def test_filter_publishes_what_geometry_says_only_with_a_cover(sight, cover, sta
     out = filt.step(_probs(1), 0, filt.initial_rows(1), None,
                     None if cover is None else np.array(cover))
     assert out.states["left"][0] == state and out.states["right"][0] == state
+
+
+@pytest.mark.parametrize("sight, state", [("model", LightStatus.UNKNOWN),
+                                          ("geometry", LightStatus.ON)])
+def test_filter_judges_the_brake_with_its_own_sight(sight, state):
+    """The brake's sight is set apart from the blinkers': only ``brake_sight`` moves it,
+    and the brake is published as judged from its first frame (no hold)."""
+    probs = {**_probs(1), "brake": np.array([UNSURE])}
+    filt = IntentFilter(IntentFilterConfig(brake_sight=sight))
+    out = filt.step(probs, 0, filt.initial_rows(1), None, np.array([0.0]))
+    assert out.states["brake"][0] == state
+    assert out.states["left"][0] == LightStatus.UNKNOWN
 
 
 class _UnsureModel(FakeLightModel):

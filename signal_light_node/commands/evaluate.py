@@ -209,6 +209,7 @@ def run(args: argparse.Namespace) -> int:
     from signal_light_node.evaluation.metrics import render_confusion_png, render_reliability_png
     from signal_light_node.evaluation.scoring import EvalSettings
     from signal_light_node.evaluation.streaming import evaluate_tracks
+    from signal_light_node.runtime.intent_filter import IntentFilter
 
     backend = create_backend(args.backend, None if args.checkpoint is None
                              else str(args.checkpoint), device=args.device,
@@ -227,9 +228,9 @@ def run(args: argparse.Namespace) -> int:
         checkpoint = "the ideal observer"
     else:
         intent_filter = intent_filter_from_args(args)
-        if intent_filter.blinker_sight == "geometry" and not args.bags:
-            logger.warning("--filter-blinker-sight geometry needs every box of a frame: only "
-                           "bags keep them, so here the blinkers' UNKNOWN stays the model's")
+        if IntentFilter(intent_filter).uses_cover and not args.bags:
+            logger.warning("a sight of geometry needs every box of a frame: only bags keep "
+                           "them, so here every light's UNKNOWN stays the model's")
         tracks, total, data = _tracks(args, backend.config.crop_config())
         result = evaluate_tracks(backend, tracks, settings, progress=not args.no_progress,
                                  total=total, intent_filter=intent_filter)

@@ -73,7 +73,7 @@ def add_intent_filter_options(group: ArgumentContainer) -> None:
 
     Defaults come from ``intent_filter.IntentFilterConfig`` (as the node's parameters do).
     """
-    from signal_light_node.runtime.intent_filter import BLINKER_SIGHTS, IntentFilterConfig
+    from signal_light_node.runtime.intent_filter import SIGHTS, IntentFilterConfig
 
     d = IntentFilterConfig()
     group.add_argument("--intent-filter", action=argparse.BooleanOptionalAction,
@@ -99,13 +99,17 @@ def add_intent_filter_options(group: ArgumentContainer) -> None:
                        default=d.visibility_confirm_s, metavar="S",
                        help="seconds the model must say a light turned UNKNOWN (or back) "
                             "before it is published (0: every frame)")
-    group.add_argument("--filter-blinker-sight", choices=BLINKER_SIGHTS,
+    group.add_argument("--filter-blinker-sight", choices=SIGHTS,
                        default=d.blinker_sight,
                        help="where a blinker's UNKNOWN comes from: the model's own, or the "
                             "view head and how much of the box the image edge and nearer "
                             "boxes cover (bags only: splits keep no other boxes)")
+    group.add_argument("--filter-brake-sight", choices=SIGHTS, default=d.brake_sight,
+                       help="where the brake's UNKNOWN comes from: the model's own, or "
+                            "judged where the view head sees the rear, hidden where it sees "
+                            "the front, the model's own from a side (bags only, as above)")
     group.add_argument("--filter-cover-max", type=float, default=d.cover_max, metavar="C",
-                       help="with --filter-blinker-sight geometry: the share of a box that "
+                       help="with a sight of geometry: the share of a box that "
                             "may be covered before the model's own UNKNOWN counts again")
 
 
@@ -124,6 +128,7 @@ def intent_filter_from_args(args: argparse.Namespace) -> Any:
                               flash_window_s=args.filter_flash_window,
                               visibility_confirm_s=args.filter_visibility_confirm,
                               blinker_sight=args.filter_blinker_sight,
+                              brake_sight=args.filter_brake_sight,
                               cover_max=args.filter_cover_max)
 
 

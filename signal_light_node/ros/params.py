@@ -25,7 +25,7 @@ from signal_light_node.io.topics import camera_name_problem
 from signal_light_node.model.backends.registry import known_backends
 from signal_light_node.runtime.backend import (AUTO_BACKEND, DEFAULT_BACKEND, DEFAULT_PRECISION,
                                                PRECISIONS)
-from signal_light_node.runtime.intent_filter import BLINKER_SIGHTS, IntentFilterConfig
+from signal_light_node.runtime.intent_filter import SIGHTS, IntentFilterConfig
 from signal_light_node.labels import LIGHT_CODES
 
 LOG = logging.getLogger(__name__)
@@ -126,6 +126,7 @@ class DetectorParams:
     filter_flash_window_s: float = IntentFilterConfig.flash_window_s
     filter_visibility_confirm_s: float = IntentFilterConfig.visibility_confirm_s
     filter_blinker_sight: str = IntentFilterConfig.blinker_sight
+    filter_brake_sight: str = IntentFilterConfig.brake_sight
     filter_cover_max: float = IntentFilterConfig.cover_max
     publish_debug_image: bool = False
     publish_markers: bool = False
@@ -152,6 +153,7 @@ class DetectorParams:
                                   flash_window_s=self.filter_flash_window_s,
                                   visibility_confirm_s=self.filter_visibility_confirm_s,
                                   blinker_sight=self.filter_blinker_sight,
+                                  brake_sight=self.filter_brake_sight,
                                   cover_max=self.filter_cover_max)
 
     @property
@@ -264,8 +266,13 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
                                       "share of the box outside the image or behind nearer "
                                       "boxes: for a camera on which the model says UNKNOWN "
                                       "on lamps in plain sight).",
-                                      choices=BLINKER_SIGHTS),
-    "filter_cover_max": ParamSpec("With filter_blinker_sight geometry: the share of a box "
+                                      choices=SIGHTS),
+    "filter_brake_sight": ParamSpec("Where the brake's UNKNOWN comes from: model (the "
+                                    "model's own) or geometry (judged where the view head "
+                                    "sees the rear, hidden where it sees the front, the "
+                                    "model's own from a side; the cover as for the "
+                                    "blinkers).", choices=SIGHTS),
+    "filter_cover_max": ParamSpec("With a sight of geometry: the share of a box "
                                   "that may be covered (image edge, nearer boxes) before "
                                   "the model's own UNKNOWN counts again.", low=0.0,
                                   high=1.0),

@@ -1,4 +1,4 @@
-"""Which blinkers can be seen, from geometry: the boxes of a frame and the view head.
+"""Which lights can be seen, from geometry: the boxes of a frame and the view head.
 
 A blinker cannot be judged when the side it sits on faces away from the camera, or when
 something stands in front of the vehicle. Both are geometry, not appearance: the view head
@@ -13,7 +13,9 @@ IntentFilterConfig`) a blinker's P(UNKNOWN) becomes the view head's probability 
 that hides its side, where the box's **cover** (its share outside the image or inside a
 nearer box) is at most ``cover_max``; where more of it is covered, the larger of that and
 the model's own P(UNKNOWN). ON and OFF share the rest in the model's proportions. A track
-whose cover is not known (NaN) keeps the model's UNKNOWN.
+whose cover is not known (NaN) keeps the model's UNKNOWN. With ``brake_sight: geometry``
+the brake is judged the same way from the faces that hide the rear lamps
+(:func:`judge_brake`).
 
 Measured (docs/model.md, "Visibility from geometry"; the shipped model as the node runs
 it): intent macro-F1 on the independent renders rose from 30.5 to 43.9 %, UNKNOWN where a
@@ -95,11 +97,38 @@ def judge_blinkers(p: np.ndarray, view: np.ndarray, cover: np.ndarray, cover_max
         both 0 stays as the model gave it.
     """
     out = p.copy()
-    cover = np.asarray(cover, np.float64)
-    known = np.isfinite(cover)
+    view = np.asarray(view, np.float64)
     for column, face in columns:
-        q = p[:, column]
-        hidden = np.asarray(view, np.float64)[:, int(face)]
-        unknown = np.where(cover > cover_max, np.maximum(hidden, q[:, _UNKNOWN]), hidden)
-        out[:, column] = with_unknown(q, unknown, known)
+        out[:, column] = _judged(p[:, column], view[:, int(face)], cover, cover_max)
     return out
+
+
+def judge_brake(p: np.ndarray, view: np.ndarray, cover: np.ndarray, cover_max: float,
+                column: int) -> np.ndarray:
+    """The lights' probabilities with the brake's UNKNOWN from geometry.
+
+    The rear lamps face away from a camera that sees the FRONT, and are in plain sight of
+    one that sees the rear (BEHIND). From a side the rear may be foreshortened out of
+    sight or still show (a three-quarter view), which the view head cannot tell: there the
+    model's own UNKNOWN decides. So P(UNKNOWN) = P(FRONT) + P(LEFT or RIGHT) * the model's
+    P(UNKNOWN); where the box's cover exceeds ``cover_max``, the larger of that and the
+    model's. Arguments and return as :func:`judge_blinkers`, with ``column`` the brake's
+    light column of ``p``.
+    """
+    out = p.copy()
+    view = np.asarray(view, np.float64)
+    q = p[:, column]
+    side = view[:, int(View.LEFT)] + view[:, int(View.RIGHT)]
+    out[:, column] = _judged(q, view[:, int(View.FRONT)] + side * q[:, _UNKNOWN], cover,
+                             cover_max)
+    return out
+
+
+def _judged(q: np.ndarray, hidden: np.ndarray, cover: np.ndarray, cover_max: float
+            ) -> np.ndarray:
+    """One light's ``[N, 3]`` probabilities with P(UNKNOWN) = ``hidden`` (the larger of it
+    and the model's where the cover exceeds ``cover_max``; the model's where the cover is
+    not known)."""
+    cover = np.asarray(cover, np.float64)
+    unknown = np.where(cover > cover_max, np.maximum(hidden, q[:, _UNKNOWN]), hidden)
+    return with_unknown(q, unknown, np.isfinite(cover))

@@ -31,8 +31,9 @@ stamps (scenes run at 10-30 fps, so frame counts mean nothing):
   (:mod:`~signal_light_node.runtime.flash_gate`): where the engine gives each crop's lamp
   levels, a blinker whose side showed no dark-to-lit change over the last
   ``flash_window_s`` cannot be ON (its P(ON) moves to OFF), so a steady bright lamp is
-  not a blinker; and first of all, with ``blinker_sight: geometry``, a blinker's UNKNOWN
-  comes from the view head and the boxes (:mod:`~signal_light_node.runtime.box_sight`).
+  not a blinker; and first of all, with ``blinker_sight: geometry`` (``brake_sight``), a
+  blinker's (the brake's) UNKNOWN comes from the view head and the boxes
+  (:mod:`~signal_light_node.runtime.box_sight`).
 
 Everything is vectorised over the tracks of a frame. The per-track state is a fixed
 row of :data:`ROW_WIDTH` floats (per light: stamp of the last strong frame, stamp of
@@ -65,8 +66,9 @@ _VISIBILITY_WIDTH = visibility_hold.FIELDS * len(LIGHT_TASKS)
 #: Floats per track: the hold's, the visibility hold's, then the flash gate's ring.
 ROW_WIDTH = _HOLD_WIDTH + _VISIBILITY_WIDTH + flash_gate.WIDTH
 
-#: Where a blinker's UNKNOWN comes from (``IntentFilterConfig.blinker_sight``).
-BLINKER_SIGHTS = ("model", "geometry")
+#: Where a light's UNKNOWN comes from (``IntentFilterConfig.blinker_sight``,
+#: ``brake_sight``).
+SIGHTS = ("model", "geometry")
 
 _OFF, _ON, _UNKNOWN = int(LightStatus.OFF), int(LightStatus.ON), int(LightStatus.UNKNOWN)
 _LEFT, _RIGHT = LIGHT_TASKS.index("left"), LIGHT_TASKS.index("right")
@@ -124,6 +126,9 @@ class IntentFilterConfig:
             UNKNOWN) or ``geometry`` (:mod:`box_sight`: the view head and how much of
             the box is covered by the image edge or nearer boxes; for cameras unlike the
             training renderer, where the model says UNKNOWN on lamps in plain sight).
+        brake_sight: Where the brake's UNKNOWN comes from: ``model`` or ``geometry``
+            (:func:`box_sight.judge_brake`: judged where the view head sees the rear,
+            hidden where it sees the front, the model's own UNKNOWN from a side).
         cover_max: With ``geometry``: the share of a box that may be covered before the
             model's own UNKNOWN counts again.
     """
@@ -137,6 +142,7 @@ class IntentFilterConfig:
     flash_window_s: float = 1.5
     visibility_confirm_s: float = 0.0
     blinker_sight: str = "model"
+    brake_sight: str = "model"
     cover_max: float = 0.1
 
     def __post_init__(self) -> None:
@@ -158,9 +164,10 @@ class IntentFilterConfig:
         if self.flash_min_evidence > 0 and self.flash_window_s <= 0:
             raise ConfigError("flash_window_s must be > 0 while the flash gate is on "
                               "(flash_min_evidence > 0)")
-        if self.blinker_sight not in BLINKER_SIGHTS:
-            raise ConfigError(f"blinker_sight must be one of {', '.join(BLINKER_SIGHTS)}, got "
-                              f"{self.blinker_sight!r}")
+        for name in ("blinker_sight", "brake_sight"):
+            if getattr(self, name) not in SIGHTS:
+                raise ConfigError(f"{name} must be one of {', '.join(SIGHTS)}, got "
+                                  f"{getattr(self, name)!r}")
         value = self.cover_max
         if not _is_finite_number(value) or not 0.0 <= value <= 1.0:
             raise ConfigError(f"cover_max must be a share in [0, 1], got {value!r}")
@@ -176,9 +183,11 @@ class IntentFilterConfig:
                 f"{self.flash_window_s:g} s)" if self.flash_min_evidence > 0 else "no flash gate")
         seen = (f"; visibility changes after {self.visibility_confirm_s:g} s"
                 if self.visibility_confirm_s > 0 else "")
-        if self.blinker_sight == "geometry":
-            seen += (f"; blinkers UNKNOWN from the view and boxes covered over "
-                     f"{self.cover_max:g}")
+        geometry = [name for name, sight in (("blinkers", self.blinker_sight),
+                                             ("brake", self.brake_sight)) if sight == "geometry"]
+        if geometry:
+            seen += (f"; {' and '.join(geometry)} UNKNOWN from the view and boxes covered "
+                     f"over {self.cover_max:g}")
         return (f"on (blinkers ON from P(ON) >= {self.on_threshold:g} over >= "
                 f"{self.confirm_s:g} s, held {self.hold_s:g} s after the last; {gate}{seen}; "
                 f"intent from the held blinkers; {brake})")
@@ -232,7 +241,8 @@ class IntentFilter:
     @property
     def uses_cover(self) -> bool:
         """Whether :meth:`step` uses box covers (callers compute them only then)."""
-        return self.config.enabled and self.config.blinker_sight == "geometry"
+        return self.config.enabled and "geometry" in (self.config.blinker_sight,
+                                                      self.config.brake_sight)
 
     @staticmethod
     def initial_rows(n: int) -> np.ndarray:
@@ -275,8 +285,7 @@ class IntentFilter:
         shown = rows[:, _HOLD_WIDTH:_HOLD_WIDTH + _VISIBILITY_WIDTH]
         ring = rows[:, _HOLD_WIDTH + _VISIBILITY_WIDTH:]
         if cover is not None and self.uses_cover:
-            p = box_sight.judge_blinkers(p, probs["view"], np.asarray(cover).reshape(n),
-                                         self.config.cover_max, self._hiding)
+            p = self._judge_sight(p, probs["view"], np.asarray(cover).reshape(n))
         if lamp_levels is not None and self.config.flash_min_evidence > 0:
             ring = flash_gate.push(ring, now, np.asarray(lamp_levels, np.float64).reshape(n, 2))
             evidence = flash_gate.side_evidence(
@@ -295,6 +304,16 @@ class IntentFilter:
         out_probs["intent"], out_states["intent"] = _intent(out_probs, out_states)
         return FilterOutput(out_probs, {t: out_states[t] for t in TASKS},
                             np.concatenate([state.reshape(n, _HOLD_WIDTH), shown, ring], axis=1))
+
+    def _judge_sight(self, p: np.ndarray, view: np.ndarray, cover: np.ndarray) -> np.ndarray:
+        """``p`` with the UNKNOWN of the lights whose sight is ``geometry`` from
+        :mod:`box_sight`."""
+        c = self.config
+        if c.blinker_sight == "geometry":
+            p = box_sight.judge_blinkers(p, view, cover, c.cover_max, self._hiding)
+        if c.brake_sight == "geometry":
+            p = box_sight.judge_brake(p, view, cover, c.cover_max, LIGHT_TASKS.index("brake"))
+        return p
 
     def _advance(self, state: np.ndarray, p: np.ndarray, now: np.ndarray) -> np.ndarray:
         """Update the rows in place with this frame; returns bool ``[N, lights]`` ON."""
