@@ -262,6 +262,12 @@ def test_split_command_line(tmp_path, capsys):
     assert summary["n_sequences"] == 2 and summary["lighting"] == {"night": 2}
     assert len(SequenceSplit(tmp_path / "cli")) == 2
     assert main([str(tmp_path / "cli"), "--seed", "3", "--sequences", "2"]) == 2  # not empty
+    # --oblique reaches the renderer and the manifest says so.
+    assert main([str(tmp_path / "turned"), "--seed", "3", "--sequences", "2", "--seq-len", "6",
+                 "--crop-size", "32", "--oblique", "0.5"]) == 0
+    manifest = json.loads((tmp_path / "turned" / "manifest.json").read_text())
+    assert manifest["stream"]["renderer_overrides"] == {"oblique": 0.5}
+    assert main([str(tmp_path / "bad"), "--seed", "3", "--sequences", "2", "--oblique", "2"]) == 2
 
 
 def test_options_that_never_give_a_sequence_fail_instead_of_looping(monkeypatch):

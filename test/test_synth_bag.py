@@ -182,3 +182,20 @@ def test_synth_command_renders_the_held_out_family(tmp_path, capsys):
     assert main(["synth", "-o", str(tmp_path / "bad"), "--frames", "2", "--family", "7",
                  "--no-progress"]) == 2
     assert "family must be one of" in capsys.readouterr().err
+
+
+def test_synth_command_turns_front_and_rear_views_with_oblique(tmp_path, capsys):
+    """--oblique reaches the renderer: the same seed with every front and rear view turned
+    draws other frames; a share outside [0, 1] is refused."""
+    bags = {}
+    for share in ("1", "0"):
+        bags[share] = tmp_path / f"oblique_{share}"
+        assert main(["synth", "-o", str(bags[share]), "--seed", "4", "--frames", "2", "--fps",
+                     "10", "--vehicles", "4", "--lighting", "day", "--oblique", share, "--raw",
+                     "--no-progress"]) == 0
+    frames = {s: [m.msg.data.tobytes() for m in read_by_topic(b)[IMAGE_TOPIC]]
+              for s, b in bags.items()}
+    assert frames["1"] != frames["0"]
+    assert main(["synth", "-o", str(tmp_path / "bad"), "--frames", "2", "--oblique", "1.5",
+                 "--no-progress"]) == 2
+    assert "oblique must be a share" in capsys.readouterr().err

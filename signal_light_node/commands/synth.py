@@ -39,6 +39,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(synth.lamps.STYLE_FAMILIES): the model trains on 0 and 1, 2 "
                              "is held out, a stand-in for a camera it never saw (default: "
                              "drawn from the seed among the training families)")
+    parser.add_argument("--oblique", type=float, default=0.0, metavar="SHARE",
+                        help="share of front and rear views drawn turned by 10-40 degrees "
+                             "(foreshortened, flank in view; default 0)")
     parser.add_argument("--raw", action="store_true",
                         help="write sensor_msgs/Image bgr8 on /camera/image_raw instead of "
                              "JPEG CompressedImage on /camera/image_raw/compressed")
@@ -65,7 +68,8 @@ def run(args: argparse.Namespace) -> int:
         lighting=None if args.lighting == "mix" else args.lighting,
         night_fraction=args.night_fraction, raw=args.raw, jpeg_quality=args.jpeg_quality,
         frame_id=args.frame_id, overwrite=args.overwrite, progress=not args.no_progress,
-        **({} if args.family is None else {"family": args.family}))
+        **({} if args.family is None else {"family": args.family}),
+        **({"oblique": args.oblique} if args.oblique else {}))
     print(f"wrote {summary.path}: {summary.frames} frames at {summary.fps:g} Hz, "
           f"{summary.width}x{summary.height}, {summary.lighting}, "
           f"{len(summary.track_ids)} tracks, {summary.detections} detections")

@@ -302,14 +302,18 @@ def main(argv: Optional[List[str]] = None) -> int:
                         help="one lighting for every scene (default: drawn per scene)")
     parser.add_argument("--lit-maps", action="store_true",
                         help="store where each vehicle's signal lamps are lit (training target)")
+    parser.add_argument("--oblique", type=float, default=0.0, metavar="SHARE",
+                        help="share of front and rear views drawn turned (10-40 degrees: "
+                             "foreshortened, flank in view); default 0")
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
+    extra = {"renderer_overrides": {"oblique": args.oblique}} if args.oblique else {}
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
         path = write_split(args.out, args.seed, args.sequences, args.seq_len,
                            CropConfig(args.crop_size, args.crop_margin),
                            full_tracks=args.full_tracks, overwrite=args.overwrite,
-                           lighting=args.lighting, lit_maps=args.lit_maps)
+                           lighting=args.lighting, lit_maps=args.lit_maps, **extra)
     except SignalLightError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -41,9 +41,9 @@ LOG = logging.getLogger(__name__)
 
 _MARGIN = 12
 _SCENE_KEYS = {"vehicles", "occluders", "poles", "distractors", "weather", "effects", "shake", "respawn", "horizon", "focal",
-               "family"}
+               "family", "oblique"}
 _VEHICLE_KEYS = {"view", "kind", "lamp_design", "tech", "chmsl", "intent", "brake", "colour", "lights_on", "center_x",
-                 "width_px", "speed", "blink_hz", "duty", "phase", "shear", "roll", "specular"}
+                 "width_px", "speed", "blink_hz", "duty", "phase", "shear", "roll", "specular", "yaw"}
 
 
 class SceneRenderer:
@@ -66,12 +66,15 @@ class SceneRenderer:
             camera noise/blur/JPEG), ``shake`` (bool), ``respawn`` (bool), ``horizon``
             (fraction of the height), ``focal`` (fraction of the width), ``family`` (style
             family of lamp colours and camera tone, ``synth.lamps.STYLE_FAMILIES``; default:
-            one of ``TRAIN_FAMILIES`` drawn from the seed). Vehicle keys:
+            one of ``TRAIN_FAMILIES`` drawn from the seed), ``oblique`` (share of front and
+            rear views drawn turned by 10-40 degrees, foreshortened with their flank in
+            view; default 0). Vehicle keys:
             ``view`` (View), ``kind``, ``lamp_design``, ``tech`` ("led"/"bulb"), ``chmsl``,
             ``intent`` (Intent held for the whole sequence), ``brake`` (bool held),
             ``colour`` (BGR), ``lights_on``, ``center_x`` (pixels), ``width_px`` (box width),
             ``speed`` (m/s; 0 = parked), ``blink_hz``, ``duty``, ``phase`` (s), ``shear``,
-            ``roll`` (degrees), ``specular`` (bool).
+            ``roll`` (degrees), ``specular`` (bool), ``yaw`` (degrees, front and rear views,
+            far end to the image right when positive).
 
     Raises:
         ConfigError: On an unknown override or a value out of range.
@@ -118,6 +121,9 @@ class SceneRenderer:
         if family not in STYLE_FAMILIES:
             raise ConfigError(f"family must be one of {STYLE_FAMILIES}, got {family!r}")
         self.family = int(family)
+        self.oblique = float(overrides.get("oblique", 0.0))
+        if not 0.0 <= self.oblique <= 1.0:
+            raise ConfigError(f"oblique must be a share in [0, 1], got {overrides['oblique']!r}")
 
     # ------------------------------------------------------------------ setup
     def _setup(self) -> None:
@@ -149,7 +155,8 @@ class SceneRenderer:
         self._camera = Camera(cam_params, W, H, hy, self.seed * 7 + 3, enabled=bool(o.get("effects", True)))
         LOG.debug("scene seed=%d %dx%d fps=%.1f lighting=%s weather=%s focal=%.0f horizon=%.0f vehicles=%d",
                   self.seed, W, H, self.fps, self.lighting, weather, f, hy, self.n_vehicles)
-        self._traffic = Traffic(self.seed, rng, W, self._geo, self._light, self.lighting, self.family)
+        self._traffic = Traffic(self.seed, rng, W, self._geo, self._light, self.lighting, self.family,
+                                self.oblique)
         vo = o.get("vehicles") or []
         for i in range(self.n_vehicles):
             self._traffic.vehicles.append(self._traffic.spawn(vo[i] if i < len(vo) else {}, entering=False))

@@ -2,7 +2,9 @@
 appears, what it looks like and how it moves.
 
 A vehicle is one face (behind, front or a side) of a body of some kind, seen at a depth
-``Z`` and a lateral offset ``X`` on the street of ``environment.StreetGeometry``. New
+``Z`` and a lateral offset ``X`` on the street of ``environment.StreetGeometry``. A front or
+rear view may be turned (``Vehicle.yaw``, a share ``oblique`` of them): its face is
+foreshortened and its flank shows, as a turning vehicle or one seen three-quarter on. New
 vehicles are placed so that they seldom hide most of one already there; front and rear
 views drive along a lane, side views cross the image. A vehicle that leaves the scene is
 replaced by one entering it (``Traffic.step``).
@@ -27,6 +29,11 @@ from signal_light_node.synth.vehicles import (KIND_DIMS, KIND_WEIGHTS, KINDS, Bo
 Box = Tuple[float, float, float, float]
 
 _VIEW_WEIGHTS = {View.BEHIND: 0.42, View.FRONT: 0.26, View.LEFT: 0.16, View.RIGHT: 0.16}
+#: Range of |yaw| (degrees) of a turned front or rear view. Under 45 degrees the face
+#: toward the camera is still the one labelled (the 90-degree sectors of the truth).
+OBLIQUE_YAW_DEG = (10.0, 40.0)
+#: Largest |yaw| a vehicle override may ask for.
+MAX_YAW_DEG = 44.0
 
 
 @dataclass
@@ -67,6 +74,9 @@ class Vehicle:
     lamp_ranges: List[Tuple[int, int]] = field(default_factory=list)
     lamp_ranges_poly: List[List[Tuple[int, int]]] = field(default_factory=list)
     lens_cols: List[Tuple[float, float, float]] = field(default_factory=list)
+    #: Degrees the body's axis is turned from the line of sight's depth direction; its
+    #: far end lies to the image right for a positive yaw (front and rear views only).
+    yaw: float = 0.0
 
 
 class Traffic:
@@ -80,10 +90,11 @@ class Traffic:
         light: The scene's light.
         lighting: "day", "dusk" or "night".
         family: Style family of the lamps.
+        oblique: Share of front and rear views drawn turned (``OBLIQUE_YAW_DEG``).
     """
 
     def __init__(self, seed: int, rng: np.random.Generator, width: int, geo: StreetGeometry, light: Lighting, lighting: str,
-                 family: int) -> None:
+                 family: int, oblique: float = 0.0) -> None:
         self.seed = seed
         self.width = width
         self._rng = rng
@@ -91,6 +102,7 @@ class Traffic:
         self._light = light
         self.lighting = lighting
         self.family = family
+        self.oblique = oblique
         self._next_id = int(rng.integers(1, 50))
         self.vehicles: List[Vehicle] = []
 
@@ -99,7 +111,7 @@ class Traffic:
         f = self._geo.focal
         bottom = self._geo.horizon + f * self._geo.cam_h / v.Z
         h = v.face_h * f / v.Z
-        w = v.face_w * f / v.Z
+        w = v.face_w * math.cos(math.radians(v.yaw)) * f / v.Z  # foreshortened when turned
         cx = self._geo.vanish_x + f * v.X / v.Z
         return cx - w / 2, bottom - h, cx + w / 2, bottom
 
@@ -206,6 +218,7 @@ class Traffic:
                     roll=float(vo.get("roll", vrng.uniform(-1.5, 1.5))), spots=spots, paints=paints,
                     tracker_bias=tuple(float(b) for b in vrng.normal(0, 0.02, 4)),
                     tracker_sigma=float(vrng.uniform(0.008, 0.035)), tracker_amodal=bool(vrng.random() < 0.3))
+        v.yaw = self._yaw(vo, v)
         pts, splits, sil = [], [], []
         n = 0
         for key, poly in shape.parts:
@@ -220,6 +233,24 @@ class Traffic:
         v.part_splits, v.sil_splits = splits, sil
         self._prepare_lamps(v)
         return v
+
+    def _yaw(self, vo: Dict[str, Any], v: Vehicle) -> float:
+        """The yaw of a new vehicle: the override, else with probability ``oblique`` one
+        drawn from ``OBLIQUE_YAW_DEG`` (a stream of its own: every other draw of the scene
+        stays as it was without turned vehicles)."""
+        if "yaw" in vo:
+            yaw = float(vo["yaw"])
+            if not math.isfinite(yaw) or abs(yaw) > MAX_YAW_DEG:
+                raise ConfigError(f"yaw must be within +-{MAX_YAW_DEG:g} degrees, got {vo['yaw']!r}")
+            if yaw and v.view not in (View.BEHIND, View.FRONT):
+                raise ConfigError("yaw turns front and rear views only")
+            return yaw
+        if self.oblique <= 0 or v.view not in (View.BEHIND, View.FRONT):
+            return 0.0
+        yrng = np.random.default_rng([self.seed, 400 + int(v.track_id)])
+        if yrng.random() >= self.oblique:
+            return 0.0
+        return float(yrng.uniform(*OBLIQUE_YAW_DEG) * (1.0 if yrng.random() < 0.5 else -1.0))
 
     def _place(self, vo: Dict[str, Any], view: View, face_w: float, face_h: float, entering: bool,
                vrng: np.random.Generator, z_min: float, z_max: float) -> Tuple[float, float]:

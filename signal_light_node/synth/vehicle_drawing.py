@@ -74,6 +74,26 @@ def affine(v: Vehicle, box: Box, ox: float, oy: float) -> np.ndarray:
     return np.hstack([L, t[:, None]]).astype(np.float64)
 
 
+def _visible_side(v: Vehicle) -> Optional[Tuple[Tuple[float, float], Tuple[float, float]]]:
+    """The flank of a front or rear view that faces the camera, as its near and far ends
+    ``((X, Z), (X, Z))`` in metres on the ground at the face's depth and the body's length
+    behind it; None when neither flank faces the camera.
+
+    The face (width ``face_w``) is centred at (``X``, ``Z``) and turned by ``yaw``: its
+    corners lie at the centre plus or minus half the width along (cos yaw, -sin yaw); the
+    body runs away from the camera along (sin yaw, cos yaw). A flank faces the camera (at
+    the origin) when the camera lies on its outer side.
+    """
+    a = math.radians(v.yaw)
+    across, along = (math.cos(a), -math.sin(a)), (math.sin(a), math.cos(a))
+    length = KIND_DIMS[v.kind][2] * (v.face_h / KIND_DIMS[v.kind][1])
+    for sign in (1.0, -1.0):
+        near = (v.X + sign * v.face_w / 2 * across[0], v.Z + sign * v.face_w / 2 * across[1])
+        if -(near[0] * across[0] + near[1] * across[1]) * sign > 0:
+            return near, (near[0] + length * along[0], near[1] + length * along[1])
+    return None
+
+
 class VehiclePainter:
     """Draws the vehicles of one scene.
 
@@ -159,20 +179,20 @@ class VehiclePainter:
 
     def flank(self, v: Vehicle, ddx: float, ddy: float) -> Optional[Tuple[np.ndarray, Optional[np.ndarray]]]:
         """Outline (and side windows) of the flank that a front or rear view shows when the
-        vehicle is off the camera axis, in image coordinates; None when none shows."""
+        vehicle is off the camera axis or turned (``yaw``), in image coordinates; None when
+        none shows."""
         if v.view in (View.LEFT, View.RIGHT):
             return None
-        w_m, h_m, length = KIND_DIMS[v.kind]
-        w_m = v.face_w
-        near_x = v.X + w_m / 2 if v.X < 0 else v.X - w_m / 2
-        if near_x * v.X <= 0:
-            return None  # straight ahead: no flank visible
+        side = _visible_side(v)
+        if side is None:
+            return None  # straight ahead and not turned: no flank visible
+        (near_x, Zn), (far_x, Zf) = side
         geo = self._geo
         f, hy, vx, ch = geo.focal, geo.horizon - ddy, geo.vanish_x - ddx, geo.cam_h
-        Zn, Zf = v.Z, v.Z + length * (v.face_h / KIND_DIMS[v.kind][1])
-        xn, xf = vx + f * near_x / Zn, vx + f * near_x / Zf
+        xn, xf = vx + f * near_x / Zn, vx + f * far_x / Zf
         if abs(xn - xf) < 1.0:
             return None
+        h_m = KIND_DIMS[v.kind][1]
         top_far = h_m * (0.62 if v.kind in ("car", "suv") else 1.0) * v.face_h / KIND_DIMS[v.kind][1]
         ground = 0.2 * v.face_h / KIND_DIMS[v.kind][1]
         yn = lambda hgt: hy + f * (ch - hgt) / Zn  # noqa: E731
@@ -184,18 +204,20 @@ class VehiclePainter:
             # Side windows: a band under the roof line, shorter than the body.
             g_lo, g_hi = v.face_h * 0.62, v.face_h * (0.92 if v.kind in ("car", "suv") else 0.85)
             za, zb = Zn + (Zf - Zn) * 0.12, Zn + (Zf - Zn) * 0.8
-            xa, xb = vx + f * near_x / za, vx + f * near_x / zb
+            la, lb = near_x + (far_x - near_x) * 0.12, near_x + (far_x - near_x) * 0.8
+            xa, xb = vx + f * la / za, vx + f * lb / zb
             ya = lambda hgt: hy + f * (ch - hgt) / za  # noqa: E731
             yb = lambda hgt: hy + f * (ch - hgt) / zb  # noqa: E731
             glass = np.array([[xa, ya(g_hi)], [xb, yb(g_hi)], [xb, yb(g_lo)], [xa, ya(g_lo)]], np.float64)
             if v.kind in ("car", "suv"):
                 # The cabin sits on top of the body and is narrower: its roof edge is set
                 # in from the body side, so the roof line starts inside the face outline.
-                roof_x = near_x + (v.X - near_x) * 0.3
-                xr_n, xr_b = vx + f * roof_x / Zn, vx + f * roof_x / zb
+                inset = v.X - near_x
+                xr_n, xr_b = vx + f * (near_x + inset * 0.3) / Zn, vx + f * (lb + inset * 0.3) / zb
                 roof_n = np.array([[xr_n, yn(v.face_h * 0.97)], [xr_b, yb(v.face_h * 0.95)], [xb, yb(top_far)]])
                 outline = np.vstack([outline[:1], roof_n, outline[1:]])
-                glass[0, 0], glass[1, 0] = vx + f * (near_x + (v.X - near_x) * 0.2) / za, vx + f * (near_x + (v.X - near_x) * 0.2) / zb
+                glass[0, 0] = vx + f * (la + inset * 0.2) / za
+                glass[1, 0] = vx + f * (lb + inset * 0.2) / zb
         return outline, glass
 
     def shadow(self, img: np.ndarray, d: Drawn) -> None:
