@@ -47,8 +47,9 @@
 # (where each vehicle's lamps are lit: FRAME_ARGS="--model lit_map_head=true
 # --lit-map-weight 1" trains on them, docs/model.md) and FRAME_STEPS / LANE_STEPS cap
 # them by steps: scripts/ablations.sh uses
-# these to train variants on the same data with the same number of steps; DATA_ONLY=1
-# stops after rendering the splits.
+# these to train variants on the same data with the same number of steps; OBLIQUE=SHARE
+# renders that share of the pools' front and rear views turned (synth.traffic, default 0;
+# the validation and test splits never); DATA_ONLY=1 stops after rendering the splits.
 set -euo pipefail
 
 cd "$(dirname "$0")/.."
@@ -91,6 +92,7 @@ PRECISION=${PRECISION:-auto}         # --precision: auto = bf16 where the CPU ha
 THREADS=${THREADS:-2}
 FRAME_ARGS=${FRAME_ARGS:-}           # extra `signal-light train` options for stage 1 only
 LIT_MAPS=${LIT_MAPS:-0}              # 1: render the pools with --lit-maps
+OBLIQUE=${OBLIQUE:-0}                # share of the pools' front and rear views turned
 
 mkdir -p "$RUN" "$DATA"
 start=$(date +%s)
@@ -104,7 +106,8 @@ map_flag=""
 render_pool() {  # render_pool SEED TRACKS FRAMES: one pool split in the background
   if [[ ! -f "$DATA/pool_$1/manifest.json" ]]; then
     python -m signal_light_node.data.split "$DATA/pool_$1" --seed "$1" \
-      --sequences "$2" --seq-len "$3" --full-tracks --overwrite $map_flag > "$DATA/pool_$1.log" 2>&1 &
+      --sequences "$2" --seq-len "$3" --full-tracks --overwrite --oblique "$OBLIQUE" $map_flag \
+      > "$DATA/pool_$1.log" 2>&1 &
     pids+=($!)
   fi
 }
