@@ -11,6 +11,7 @@
 #                  by period only)
 #   no_relative    relative_evidence=false
 #   blink_levels   blink_levels=true (the blinkers' P(lit) and peaks in the track vector)
+#   no_periods     lit_periods=false (no blink-period evidence at all: frequency off)
 #   coarse_lamps   lamp_detail=1 (one lamp-map cell per trunk cell)
 #   linear_lit     lit_hidden=0 (a linear lit head)
 #   random_trunk   trunk_init=random (the same frozen architecture, random weights)
@@ -42,6 +43,7 @@ BASE='"frequency_evidence": false, "lamp_detail": 2, "lit_hidden": 128'
 declare -A MODELS=([full]="{$BASE, \"blink_levels\": false}"
                    [no_relative]="{$BASE, \"blink_levels\": false, \"relative_evidence\": false}"
                    [blink_levels]="{$BASE}"
+                   [no_periods]="{$BASE, \"blink_levels\": false, \"lit_periods\": false}"
                    [coarse_lamps]='{"frequency_evidence": false, "lit_hidden": 128, "blink_levels": false}'
                    [linear_lit]='{"frequency_evidence": false, "lamp_detail": 2, "blink_levels": false}'
                    [random_trunk]="{$BASE, \"blink_levels\": false, \"trunk_init\": \"random\"}")
