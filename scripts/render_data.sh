@@ -5,8 +5,9 @@
 # held-out family test split (style family 2), plus a family-2 calibration split when
 # CAL_TRACKS > 0. OBLIQUE (default 0) is the share of the pools' front and rear views drawn
 # turned (synth.traffic.OBLIQUE_YAW_DEG); the evaluation splits never have it, so that they
-# stay comparable across data versions. A split whose manifest exists is reused. Called by train_default.sh and
-# train_trunk.sh with their settings in the environment (the defaults are theirs).
+# stay comparable across data versions. A split whose manifest exists is reused. Called by
+# train_default.sh and train_trunk.sh with their settings in the environment (the defaults
+# are theirs).
 set -euo pipefail
 
 cd "$(dirname "$0")/.."
