@@ -25,16 +25,12 @@ from typing import Dict
 import numpy as np
 import torch
 
+from signal_light_node.evaluation.metrics import roc_auc
 from signal_light_node.labels import TASKS
 from signal_light_node.model.checkpoint import load_checkpoint
 from signal_light_node.model.config import trunk_config
 from signal_light_node.model.registry import build_model
 from signal_light_node.training.feature_cache import split_tracks
-
-
-def _auc(pos: np.ndarray, neg: np.ndarray) -> float:
-    ranks = np.concatenate([pos, neg]).argsort().argsort() + 1
-    return float((ranks[:len(pos)].sum() - len(pos) * (len(pos) + 1) / 2) / (len(pos) * len(neg)))
 
 
 @torch.no_grad()
@@ -78,7 +74,7 @@ def probe(x: torch.Tensor, lit: np.ndarray, train: np.ndarray) -> Dict[str, floa
         test = torch.from_numpy(~train) & keep
         p = torch.softmax(linear(x[test]), 1)[:, 1].detach().numpy()
         truth = y[test].numpy()
-        out[task] = round(_auc(p[truth == 1], p[truth == 0]), 3)
+        out[task] = round(roc_auc(p[truth == 1], p[truth == 0]), 3)
     return out
 
 

@@ -61,6 +61,14 @@ VAL_EVERY=${VAL_EVERY:-250}
 DEVICE=${DEVICE:-cpu}
 THREADS=${THREADS:-2}
 EVAL=${EVAL:-1}
+# The per-frame stage (training/trunk_finetune.py): FRAME_STEPS > 0 fine-tunes the trunk's
+# blocks from TRAIN_FROM on (-1: all, the stem too) before the temporal part; TRUNK_WEIGHTS
+# names a finished one instead (its best.pt).
+FRAME_STEPS=${FRAME_STEPS:-0}
+TRAIN_FROM=${TRAIN_FROM:--1}
+FRAME_TRACKS=${FRAME_TRACKS:-32}
+FRAME_WORKERS=${FRAME_WORKERS:-0}
+TRUNK_WEIGHTS=${TRUNK_WEIGHTS:-}
 
 mkdir -p "$RUN" "$DATA"
 start=$(date +%s)
@@ -73,6 +81,19 @@ if [[ -n "${DATA_ONLY:-}" ]]; then
   exit 0
 fi
 
+if [[ -z "$TRUNK_WEIGHTS" && "$FRAME_STEPS" -gt 0 ]]; then
+  echo "== 2a/5 per-frame stage: trunk blocks from $TRAIN_FROM on, $FRAME_STEPS steps"
+  resume=()
+  [[ -f "$RUN/frames/last.state.pt" ]] && resume=(--resume)
+  [[ -f "$RUN/frames/summary.json" ]] || python -m signal_light_node.training.trunk_finetune \
+    --out "$RUN/frames" "${pools[@]}" --val "$DATA/val_split" --val "$DATA/family_cal_split" \
+    --model "$MODEL" --train-from "$TRAIN_FROM" --steps "$FRAME_STEPS" --tracks "$FRAME_TRACKS" \
+    --workers "$FRAME_WORKERS" --seed "$SEED" --threads "$THREADS" --device "$DEVICE" "${resume[@]}"
+  TRUNK_WEIGHTS=$RUN/frames/best.pt
+fi
+trunk=()
+[[ -n "$TRUNK_WEIGHTS" ]] && trunk=(--trunk-weights "$TRUNK_WEIGHTS")
+
 echo "== 2/5 trunk features cached, temporal part trained from scratch: $STEPS steps"
 resume=()
 if [[ -f "$RUN/trunk/summary.json" ]]; then
@@ -82,7 +103,7 @@ else
   python -m signal_light_node.training.trunk_recipe --out "$RUN/trunk" --cache "$DATA/cache" \
     "${pools[@]}" --val "$DATA/val_split" --model "$MODEL" --looks "$LOOKS" --steps "$STEPS" \
     --batch "$BATCH" --seq-len "$SEQ_LEN" --lr "$LR" --seed "$SEED" --val-every "$VAL_EVERY" \
-    --threads "$THREADS" --device "$DEVICE" "${resume[@]}"
+    --threads "$THREADS" --device "$DEVICE" "${trunk[@]}" "${resume[@]}"
 fi
 
 echo "== 3/5 per-head temperatures on the family calibration split"

@@ -415,6 +415,17 @@ class SwitchCounter:
                               for k, (p, t) in self._per_track.items()}}
 
 
+def roc_auc(positive: ArrayLike, negative: ArrayLike) -> Optional[float]:
+    """Area under the ROC curve of scores of positives against negatives (the chance that a
+    random positive scores above a random negative; ties count as the rank order gives);
+    ``None`` when either side is empty."""
+    pos, neg = np.asarray(positive, np.float64), np.asarray(negative, np.float64)
+    if not len(pos) or not len(neg):
+        return None
+    ranks = np.concatenate([pos, neg]).argsort().argsort() + 1
+    return float((ranks[:len(pos)].sum() - len(pos) * (len(pos) + 1) / 2) / (len(pos) * len(neg)))
+
+
 def _confidence_bins(probs: np.ndarray, labels: np.ndarray, bins: int
                      ) -> Tuple[np.ndarray, List[Tuple[int, float, float]]]:
     """The bin edges and, per equal-width bin of the top-class confidence, ``(count, mean

@@ -138,7 +138,11 @@ class TrunkLightNet(nn.Module):
         x = crops.float()
         detail = self.config.lamp_detail
         maps = lamps.space_to_depth(lamps.lamp_maps(x, self.grid * detail), detail)
-        return self.trunk((x - self._mean) * self._inv_std), maps
+        return self.trunk_features(x), maps
+
+    def trunk_features(self, crops: Tensor) -> Tensor:
+        """The trunk's features ``[N,C,G,G]`` of crops in [0, 1] (ImageNet-normalised first)."""
+        return self.trunk((crops.float() - self._mean) * self._inv_std)
 
     def attention(self, crops: Tensor) -> Tensor:
         """All ones: this network has no attention mask (kept for the debug overlay)."""

@@ -16,8 +16,10 @@
    tracks stepped from their first frame as in the node) and keeps ``best.pt``;
    ``last.pt`` + ``last.state.pt`` make an interrupted run resumable (``--resume``).
 
-The trunk stays frozen: its ImageNet batch-norm statistics and weights are the
-checkpoint's, so the node's model is exactly the one validated here.
+The trunk stays frozen: its batch-norm statistics and weights are the checkpoint's, so the
+node's model is exactly the one validated here. They are ImageNet's, or with
+``--trunk-weights`` those of the per-frame stage (``training.trunk_finetune``), which
+fine-tunes the trunk's last blocks on single frames first.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ from signal_light_node.evaluation.metrics import confusion_matrix, macro_f1, per
 from signal_light_node.training.feature_cache import (FeatureCache, collate_windows, track_logits,
                                                       trunk_fingerprint, write_cache)
 from signal_light_node.training.loss import multitask_loss, warmup_frames
+from signal_light_node.training.trunk_finetune import load_trunk_weights
 
 LOG = logging.getLogger("trunk_recipe")
 TASK_WEIGHTS = {"intent": 1.0, "brake": 1.0, "left": 0.5, "right": 0.5, "view": 0.5}
@@ -203,6 +206,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--resume", action="store_true")
     parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
+    parser.add_argument("--trunk-weights", type=Path, default=None,
+                        help="start from this per-frame stage's trunk (trunk_finetune's best.pt)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     torch.set_num_threads(args.threads)
@@ -210,7 +215,12 @@ def main(argv: Optional[List[str]] = None) -> int:
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         parser.error("CUDA requested but not available")
-    model = build_fresh(json.loads(args.model), args.seed).to(device)
+    model = build_fresh(json.loads(args.model), args.seed)
+    frames = None
+    if args.trunk_weights is not None:
+        frames = load_trunk_weights(model, args.trunk_weights)
+        LOG.info("trunk from %s (per-frame step %s)", args.trunk_weights, frames["step"])
+    model = model.to(device)
     fingerprint = trunk_fingerprint(model)
     cache_root = (args.cache or args.out.parent / "cache") / fingerprint
     caches = []
@@ -221,7 +231,10 @@ def main(argv: Optional[List[str]] = None) -> int:
             caches.append(FeatureCache.load(path, fingerprint))
     val = FeatureCache.load(write_cache(args.val, model, cache_root / args.val.name), fingerprint)
     meta = {"recipe": "trunk_recipe", "args": {k: str(v) for k, v in vars(args).items()},
-            "training_data": [str(p) for p in args.pool], "trunk_fingerprint": fingerprint}
+            "training_data": [str(p) for p in args.pool], "trunk_fingerprint": fingerprint,
+            "trunk_weights": None if frames is None else {"path": str(args.trunk_weights),
+                                                          "step": frames["step"],
+                                                          "train_from": frames["train_from"]}}
     best = train(model, caches, val, args.out, args.steps, args.batch, args.seq_len, args.lr,
                  args.seed, args.val_every, args.resume, meta, device)
     (args.out / "summary.json").write_text(json.dumps(best, indent=1))

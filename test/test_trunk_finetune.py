@@ -1,0 +1,137 @@
+"""The trunk recipe's per-frame stage: frames in memory, which blocks learn, its checkpoint."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from signal_light_node.data.split import write_split
+from signal_light_node.errors import ConfigError
+from signal_light_node.evaluation.metrics import roc_auc
+from signal_light_node.labels import TASKS, LightStatus, View
+from signal_light_node.model.config import trunk_config
+from signal_light_node.model.registry import build_model
+from signal_light_node.training import frame_pool, trunk_finetune, trunk_recipe
+from signal_light_node.training.frame_pool import FramePool, sample_batch
+from signal_light_node.training.trunk_finetune import (FROZEN, frame_scores, load_trunk_weights,
+                                                       set_trainable)
+
+
+@pytest.fixture(scope="module")
+def split(tmp_path_factory):
+    out = tmp_path_factory.mktemp("frames") / "pool_1"
+    write_split(out, seed=7, n_sequences=3, seq_len=12, crop=trunk_config().crop_config(),
+                full_tracks=True, progress=False)
+    return out
+
+
+def test_roc_auc_ranks_and_says_none_without_both_sides():
+    assert roc_auc([0.9, 0.8], [0.1, 0.2]) == 1.0
+    assert roc_auc([0.1], [0.9]) == 0.0
+    assert roc_auc([0.5, 0.2], [0.4, 0.1]) == 0.75
+    assert roc_auc([], [0.3]) is None
+
+
+def test_pool_holds_every_frame_with_its_track_slices(split):
+    pool = FramePool.load([split])
+    assert pool.n_tracks == 3 and len(pool) == pool.offsets[-1]
+    targets = pool.targets(np.arange(len(pool)))
+    assert targets.shape == (len(pool), 4)
+    lit = pool.lit_labels[:, TASKS.index("left")]
+    assert np.array_equal(targets[:, 1], lit)
+    assert np.array_equal(targets[:, 3], pool.labels[:, TASKS.index("view")])
+
+
+def test_a_folder_that_is_no_split_is_refused(tmp_path):
+    with pytest.raises(ConfigError, match="not a rendered split"):
+        FramePool.load([tmp_path])
+
+
+def test_mirroring_swaps_the_blinkers_and_side_views():
+    crops = np.zeros((2, 8, 8, 3), np.uint8)
+    crops[:, :, :2] = 200  # bright on the image's left
+    labels = np.zeros((2, len(TASKS)), np.int64)
+    labels[:, TASKS.index("view")] = int(View.LEFT)
+    lit = np.zeros((2, len(TASKS)), np.int64)
+    lit[:, TASKS.index("left")] = int(LightStatus.ON)
+    lit[:, TASKS.index("right")] = int(LightStatus.UNKNOWN)
+    rng = np.random.default_rng(0)
+    seen = set()
+    for _ in range(20):
+        out, out_lit, out_labels = frame_pool._augment_track(crops, lit, labels, rng, augment=0.0)
+        mirrored = out[0, 0, -1, 0] == 200
+        seen.add(bool(mirrored))
+        want_left = LightStatus.UNKNOWN if mirrored else LightStatus.ON
+        assert out_lit[0, TASKS.index("left")] == want_left
+        assert out_labels[0, TASKS.index("view")] == (View.RIGHT if mirrored else View.LEFT)
+    assert seen == {True, False}
+
+
+def test_a_batch_takes_frames_of_many_tracks(split):
+    pool = FramePool.load([split])
+    x, y = sample_batch(pool, np.random.default_rng(1), tracks=4, per_track=3, augment=1.0)
+    assert x.shape == (12, 3, 64, 64) and x.dtype == torch.uint8
+    assert y.shape == (12, 4) and int(y.min()) >= -1
+
+
+@pytest.mark.parametrize("train_from,blocks", [(FROZEN, 0), (8, 3), (0, 11), (-1, 11)])
+def test_train_from_chooses_the_blocks_that_learn(train_from, blocks):
+    model = build_model(trunk_config())
+    params = set_trainable(model.trunk, train_from)
+    learning = {name.split(".")[1] for name, p in model.trunk.named_parameters()
+                if p.requires_grad and name.startswith("blocks.")}
+    assert len(learning) == blocks
+    stem = any(p.requires_grad for p in model.trunk.stem.parameters())
+    assert stem == (train_from == -1)
+    assert len(params) == sum(p.requires_grad for p in model.trunk.parameters())
+    with pytest.raises(ConfigError, match="train-from"):
+        set_trainable(model.trunk, 12)
+
+
+def test_frame_scores_rank_each_lamp_over_its_seen_frames():
+    targets = np.array([[1, 0, 2, 0], [0, 1, 2, 1], [1, 0, 2, 2]])
+    on = np.array([[0.1, 0.8, 0.1], [0.7, 0.2, 0.1], [0.2, 0.3, 0.5]])
+    probs = [on, on[::-1], on, np.eye(4)[[0, 1, 3]]]
+    scores = frame_scores(probs, targets)
+    assert scores["brake_auc"] == 1.0 and scores["right_auc"] is None
+    assert scores["brake_unknown"] == pytest.approx(1 / 3)
+    assert scores["view_acc"] == pytest.approx(2 / 3)
+
+
+def test_stage_trains_resumes_and_hands_its_trunk_to_the_temporal_recipe(split, tmp_path):
+    out = tmp_path / "frames"
+    args = ["--out", str(out), "--pool", str(split), "--val", str(split), "--tracks", "2",
+            "--per-track", "2", "--val-every", "2", "--threads", "1", "--train-from", "9"]
+    assert trunk_finetune.main(args + ["--steps", "2"]) == 0
+    assert trunk_finetune.main(args + ["--steps", "3", "--resume"]) == 0
+    history = [json.loads(line) for line in (out / "history.jsonl").read_text().splitlines()]
+    assert [h["step"] for h in history] == [2, 3]
+    saved = torch.load(out / "last.pt", weights_only=False)
+    fresh = build_model(trunk_config(), pretrained=True)
+    changed = {k for k, v in saved["trunk"].items() if not torch.equal(v, fresh.trunk.state_dict()[k])}
+    assert changed and all(k.startswith(("blocks.9.", "blocks.10.")) for k in changed)
+
+    model = build_model(trunk_config(), pretrained=True)
+    assert load_trunk_weights(model, out / "last.pt")["train_from"] == 9
+    assert torch.equal(model.trunk.blocks[10].project[0].weight,
+                       saved["trunk"]["blocks.10.project.0.weight"])
+    run = tmp_path / "run"
+    assert trunk_recipe.main(["--out", str(run), "--pool", str(split), "--val", str(split),
+                              "--batch", "2", "--seq-len", "8", "--val-every", "2", "--steps", "2",
+                              "--threads", "1", "--trunk-weights", str(out / "best.pt")]) == 0
+    meta = torch.load(run / "last.pt", weights_only=False)["meta"]
+    assert meta["trunk_weights"]["train_from"] == 9
+
+
+def test_a_trunk_of_another_shape_is_refused(split, tmp_path):
+    out = tmp_path / "frames"
+    assert trunk_finetune.main(["--out", str(out), "--pool", str(split), "--val", str(split),
+                                "--tracks", "2", "--per-track", "2", "--steps", "1",
+                                "--threads", "1"]) == 0
+    other = build_model(trunk_config(trunk_stride=8))
+    with pytest.raises(ConfigError, match="trunk_stride"):
+        load_trunk_weights(other, out / "best.pt")
+    with pytest.raises(ConfigError, match="not a per-frame"):
+        torch.save({"x": 1}, tmp_path / "bad.pt")
+        load_trunk_weights(other, tmp_path / "bad.pt")
