@@ -203,8 +203,10 @@ class FineTune:
         return float(loss.detach()), parts
 
     def save(self, path: Path, meta: Dict[str, Any]) -> None:
-        """The per-frame checkpoint ``trunk_recipe --trunk-weights`` reads."""
-        torch.save({"trunk": self.model.trunk.state_dict(), "head": self.head.state_dict(),
+        """The per-frame checkpoint ``trunk_recipe --trunk-weights`` reads (CPU tensors,
+        so that a file trained on a GPU loads anywhere)."""
+        cpu = lambda module: {k: v.cpu() for k, v in module.state_dict().items()}  # noqa: E731
+        torch.save({"trunk": cpu(self.model.trunk), "head": cpu(self.head),
                     "config": self.model.config.to_dict(), "train_from": self.train_from,
                     "step": self.progress["step"], **meta}, path)
 
