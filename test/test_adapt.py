@@ -102,7 +102,7 @@ def test_only_batch_norm_buffers_change_toward_the_new_data(adapted: Path) -> No
             assert torch.equal(before[key], after[key]), key
     moved = [k for k in norms if k.endswith("running_mean")
              and not torch.equal(before[k], after[k])]
-    assert len(moved) == len(batch_norm_layers(model)) == 6
+    assert len(moved) == len(batch_norm_layers(model)) > 0
     # The first layer's input does not depend on any batch norm: its new running mean is
     # the mean over the bag's stepped crops, which the shipped statistics were not.
     first = batch_norm_layers(model)[0][0]
@@ -118,7 +118,8 @@ def test_meta_says_what_it_was_adapted_from_and_on(adapted: Path, capsys) -> Non
     loaded = load_checkpoint(adapted)
     info = loaded.meta["adapted"]
     assert Path(info["from"]) == DEFAULT_WEIGHTS and info["data"] == [str(BAG)]
-    assert info["frames"] > 100 and info["tracks"] == 8 and info["batch_norm_layers"] == 6
+    assert info["frames"] > 100 and info["tracks"] == 8
+    assert info["batch_norm_layers"] == len(batch_norm_layers(loaded.model)) > 0
     assert loaded.meta["training_data"] == load_checkpoint(DEFAULT_WEIGHTS).meta["training_data"]
     # It loads and steps like any checkpoint.
     model, size = loaded.model, loaded.config.input_size

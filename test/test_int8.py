@@ -18,6 +18,7 @@ pytest.importorskip("onnxruntime")
 
 from signal_light_node.model import onnx_format as fmt  # noqa: E402
 from signal_light_node.model.checkpoint import DEFAULT_WEIGHTS  # noqa: E402
+from signal_light_node.model.onnx_quantize import TRUNK_INT8_FROM, quantized_nodes  # noqa: E402
 from signal_light_node.tools.calibration import (RecordingBackend,  # noqa: E402
                                                  step_agreement)
 from signal_light_node.tools.replay import replay_bag  # noqa: E402
@@ -45,7 +46,7 @@ def test_shipped_int8_is_the_quantised_export_of_the_shipped_weights(shipped_int
         "signal_light_node/commands/export.py for the command")
     quantization = json.loads(props[fmt.KEY_QUANTIZATION])
     assert quantization["calibration"]["bags"] == ["day_street", "night_street"]
-    assert quantization["nodes"] and all(n.startswith(("/backbone/", "/cells."))
+    assert quantization["nodes"] and all(n in quantized_nodes(onnx.load(str(fmt.DEFAULT_ONNX)))
                                          for n in quantization["nodes"])
     assert shipped_int8.stat().st_size < fmt.DEFAULT_ONNX.stat().st_size
 
@@ -140,3 +141,14 @@ def test_node_asked_for_int8_with_torch_stops_with_one_clear_line(shipped_int8, 
                                  rclpy_isolated_env(), tmp_path)
     assert code != 0 and len(lines) == 1, lines
     assert "precision int8 asked for" in lines[0] and "FATAL" in lines[0]
+
+
+def test_only_the_trunks_late_blocks_and_the_recurrent_cells_are_quantised():
+    names = ["/trunk/stem/stem.1/Conv", "/trunk/blocks/blocks.0/project/project.0/Conv",
+             f"/trunk/blocks/blocks.{TRUNK_INT8_FROM - 1}/expand/expand.0/Conv",
+             f"/trunk/blocks/blocks.{TRUNK_INT8_FROM}/depthwise/depthwise.1/Conv",
+             "/trunk/blocks/blocks.10/project/project.0/Conv", "/cells.0/gates/Conv",
+             "/backbone/conv1/Conv", "/project/Conv", "/head_conv/Conv"]
+    graph = onnx.helper.make_graph([onnx.helper.make_node("Conv", ["x", "w"], ["y"], name=n)
+                                    for n in names], "g", [], [])
+    assert quantized_nodes(onnx.helper.make_model(graph)) == names[3:7]

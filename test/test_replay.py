@@ -567,9 +567,11 @@ def test_trivial_baselines_by_hand():
 @pytest.mark.skipif(not (REPO / "bags" / "independent_day").exists(),
                     reason="bags/independent_day is not committed")
 def test_geometry_judges_blinkers_the_model_calls_unknown_on_another_renderer(tmp_path):
-    """On the independent generator's day bag the shipped model calls most visible blinkers
+    """On the independent generator's day bag the shipped model calls many visible blinkers
     UNKNOWN; with ``blinker_sight: geometry`` (view head and box cover) most are judged, the
-    brake untouched (docs/model.md, "Visibility from geometry")."""
+    brake untouched (docs/model.md, "Visibility from geometry"). The CNN shipped until
+    2026-11-26 called 91 / 98 % of them UNKNOWN (geometry: 29 / 59 %); the fine-tuned trunk
+    calls 42 / 44 % (geometry: 13 / 16 %)."""
     from signal_light_node.model import DEFAULT_WEIGHTS
     from signal_light_node.runtime.engine import engine_from_checkpoint
     from signal_light_node.runtime.intent_filter import IntentFilterConfig
@@ -587,5 +589,5 @@ def test_geometry_judges_blinkers_the_model_calls_unknown_on_another_renderer(tm
                          for light in ("brake", "left", "right")}
     model, geometry = shares["model"], shares["geometry"]
     assert geometry["brake"] == model["brake"]
-    for light in ("left", "right"):  # measured 0.91 -> 0.29 and 0.98 -> 0.59
-        assert geometry[light] <= model[light] - 0.3, shares
+    for light in ("left", "right"):  # measured 0.42 -> 0.13 and 0.44 -> 0.16
+        assert geometry[light] <= model[light] - 0.2, shares
