@@ -1,4 +1,4 @@
-"""The trunk recipe's per-frame stage: fine-tune the pretrained trunk's last blocks.
+"""The trunk recipe's per-frame stage: fine-tune the pretrained trunk's blocks frame by frame.
 
 ``python -m signal_light_node.training.trunk_finetune --out RUN/frames --pool P... --val V...``
 

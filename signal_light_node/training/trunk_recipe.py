@@ -19,7 +19,7 @@
 The trunk stays frozen: its batch-norm statistics and weights are the checkpoint's, so the
 node's model is exactly the one validated here. They are ImageNet's, or with
 ``--trunk-weights`` those of the per-frame stage (``training.trunk_finetune``), which
-fine-tunes the trunk's last blocks on single frames first.
+fine-tunes the trunk's blocks on single frames first.
 """
 
 from __future__ import annotations
