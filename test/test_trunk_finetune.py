@@ -109,7 +109,8 @@ def test_stage_trains_resumes_and_hands_its_trunk_to_the_temporal_recipe(split, 
     assert [h["step"] for h in history] == [2, 3]
     saved = torch.load(out / "last.pt", weights_only=False)
     fresh = build_model(trunk_config(), pretrained=True)
-    changed = {k for k, v in saved["trunk"].items() if not torch.equal(v, fresh.trunk.state_dict()[k])}
+    fresh_trunk = fresh.trunk.state_dict()
+    changed = {k for k, v in saved["trunk"].items() if not torch.equal(v, fresh_trunk[k])}
     assert changed and all(k.startswith(("blocks.9.", "blocks.10.")) for k in changed)
 
     model = build_model(trunk_config(), pretrained=True)

@@ -42,7 +42,8 @@ from signal_light_node.evaluation.metrics import roc_auc
 from signal_light_node.model.config import trunk_config
 from signal_light_node.model.registry import build_model
 from signal_light_node.model.trunk import BLOCKS
-from signal_light_node.training.frame_pool import FRAME_TARGETS, FrameBatches, FramePool, frame_arrays
+from signal_light_node.training.frame_pool import (FRAME_TARGETS, FrameBatches, FramePool,
+                                                   frame_arrays)
 
 LOG = logging.getLogger("trunk_finetune")
 #: Classes of each per-frame target (:data:`FRAME_TARGETS`) and its loss weight.
