@@ -67,19 +67,19 @@ class _Batches:
         return next(self._feeds, None)
 
 
-def _trunk_block(name: str) -> Optional[int]:
-    """The trunk block a node belongs to (-1 for the stem), or None outside the trunk."""
+def _late_enough(name: str) -> bool:
+    """False for a node of the trunk's stem or of a block before :data:`TRUNK_INT8_FROM`."""
     if not name.startswith("/trunk/"):
-        return None
+        return True
     match = re.match(r"/trunk/blocks/blocks\.(\d+)/", name)
-    return int(match.group(1)) if match else -1
+    return match is not None and int(match.group(1)) >= TRUNK_INT8_FROM
 
 
 def quantized_nodes(model: Any) -> List[str]:
     """Names of the ``Conv`` nodes of an ONNX graph that :func:`quantize_export` quantises."""
     return [n.name for n in model.graph.node
             if n.op_type == "Conv" and n.name.startswith(QUANTIZED_MODULES)
-            and (_trunk_block(n.name) is None or _trunk_block(n.name) >= TRUNK_INT8_FROM)]
+            and _late_enough(n.name)]
 
 
 def quantize_export(source: "str | Path", output: "str | Path", crops: np.ndarray,

@@ -33,6 +33,12 @@ _LIT_COLUMNS = [TASKS.index(t) for t in ("brake", "left", "right")]
 _VIEW_COLUMN = TASKS.index("view")
 
 
+def frame_targets(lit_labels: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """Per-frame targets ``[n, 4]`` (:data:`FRAME_TARGETS`) of label rows ``[n, 5]``."""
+    return np.concatenate([lit_labels[:, _LIT_COLUMNS], labels[:, [_VIEW_COLUMN]]],
+                          1).astype(np.int64)
+
+
 @dataclass
 class FramePool:
     """Frames of whole tracks: crops ``[F, S, S, 3]`` uint8, ``labels`` and ``lit_labels``
@@ -80,8 +86,7 @@ class FramePool:
 
     def targets(self, index: np.ndarray) -> np.ndarray:
         """Per-frame targets ``[n, 4]`` (:data:`FRAME_TARGETS`) of frames ``index``."""
-        return np.concatenate([self.lit_labels[index][:, _LIT_COLUMNS],
-                               self.labels[index][:, [_VIEW_COLUMN]]], 1).astype(np.int64)
+        return frame_targets(self.lit_labels[index], self.labels[index])
 
     def class_counts(self, num_classes: Sequence[int]) -> List[np.ndarray]:
         """Per target, how many frames hold each class (unlabelled frames left out)."""
@@ -115,9 +120,9 @@ def sample_batch(pool: FramePool, rng: np.random.Generator, tracks: int, per_tra
         c, lit, labels = _augment_track(pool.crops[index], pool.lit_labels[index],
                                         pool.labels[index], rng, augment)
         crops.append(c)
-        targets.append(np.concatenate([lit[:, _LIT_COLUMNS], labels[:, [_VIEW_COLUMN]]], 1))
+        targets.append(frame_targets(lit, labels))
     x = torch.from_numpy(np.ascontiguousarray(np.concatenate(crops))).permute(0, 3, 1, 2)
-    return x, torch.from_numpy(np.concatenate(targets).astype(np.int64))
+    return x, torch.from_numpy(np.concatenate(targets))
 
 
 class FrameBatches(torch.utils.data.IterableDataset):

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from typing import Any, Dict, Mapping, Optional, Sequence, Tuple
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -20,6 +21,16 @@ from signal_light_node.labels import TASKS
 
 #: Tasks whose label needs time to be seen (no loss during a window's warm-up).
 TEMPORAL_TASKS = ("intent", "left", "right")
+
+
+def share_weights(counts: np.ndarray, power: float = 0.5) -> torch.Tensor:
+    """Class weights ``(share * K) ** -power`` from per-class frame counts (one added to
+    each, so an unseen class is not infinite), clipped to [0.25, 5]: the fixed weights of
+    the trunk recipe's stages, which count their whole cache or pool once."""
+    counts = np.asarray(counts, np.float64) + 1.0
+    share = counts / counts.sum()
+    return torch.tensor(np.clip((share * len(counts)) ** -power, 0.25, 5.0),
+                        dtype=torch.float32)
 
 
 def multitask_loss(logits: Mapping[str, torch.Tensor], labels: torch.Tensor, mask: torch.Tensor,

@@ -44,6 +44,7 @@ from signal_light_node.model.registry import build_model
 from signal_light_node.model.trunk import BLOCKS
 from signal_light_node.training.frame_pool import (FRAME_TARGETS, FrameBatches, FramePool,
                                                    frame_arrays)
+from signal_light_node.training.loss import share_weights
 
 LOG = logging.getLogger("trunk_finetune")
 #: Classes of each per-frame target (:data:`FRAME_TARGETS`) and its loss weight.
@@ -92,11 +93,7 @@ def _lr_scale(progress: float, step: int, warm: int = 100) -> float:
 
 def class_weights(pool: FramePool, power: float = 0.5) -> List[Tensor]:
     """Per target ``share ** -power`` of each class, clipped to [0.25, 5]."""
-    out = []
-    for counts, k in zip(pool.class_counts(TARGET_CLASSES), TARGET_CLASSES):
-        share = (counts + 1.0) / (counts.sum() + k)
-        out.append(torch.tensor(np.clip((share * k) ** -power, 0.25, 5.0), dtype=torch.float32))
-    return out
+    return [share_weights(counts, power) for counts in pool.class_counts(TARGET_CLASSES)]
 
 
 def frame_loss(logits: Sequence[Tensor], targets: Tensor, weights: Sequence[Tensor]

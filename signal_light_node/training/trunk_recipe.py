@@ -44,7 +44,7 @@ from signal_light_node.model.trunk_network import LIT_TASKS
 from signal_light_node.evaluation.metrics import confusion_matrix, macro_f1, per_class_scores
 from signal_light_node.training.feature_cache import (FeatureCache, collate_windows, track_logits,
                                                       trunk_fingerprint, write_cache)
-from signal_light_node.training.loss import multitask_loss, warmup_frames
+from signal_light_node.training.loss import multitask_loss, share_weights, warmup_frames
 from signal_light_node.training.trunk_finetune import load_trunk_weights
 
 LOG = logging.getLogger("trunk_recipe")
@@ -72,12 +72,11 @@ def class_weights(caches: Sequence[FeatureCache], config: ModelConfig, power: fl
     out = {}
     for i, task in enumerate(TASKS):
         k = config.num_classes[task]
-        counts = np.ones(k)
+        counts = np.zeros(k)
         for cache in caches:
             col = cache.labels[:, i]
             counts += np.bincount(col[col >= 0], minlength=k)[:k]
-        share = counts / counts.sum()
-        out[task] = torch.tensor(np.clip((share * k) ** -power, 0.25, 5.0), dtype=torch.float32)
+        out[task] = share_weights(counts, power)
     return out
 
 
