@@ -4,8 +4,9 @@
 # per pool, and beside them the validation split (windows), the own test split and the
 # held-out family test split (style family 2), plus a family-2 calibration split when
 # CAL_TRACKS > 0. OBLIQUE (default 0) is the share of the pools' front and rear views drawn
-# turned (synth.traffic.OBLIQUE_YAW_DEG); the evaluation splits never have it, so that they
-# stay comparable across data versions. A split whose manifest exists is reused. Called by
+# turned (synth.traffic.OBLIQUE_YAW_DEG), TAIL_GLARE (default 0) the share of their lit
+# dusk and night vehicles with clipped tail lamps (synth.traffic.Vehicle.glare); the
+# evaluation splits never have either, so that they stay comparable across data versions. A split whose manifest exists is reused. Called by
 # train_default.sh and train_trunk.sh with their settings in the environment (the defaults
 # are theirs).
 set -euo pipefail
@@ -25,6 +26,7 @@ TEST_TRACKS=${TEST_TRACKS:-240}
 TEST_FRAMES=${TEST_FRAMES:-150}
 CAL_TRACKS=${CAL_TRACKS:-0}
 OBLIQUE=${OBLIQUE:-0}
+TAIL_GLARE=${TAIL_GLARE:-0}
 
 mkdir -p "$DATA"
 pids=()
@@ -32,7 +34,7 @@ for seed in $POOL_SEEDS; do
   if [[ ! -f "$DATA/pool_$seed/manifest.json" ]]; then
     python -m signal_light_node.data.split "$DATA/pool_$seed" --seed "$seed" \
       --sequences "$POOL_TRACKS" --seq-len "$POOL_FRAMES" --full-tracks --overwrite \
-      --oblique "$OBLIQUE" \
+      --oblique "$OBLIQUE" --tail-glare "$TAIL_GLARE" \
       > "$DATA/pool_$seed.log" 2>&1 &
     pids+=($!)
   fi

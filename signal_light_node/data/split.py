@@ -305,9 +305,14 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--oblique", type=float, default=0.0, metavar="SHARE",
                         help="share of front and rear views drawn turned (10-40 degrees: "
                              "foreshortened, flank in view); default 0")
+    parser.add_argument("--tail-glare", type=float, default=0.0, metavar="SHARE",
+                        help="share of lit vehicles in dusk and night scenes whose tail lamps "
+                             "are drawn clipped like a brake (synth.traffic.Vehicle.glare); "
+                             "default 0")
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
-    extra = {"renderer_overrides": {"oblique": args.oblique}} if args.oblique else {}
+    overrides = {k: v for k, v in (("oblique", args.oblique), ("tail_glare", args.tail_glare)) if v}
+    extra = {"renderer_overrides": overrides} if overrides else {}
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
         path = write_split(args.out, args.seed, args.sequences, args.seq_len,

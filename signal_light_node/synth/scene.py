@@ -41,7 +41,7 @@ LOG = logging.getLogger(__name__)
 
 _MARGIN = 12
 _SCENE_KEYS = {"vehicles", "occluders", "poles", "distractors", "weather", "effects", "shake", "respawn", "horizon", "focal",
-               "family", "oblique"}
+               "family", "oblique", "tail_glare"}
 _VEHICLE_KEYS = {"view", "kind", "lamp_design", "tech", "chmsl", "intent", "brake", "colour", "lights_on", "center_x",
                  "width_px", "speed", "blink_hz", "duty", "phase", "shear", "roll", "specular", "yaw"}
 
@@ -68,7 +68,9 @@ class SceneRenderer:
             family of lamp colours and camera tone, ``synth.lamps.STYLE_FAMILIES``; default:
             one of ``TRAIN_FAMILIES`` drawn from the seed), ``oblique`` (share of front and
             rear views drawn turned by 10-40 degrees, foreshortened with their flank in
-            view; default 0). Vehicle keys:
+            view; default 0), ``tail_glare`` (share of lit vehicles in dusk and night
+            scenes whose tail lamps are drawn clipped, told from a brake only by its
+            larger glow, hotter core and the centre lamp; default 0). Vehicle keys:
             ``view`` (View), ``kind``, ``lamp_design``, ``tech`` ("led"/"bulb"), ``chmsl``,
             ``intent`` (Intent held for the whole sequence), ``brake`` (bool held),
             ``colour`` (BGR), ``lights_on``, ``center_x`` (pixels), ``width_px`` (box width),
@@ -124,6 +126,9 @@ class SceneRenderer:
         self.oblique = float(overrides.get("oblique", 0.0))
         if not 0.0 <= self.oblique <= 1.0:
             raise ConfigError(f"oblique must be a share in [0, 1], got {overrides['oblique']!r}")
+        self.tail_glare = float(overrides.get("tail_glare", 0.0))
+        if not 0.0 <= self.tail_glare <= 1.0:
+            raise ConfigError(f"tail_glare must be a share in [0, 1], got {overrides['tail_glare']!r}")
 
     # ------------------------------------------------------------------ setup
     def _setup(self) -> None:
@@ -156,7 +161,7 @@ class SceneRenderer:
         LOG.debug("scene seed=%d %dx%d fps=%.1f lighting=%s weather=%s focal=%.0f horizon=%.0f vehicles=%d",
                   self.seed, W, H, self.fps, self.lighting, weather, f, hy, self.n_vehicles)
         self._traffic = Traffic(self.seed, rng, W, self._geo, self._light, self.lighting, self.family,
-                                self.oblique)
+                                self.oblique, self.tail_glare)
         vo = o.get("vehicles") or []
         for i in range(self.n_vehicles):
             self._traffic.vehicles.append(self._traffic.spawn(vo[i] if i < len(vo) else {}, entering=False))

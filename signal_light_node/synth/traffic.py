@@ -13,7 +13,7 @@ replaced by one entering it (``Traffic.step``).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Dict, List, Tuple
 
 import numpy as np
@@ -32,6 +32,10 @@ _VIEW_WEIGHTS = {View.BEHIND: 0.42, View.FRONT: 0.26, View.LEFT: 0.16, View.RIGH
 #: Range of |yaw| (degrees) of a turned front or rear view. Under 45 degrees the face
 #: toward the camera is still the one labelled (the 90-degree sectors of the truth).
 OBLIQUE_YAW_DEG = (10.0, 40.0)
+#: With ``tail_glare``: the chosen vehicles' tail level (clipped on the lens by the lamp
+#: gain) and the level of their brake and flashes over it.
+GLARE_TAIL_LEVEL = (0.7, 1.0)
+GLARE_LEVEL = (2.0, 4.0)
 #: Largest |yaw| a vehicle override may ask for.
 MAX_YAW_DEG = 44.0
 
@@ -77,6 +81,10 @@ class Vehicle:
     #: Degrees the body's axis is turned from the line of sight's depth direction; its
     #: far end lies to the image right for a positive yaw (front and rear views only).
     yaw: float = 0.0
+    #: Level of a fully lit brake or flash over the lens's clipping (1: none). Above 1
+    #: the vehicle's tail lamps are drawn clipped too, as a camera at night shows them,
+    #: and only the larger glow, the hotter core and the centre lamp tell a brake.
+    glare: float = 1.0
 
 
 class Traffic:
@@ -91,10 +99,12 @@ class Traffic:
         lighting: "day", "dusk" or "night".
         family: Style family of the lamps.
         oblique: Share of front and rear views drawn turned (``OBLIQUE_YAW_DEG``).
+        tail_glare: Share of vehicles with lamps lit in a dusk or night scene whose tail
+            lamps are drawn clipped like their brake lamps (``Vehicle.glare``).
     """
 
     def __init__(self, seed: int, rng: np.random.Generator, width: int, geo: StreetGeometry, light: Lighting, lighting: str,
-                 family: int, oblique: float = 0.0) -> None:
+                 family: int, oblique: float = 0.0, tail_glare: float = 0.0) -> None:
         self.seed = seed
         self.width = width
         self._rng = rng
@@ -103,6 +113,7 @@ class Traffic:
         self.lighting = lighting
         self.family = family
         self.oblique = oblique
+        self.tail_glare = tail_glare
         self._next_id = int(rng.integers(1, 50))
         self.vehicles: List[Vehicle] = []
 
@@ -219,6 +230,7 @@ class Traffic:
                     tracker_bias=tuple(float(b) for b in vrng.normal(0, 0.02, 4)),
                     tracker_sigma=float(vrng.uniform(0.008, 0.035)), tracker_amodal=bool(vrng.random() < 0.3))
         v.yaw = self._yaw(vo, v)
+        self._glare(v)
         pts, splits, sil = [], [], []
         n = 0
         for key, poly in shape.parts:
@@ -251,6 +263,18 @@ class Traffic:
         if yrng.random() >= self.oblique:
             return 0.0
         return float(yrng.uniform(*OBLIQUE_YAW_DEG) * (1.0 if yrng.random() < 0.5 else -1.0))
+
+    def _glare(self, v: Vehicle) -> None:
+        """With probability ``tail_glare``, a lit vehicle of a dusk or night scene gets
+        clipped tail lamps and a brake and flashes brighter still (a stream of its own, as
+        ``_yaw``'s)."""
+        if self.tail_glare <= 0 or self.lighting == "day" or not v.lights_on:
+            return
+        grng = np.random.default_rng([self.seed, 500 + int(v.track_id)])
+        if grng.random() >= self.tail_glare:
+            return
+        v.style = replace(v.style, tail_level=float(grng.uniform(*GLARE_TAIL_LEVEL)))
+        v.glare = float(grng.uniform(*GLARE_LEVEL))
 
     def _place(self, vo: Dict[str, Any], view: View, face_w: float, face_h: float, entering: bool,
                vrng: np.random.Generator, z_min: float, z_max: float) -> Tuple[float, float]:

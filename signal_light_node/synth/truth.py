@@ -112,7 +112,7 @@ def light_status(on: bool, visible: bool) -> LightStatus:
 class LampStates(NamedTuple):
     """What a vehicle's lamps do at one time."""
 
-    levels: List[List[float]]  # brightness of every lamp segment (0..1)
+    levels: List[List[float]]  # brightness of every lamp segment (0..1; up to Vehicle.glare)
     brake: bool
     left_on: bool  # left blinker active (lit or in its dark half)
     right_on: bool
@@ -132,28 +132,30 @@ def lamp_states(v: Vehicle, t: float, exp_s: float, night: bool) -> LampStates:
     t_act = t + v.phase if start < -1e8 else t - start
     flash_lit = flasher_level(t_act, st, exp_s) >= 0.5
     tail = st.tail_level if v.lights_on else 0.0
+    full = v.glare  # a fully lit brake or flash; over 1 only for glaring vehicles
     levels: List[List[float]] = []
     for lamp, polys in zip(v.lamps, v.lamp_polys):
         active = (lamp.side == "L" and left_on) or (lamp.side == "R" and right_on)
         role = lamp.role
         if role == "tail":
-            lev = (1.0 if brake and lamp.side != "C" else tail)
+            lev = (full if brake and lamp.side != "C" else tail)
             levels.append([lev])
         elif role == "chmsl":
-            levels.append([1.0 if brake else 0.0])
+            levels.append([full if brake else 0.0])
         elif role == "turn":
             if not active:
                 levels.append([0.0] * len(polys))
             elif len(polys) > 1:
                 step = st.duty / st.blink_hz * st.seq_fraction / len(polys)
-                levels.append([flasher_level(t_act, st, exp_s, delay=k * step) for k in range(len(polys))])
+                levels.append([full * flasher_level(t_act, st, exp_s, delay=k * step)
+                               for k in range(len(polys))])
             else:
-                levels.append([flasher_level(t_act, st, exp_s)])
+                levels.append([full * flasher_level(t_act, st, exp_s)])
         elif role == "turn_tail":
-            base = 1.0 if brake else tail
+            base = full if brake else tail
             if active:
                 low = st.combined_dim if brake else tail
-                levels.append([low + (1.0 - low) * flasher_level(t_act, st, exp_s)])
+                levels.append([low + (full - low) * flasher_level(t_act, st, exp_s)])
             else:
                 levels.append([base])
         elif role == "head":

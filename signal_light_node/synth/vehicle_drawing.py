@@ -245,6 +245,9 @@ class VehiclePainter:
             lens = v.lens_cols[li]
             for (a, b), lev in zip(polys, levs):
                 k = min(1.0, lev * gain)
+                # Over the lens's clipping (a glaring vehicle's brake and flashes) the light
+                # still grows: a hotter core and a larger glow. Levels up to 1 as before.
+                over = math.sqrt(lev) if lev > 1.0 else 1.0
                 col = (lens[0] + (lamp.emit[0] - lens[0]) * k, lens[1] + (lamp.emit[1] - lens[1]) * k,
                        lens[2] + (lamp.emit[2] - lens[2]) * k)
                 cv2.fillPoly(d.canvas, [IP[a:b]], col, cv2.LINE_AA, _SHIFT)
@@ -257,9 +260,12 @@ class VehiclePainter:
                         # Over-exposed core: the centre of a bright lamp clips towards white.
                         core = (p - c) * 0.55 + c
                         hot = (0.35 + 0.4 * k) if night else LIT_CORE_DAY * v.style.brightness
+                        if over > 1.0:
+                            hot = min(0.95, hot * over)
                         cc = tuple(e + (255 - e) * hot for e in lamp.emit)
                         cv2.fillPoly(d.canvas, [np.round(core * _ONE).astype(np.int32)], cc, cv2.LINE_AA, _SHIFT)
-                    add_glow(layer, c[0] + rx0, c[1] + ry0, size * 0.5, lamp.emit, 0.5 * k * lt.glow * frac * lamp.glow)
+                    add_glow(layer, c[0] + rx0, c[1] + ry0, size * 0.5 * over, lamp.emit,
+                             0.5 * k * over * lt.glow * frac * lamp.glow)
                     if self._wet:
                         # Reflection on the wet road, mirrored about the vehicle's ground line.
                         gy = d.box[3]
