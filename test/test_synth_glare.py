@@ -12,6 +12,8 @@ from signal_light_node.labels import Intent, LightStatus, View
 from signal_light_node.synth import SceneRenderer
 from signal_light_node.synth.traffic import GLARE_LEVEL, GLARE_TAIL_LEVEL
 
+from scene_helpers import first_frame_vehicles
+
 CLEAN = dict(distractors=False, effects=False, poles=0, weather="clear", respawn=False, shake=False)
 
 
@@ -60,12 +62,7 @@ def test_day_scenes_and_the_default_are_drawn_as_before():
 
 
 def test_tail_glare_picks_that_share_of_lit_vehicles_at_night_and_keeps_the_vehicles():
-    def vehicles(**kw):
-        renderer = SceneRenderer(seed=12, n_vehicles=40, lighting="night", **kw)
-        next(iter(renderer.frames(1)))
-        return renderer._traffic.vehicles
-
-    plain, half = vehicles(), vehicles(tail_glare=0.5)
+    plain, half = first_frame_vehicles(12, "night"), first_frame_vehicles(12, "night", tail_glare=0.5)
     assert [(v.track_id, v.view, v.kind, v.colour, v.lights_on) for v in plain] == \
         [(v.track_id, v.view, v.kind, v.colour, v.lights_on) for v in half]
     assert all(v.glare == 1.0 for v in plain)

@@ -13,6 +13,8 @@ from signal_light_node.labels import Intent, LightStatus, View
 from signal_light_node.synth import SceneRenderer
 from signal_light_node.synth.traffic import OBLIQUE_YAW_DEG
 
+from scene_helpers import first_frame_vehicles
+
 CLEAN = dict(distractors=False, effects=False, poles=0, weather="clear", respawn=False, shake=False)
 
 
@@ -53,9 +55,7 @@ def test_a_turned_front_view_and_a_straight_one_differ_only_by_the_turn():
 
 def test_oblique_turns_that_share_of_front_and_rear_views_and_keeps_the_vehicles():
     def vehicles(**kw):
-        renderer = SceneRenderer(seed=11, n_vehicles=40, lighting="day", **kw)
-        next(iter(renderer.frames(1)))
-        return renderer._traffic.vehicles
+        return first_frame_vehicles(11, "day", **kw)
 
     plain, all_turned = vehicles(), vehicles(oblique=1.0)
     # The same vehicles (positions may differ: a turned box overlaps others differently).
