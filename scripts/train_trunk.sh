@@ -51,7 +51,8 @@ WEIGHTS=${WEIGHTS:-$RUN/trunk.pt}
 EXPORT=${EXPORT:-$([[ "$WEIGHTS" == "$SHIPPED" ]] && echo 1 || echo 0)}
 SEED=${SEED:-1}
 POOL_SEEDS=${POOL_SEEDS:-"31 32 33"}
-# The other data settings (POOL_TRACKS, VAL_*, TEST_*, FAMILY_SEED, CAL_*): scripts/render_data.sh.
+# The other data settings (POOL_TRACKS, VAL_*, TEST_*, FAMILY_SEED, CAL_*, OBLIQUE, TAIL_GLARE):
+# scripts/render_data.sh.
 # JSON changes on model.config.trunk_config(): the recipe's model (docs/model.md, "Finer lamp
 # maps, a non-linear lit head, blink evidence by period only").
 RECIPE_MODEL='{"frequency_evidence": false, "lamp_detail": 2, "lit_hidden": 128, "blink_levels": false}'
