@@ -6,9 +6,9 @@
 # CAL_TRACKS > 0. OBLIQUE (default 0) is the share of the pools' front and rear views drawn
 # turned (synth.traffic.OBLIQUE_YAW_DEG), TAIL_GLARE (default 0) the share of their lit
 # dusk and night vehicles with clipped tail lamps (synth.traffic.Vehicle.glare); the
-# evaluation splits never have either, so that they stay comparable across data versions. A split whose manifest exists is reused. Called by
-# train_default.sh and train_trunk.sh with their settings in the environment (the defaults
-# are theirs).
+# evaluation splits never have either, so that they stay comparable across data versions.
+# A split whose manifest exists is reused. Called by train_default.sh and train_trunk.sh
+# with their settings in the environment (the defaults are theirs).
 set -euo pipefail
 
 cd "$(dirname "$0")/.."
