@@ -7,6 +7,8 @@
 # turned (synth.traffic.OBLIQUE_YAW_DEG), TAIL_GLARE (default 0) the share of their lit
 # dusk and night vehicles with clipped tail lamps (synth.traffic.Vehicle.glare); the
 # evaluation splits never have either, so that they stay comparable across data versions.
+# POOL_NAME (default pool) names the pools DATA/POOL_NAME_SEED, so that pools of the same
+# seeds drawn with other settings (train_trunk.sh's glare pools) can sit beside them.
 # A split whose manifest exists is reused. Called by train_default.sh and train_trunk.sh
 # with their settings in the environment (the defaults are theirs).
 set -euo pipefail
@@ -27,15 +29,17 @@ TEST_FRAMES=${TEST_FRAMES:-150}
 CAL_TRACKS=${CAL_TRACKS:-0}
 OBLIQUE=${OBLIQUE:-0}
 TAIL_GLARE=${TAIL_GLARE:-0}
+POOL_NAME=${POOL_NAME:-pool}
 
 mkdir -p "$DATA"
 pids=()
 for seed in $POOL_SEEDS; do
-  if [[ ! -f "$DATA/pool_$seed/manifest.json" ]]; then
-    python -m signal_light_node.data.split "$DATA/pool_$seed" --seed "$seed" \
+  pool="$DATA/${POOL_NAME}_$seed"
+  if [[ ! -f "$pool/manifest.json" ]]; then
+    python -m signal_light_node.data.split "$pool" --seed "$seed" \
       --sequences "$POOL_TRACKS" --seq-len "$POOL_FRAMES" --full-tracks --overwrite \
       --oblique "$OBLIQUE" --tail-glare "$TAIL_GLARE" \
-      > "$DATA/pool_$seed.log" 2>&1 &
+      > "$pool.log" 2>&1 &
     pids+=($!)
   fi
 done

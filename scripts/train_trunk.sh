@@ -52,7 +52,12 @@ EXPORT=${EXPORT:-$([[ "$WEIGHTS" == "$SHIPPED" ]] && echo 1 || echo 0)}
 SEED=${SEED:-1}
 POOL_SEEDS=${POOL_SEEDS:-"31 32 33"}
 # The other data settings (POOL_TRACKS, VAL_*, TEST_*, FAMILY_SEED, CAL_*, OBLIQUE, TAIL_GLARE):
-# scripts/render_data.sh.
+# scripts/render_data.sh. GLARE_POOL_SEEDS (default none) adds pools of those seeds drawn
+# with clipped night tail lamps on GLARE_SHARE (default 0.5) of the lit dusk and night
+# vehicles, DATA/glare_pool_SEED, to both stages (docs/model.md, "What a seed moves, and
+# more tracks": POOL_SEEDS="31 32 33 34 35 36" GLARE_POOL_SEEDS="31 32 33").
+GLARE_POOL_SEEDS=${GLARE_POOL_SEEDS:-}
+GLARE_SHARE=${GLARE_SHARE:-0.5}
 # JSON changes on model.config.trunk_config(): the recipe's model (docs/model.md, "Finer lamp
 # maps, a non-linear lit head, blink evidence by period only").
 RECIPE_MODEL='{"frequency_evidence": false, "lamp_detail": 2, "lit_hidden": 128, "blink_levels": false}'
@@ -81,6 +86,11 @@ echo "== 1/5 data in $DATA: pools (seeds $POOL_SEEDS), validation, test, family 
 pools=()
 for seed in $POOL_SEEDS; do pools+=(--pool "$DATA/pool_$seed"); done
 DATA=$DATA POOL_SEEDS=$POOL_SEEDS CAL_TRACKS=${CAL_TRACKS:-120} bash scripts/render_data.sh
+if [[ -n "$GLARE_POOL_SEEDS" ]]; then
+  DATA=$DATA POOL_SEEDS=$GLARE_POOL_SEEDS POOL_NAME=glare_pool TAIL_GLARE=$GLARE_SHARE \
+    CAL_TRACKS=${CAL_TRACKS:-120} bash scripts/render_data.sh
+  for seed in $GLARE_POOL_SEEDS; do pools+=(--pool "$DATA/glare_pool_$seed"); done
+fi
 if [[ -n "${DATA_ONLY:-}" ]]; then
   echo "== DATA_ONLY set: splits ready in $DATA"
   exit 0
