@@ -85,7 +85,8 @@ start=$(date +%s)
 echo "== 1/5 data in $DATA: pools (seeds $POOL_SEEDS), validation, test, family test, family calibration"
 pools=()
 for seed in $POOL_SEEDS; do pools+=(--pool "$DATA/pool_$seed"); done
-DATA=$DATA POOL_SEEDS=$POOL_SEEDS CAL_TRACKS=${CAL_TRACKS:-120} bash scripts/render_data.sh
+DATA=$DATA POOL_SEEDS=$POOL_SEEDS POOL_NAME=pool CAL_TRACKS=${CAL_TRACKS:-120} \
+  bash scripts/render_data.sh
 if [[ -n "$GLARE_POOL_SEEDS" ]]; then
   DATA=$DATA POOL_SEEDS=$GLARE_POOL_SEEDS POOL_NAME=glare_pool TAIL_GLARE=$GLARE_SHARE \
     CAL_TRACKS=${CAL_TRACKS:-120} bash scripts/render_data.sh
