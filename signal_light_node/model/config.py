@@ -106,6 +106,10 @@ class ModelConfig:
             features that draws where the vehicle's brake, left and right lamps are lit
             (``lit_maps`` of the training tracks, ``synth.lit_maps``): it teaches the
             per-frame part where lamps are, not just whether one is lit. Steps never run it.
+        members: With the trunk encoder, how many recurrent parts (everything after the
+            trunk) run over one shared trunk; their logits are averaged before the
+            temperatures (``model.trunk_ensemble``). Members are trained apart, one seed
+            each, and joined by ``training.join_members``.
         temperatures: Per-task logit temperature of the heads (missing tasks 1.0), fitted
             on a held-out style family by ``training.calibrate``.
     """
@@ -148,6 +152,7 @@ class ModelConfig:
     cell_periods: bool = False
     cell_pooled: bool = False
     lit_map_head: bool = False
+    members: int = 1
     temperatures: Mapping[str, float] = field(default_factory=dict, hash=False)
 
     def __post_init__(self) -> None:
@@ -217,13 +222,16 @@ class ModelConfig:
                 or self.feature_channels < 1:
             raise ConfigError(f"model config feature_channels must be a positive integer, "
                               f"got {self.feature_channels!r}")
-        for name, low in (("lit_hidden", 0), ("lamp_detail", 1)):
+        for name, low in (("lit_hidden", 0), ("lamp_detail", 1), ("members", 1)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ConfigError(f"model config {name} must be an integer >= {low}, got {value!r}")
         if self.encoder != "cnn" and self.input_size % (self.trunk_stride * self.lamp_detail):
             raise ConfigError(f"model config input_size ({self.input_size}) must be a multiple "
                               f"of trunk_stride x lamp_detail for the trunk encoder")
+        if self.members > 1 and self.encoder == "cnn":
+            raise ConfigError("model config members > 1 needs the trunk encoder "
+                              "(members share its per-frame trunk)")
         if self.lamp_detail > 1 and self.frequency_evidence:
             raise ConfigError("model config frequency_evidence reads whole lamp-map halves: "
                               "it needs lamp_detail 1")

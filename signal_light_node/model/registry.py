@@ -28,9 +28,13 @@ def known_archs() -> Tuple[str, ...]:
 
 def _build_convlstm_attention(config: ModelConfig, pretrained: bool) -> nn.Module:
     if config.encoder == "efficientnet_lite0":
+        from signal_light_node.model.trunk_ensemble import TrunkEnsemble
         from signal_light_node.model.trunk_network import TrunkLightNet
 
-        return TrunkLightNet(config, pretrained=pretrained and config.trunk_init == "imagenet")
+        imagenet = pretrained and config.trunk_init == "imagenet"
+        if config.members > 1:
+            return TrunkEnsemble(config, pretrained=imagenet)
+        return TrunkLightNet(config, pretrained=imagenet)
     from signal_light_node.model.network import LightStateNet
 
     return LightStateNet(config)

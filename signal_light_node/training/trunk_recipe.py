@@ -36,6 +36,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
+from signal_light_node.errors import ConfigError
 from signal_light_node.labels import TASKS
 from signal_light_node.model.checkpoint import save_checkpoint
 from signal_light_node.model.config import ModelConfig, trunk_config
@@ -181,9 +182,18 @@ def train(model: torch.nn.Module, train_caches: Sequence[FeatureCache], val: Fea
 
 
 def build_fresh(changes: Dict[str, Any], seed: int) -> torch.nn.Module:
-    """A new trunk network for ``changes`` on :func:`trunk_config`, seeded."""
+    """A new trunk network for ``changes`` on :func:`trunk_config`, seeded.
+
+    Raises:
+        ConfigError: ``changes`` ask for several members: they are trained apart, one
+            seed each, and joined by ``training.join_members``.
+    """
+    config = trunk_config(**changes)
+    if config.members != 1:
+        raise ConfigError(f"the recipe trains one member, got members {config.members}: train "
+                          "one run per seed and join them (training.join_members)")
     torch.manual_seed(seed)
-    return build_model(trunk_config(**changes), pretrained=True)
+    return build_model(config, pretrained=True)
 
 
 def main(argv: Optional[List[str]] = None) -> int:

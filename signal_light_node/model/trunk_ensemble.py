@@ -1,0 +1,92 @@
+"""Several recurrent parts over one shared trunk, their logits averaged.
+
+Two runs of the same recipe that differ only in their seed disagree on the generators
+they were not trained on by as much as any change of the recipe moves them (docs/model.md,
+"What a seed moves, and more tracks"); the average of their outputs beats either and
+publishes fewer changes. The trunk is frozen while the rest is trained, so every member
+of such a family sees the same per-frame features: the trunk runs once per step and only
+the recurrent parts (``TrunkLightNet`` without its trunk) run once per member.
+
+The state is the members' states one after the other, each a tuple of pairs, so the
+state bank, the backends and the ONNX export carry it as they carry one member's.
+Temperatures apply to the averaged logits (the members' own are 1).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Dict, List, Optional, Tuple
+
+import torch
+from torch import Tensor, nn
+
+from signal_light_node.errors import ConfigError
+from signal_light_node.model.interface import State, state_batch_size
+from signal_light_node.model.network import apply_temperatures
+from signal_light_node.model.trunk_network import TrunkFront, TrunkLightNet
+
+if TYPE_CHECKING:  # pragma: no cover - typing only
+    from signal_light_node.model.config import ModelConfig
+
+
+def member_config(config: "ModelConfig") -> "ModelConfig":
+    """The config of one member: the same model, alone and without temperatures."""
+    return config.replace(members=1, temperatures={})
+
+
+class TrunkEnsemble(TrunkFront):
+    """``config.members`` recurrent parts over one trunk (module doc).
+
+    Implements :class:`signal_light_node.model.interface.LightStateModel`.
+    """
+
+    def __init__(self, config: "ModelConfig", pretrained: bool = False) -> None:
+        if config.members < 2:
+            raise ConfigError(f"a trunk ensemble needs members >= 2, got {config.members}")
+        super().__init__(config, pretrained)
+        one = member_config(config)
+        self.members = nn.ModuleList(TrunkLightNet(one, with_trunk=False)
+                                     for _ in range(config.members))
+        self._sizes = [len(m.initial_state(1)) for m in self.members]
+
+    def _split(self, state: State) -> List[State]:
+        """The members' parts of an ensemble state."""
+        parts, start = [], 0
+        for size in self._sizes:
+            parts.append(tuple(state[start:start + size]))
+            start += size
+        return parts
+
+    def initial_state(self, n: int) -> State:
+        """Zero state for ``n`` new tracks: every member's, one after the other."""
+        return tuple(pair for m in self.members for pair in m.initial_state(n))
+
+    def _check_state(self, state: State, n: int) -> None:
+        if len(state) != sum(self._sizes):
+            raise ConfigError(f"state has {len(state)} layers but the model has {sum(self._sizes)}")
+        if state_batch_size(state) != n:
+            raise ConfigError(f"state holds {state_batch_size(state)} tracks but {n} crops were given")
+
+    def _average(self, outputs: List[Dict[str, Tensor]]) -> Dict[str, Tensor]:
+        mean = {k: torch.stack([o[k] for o in outputs]).mean(0) for k in outputs[0]}
+        return apply_temperatures(mean, self.config.temperatures)
+
+    def step_features(self, features: Tensor, maps: Tensor, state: State
+                      ) -> Tuple[Dict[str, Tensor], State]:
+        """One frame from per-frame features: the members' mean logits and the new state."""
+        outputs, new_state = [], []
+        for member, part in zip(self.members, self._split(state)):
+            logits, part = member.step_features(features, maps, part)
+            outputs.append(logits)
+            new_state.extend(part)
+        return self._average(outputs), tuple(new_state)
+
+    def sequence_features(self, features: Tensor, maps: Tensor, state: Optional[State] = None
+                          ) -> Tuple[Dict[str, Tensor], State]:
+        """``T`` frames from per-frame features ``[N, T, ...]``: mean logits, new state."""
+        parts = self._split(state) if state is not None else [None] * len(self.members)
+        outputs, new_state = [], []
+        for member, part in zip(self.members, parts):
+            logits, part = member.sequence_features(features, maps, part)
+            outputs.append(logits)
+            new_state.extend(part)
+        return self._average(outputs), tuple(new_state)

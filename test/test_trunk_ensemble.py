@@ -1,0 +1,115 @@
+"""Members over one shared trunk: averaging, stepping, joining checkpoints, export."""
+
+import pytest
+import torch
+
+from signal_light_node.errors import CheckpointError, ConfigError
+from signal_light_node.model.checkpoint import load_checkpoint, save_checkpoint
+from signal_light_node.model.config import trunk_config
+from signal_light_node.model.registry import build_model
+from signal_light_node.model.trunk_ensemble import TrunkEnsemble
+from signal_light_node.training.join_members import join_members
+
+RECIPE = {"frequency_evidence": False, "lamp_detail": 2, "lit_hidden": 16, "blink_levels": False}
+
+
+def _member(seed: int, trunk_from=None, **changes):
+    """A single model whose recurrent part is drawn with ``seed``, on ``trunk_from``'s trunk."""
+    torch.manual_seed(seed)
+    model = build_model(trunk_config(**dict(RECIPE, **changes))).eval()
+    if trunk_from is not None:
+        model.trunk.load_state_dict(trunk_from.trunk.state_dict())
+    return model
+
+
+def _pair(tmp_path):
+    first = _member(1)
+    second = _member(2, trunk_from=first)
+    paths = [save_checkpoint(tmp_path / f"m{i}.pt", m, m.config) for i, m in
+             enumerate((first, second))]
+    return first, second, paths
+
+
+def test_members_must_be_two_or_more_and_need_the_trunk():
+    with pytest.raises(ConfigError, match="members"):
+        trunk_config(members=0)
+    with pytest.raises(ConfigError, match="trunk encoder"):
+        trunk_config(members=2, encoder="cnn")
+    assert isinstance(build_model(trunk_config(members=3, **RECIPE)), TrunkEnsemble)
+
+
+def test_the_recipe_trains_one_member_at_a_time():
+    from signal_light_node.training.trunk_recipe import build_fresh
+
+    with pytest.raises(ConfigError, match="one run per seed"):
+        build_fresh(dict(RECIPE, members=2), seed=1)
+
+
+def test_joined_model_steps_the_mean_of_its_members_logits(tmp_path):
+    first, second, paths = _pair(tmp_path)
+    joined = load_checkpoint(join_members(paths, tmp_path / "j.pt")).model
+    assert joined.config.members == 2
+    # one trunk in the file, not one per member
+    assert sum(k.startswith("trunk.") for k in joined.state_dict()) == \
+        sum(k.startswith("trunk.") for k in first.state_dict())
+    crops = torch.rand(2, 4, 3, 64, 64)
+    with torch.no_grad():
+        a, _ = first.forward_sequence(crops)
+        b, _ = second.forward_sequence(crops)
+        mean, _ = joined.forward_sequence(crops)
+        state = joined.initial_state(2)
+        for t in range(4):
+            logits, state = joined.step_logits(crops[:, t], state)
+    for task in ("intent", "brake", "view"):
+        assert torch.allclose(mean[task], (a[task] + b[task]) / 2, atol=1e-5)
+        assert torch.allclose(logits[task], mean[task][:, 3], atol=1e-4)
+    assert len(state) == len(first.initial_state(1)) + len(second.initial_state(1))
+
+
+def test_temperatures_apply_to_the_mean(tmp_path):
+    _, _, paths = _pair(tmp_path)
+    joined = load_checkpoint(join_members(paths, tmp_path / "j.pt")).model
+    crops = torch.rand(3, 3, 64, 64)
+    with torch.no_grad():
+        plain, _ = joined.step_logits(crops, joined.initial_state(3))
+        joined.config = joined.config.replace(temperatures={"brake": 2.0})
+        hot, _ = joined.step_logits(crops, joined.initial_state(3))
+    assert torch.allclose(hot["brake"], plain["brake"] / 2, atol=1e-6)
+    assert torch.allclose(hot["intent"], plain["intent"])
+
+
+def test_a_wrong_state_is_refused():
+    model = build_model(trunk_config(members=2, **RECIPE)).eval()
+    with pytest.raises(ConfigError, match="layers"):
+        model.step(torch.rand(1, 3, 64, 64), model.initial_state(1)[:-1])
+
+
+def test_members_on_another_trunk_or_model_are_refused_and_nothing_is_written(tmp_path):
+    first, _, paths = _pair(tmp_path)
+    other_trunk = _member(3)
+    other_model = _member(4, trunk_from=first, lit_hidden=8)
+    for bad, match in ((other_trunk, "trunk weight"), (other_model, "lit_hidden")):
+        path = save_checkpoint(tmp_path / "bad.pt", bad, bad.config)
+        with pytest.raises(CheckpointError, match=match):
+            join_members([paths[0], path], tmp_path / "j.pt")
+        assert not (tmp_path / "j.pt").exists()
+    with pytest.raises(CheckpointError, match="at least two"):
+        join_members(paths[:1], tmp_path / "j.pt")
+
+
+def test_calibrated_members_lose_their_temperatures_and_keep_their_history(tmp_path):
+    first, second, _ = _pair(tmp_path)
+    hot = first.config.replace(temperatures={"brake": 3.0})
+    paths = [save_checkpoint(tmp_path / "a.pt", first, hot, {"validation": {"score": 0.5}}),
+             save_checkpoint(tmp_path / "b.pt", second, second.config, {"validation": {"score": 0.6}})]
+    joined = load_checkpoint(join_members(paths, tmp_path / "j.pt"))
+    assert joined.config.temperatures == {}
+    assert [m["validation"]["score"] for m in joined.meta["members"]] == [0.5, 0.6]
+
+
+def test_onnx_export_of_a_joined_model_steps_like_torch(tmp_path):
+    from signal_light_node.model.onnx_export import export_onnx
+
+    _, _, paths = _pair(tmp_path)
+    report = export_onnx(tmp_path / "j.onnx", join_members(paths, tmp_path / "j.pt"))
+    assert report.max_abs_diff is not None and report.max_abs_diff < 1e-4
