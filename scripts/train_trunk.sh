@@ -23,10 +23,15 @@
 #      caches its per-frame features of every pool
 #      (clean and LOOKS looks through a random camera response and shape warp per track)
 #      and trains everything after the trunk from scratch on SEQ_LEN-frame windows of
-#      BATCH tracks for STEPS steps (resumable: an interrupted run continues);
+#      BATCH tracks for STEPS steps (resumable: an interrupted run continues), once per
+#      seed of SEEDS (default SEED); with two seeds or more, the runs (RUN/trunk_sSEED) are
+#      joined into one model averaging them over the shared trunk (RUN/joined,
+#      training/join_members.py; docs/model.md, "Members over one trunk");
 #   3. fits one temperature per head on the family calibration split (never a test set);
-#   4. copies the calibrated checkpoint to WEIGHTS and, with EXPORT=1, exports it to ONNX
-#      and int8 ONNX (calibrated on bags/day_street and bags/night_street);
+#   4. copies the calibrated checkpoint to WEIGHTS, records the trunk's batch-norm
+#      statistics on the training pools as its reference (`signal-light adapt --reference`)
+#      and, with EXPORT=1, exports it to ONNX and int8 ONNX (calibrated on
+#      bags/day_street and bags/night_street);
 #   5. scores it with scripts/transfer_report.py: own split, held-out family, the
 #      independent generator's two committed bags and its 12 larger renders
 #      (scripts/render_independent.sh into INDEPENDENT, default DATA/independent, once) and
@@ -50,6 +55,7 @@ SHIPPED=signal_light_node/weights/default.pt
 WEIGHTS=${WEIGHTS:-$RUN/trunk.pt}
 EXPORT=${EXPORT:-$([[ "$WEIGHTS" == "$SHIPPED" ]] && echo 1 || echo 0)}
 SEED=${SEED:-1}
+SEEDS=${SEEDS:-$SEED}   # one temporal run per seed; two or more are joined
 POOL_SEEDS=${POOL_SEEDS:-"31 32 33"}
 # The other data settings (POOL_TRACKS, VAL_*, TEST_*, FAMILY_SEED, CAL_*, OBLIQUE, TAIL_GLARE):
 # scripts/render_data.sh. GLARE_POOL_SEEDS (default none) adds pools of those seeds drawn
@@ -110,25 +116,42 @@ fi
 trunk=()
 [[ -n "$TRUNK_WEIGHTS" ]] && trunk=(--trunk-weights "$TRUNK_WEIGHTS")
 
-echo "== 2/5 trunk features cached, temporal part trained from scratch: $STEPS steps"
-resume=()
-if [[ -f "$RUN/trunk/summary.json" ]]; then
-  echo "$RUN/trunk/summary.json exists: finished before; skipping"
-else
-  [[ -f "$RUN/trunk/last.state.pt" ]] && resume=(--resume)
-  python -m signal_light_node.training.trunk_recipe --out "$RUN/trunk" --cache "$DATA/cache" \
+echo "== 2/5 trunk features cached, temporal part trained from scratch: $STEPS steps, seeds $SEEDS"
+n_seeds=$(wc -w <<<"$SEEDS")
+members=()
+for seed in $SEEDS; do
+  out=$RUN/trunk
+  (( n_seeds > 1 )) && out=$RUN/trunk_s$seed
+  members+=(--member "$out/best.pt")
+  if [[ -f "$out/summary.json" ]]; then
+    echo "$out/summary.json exists: finished before; skipping"
+    continue
+  fi
+  resume=()
+  [[ -f "$out/last.state.pt" ]] && resume=(--resume)
+  python -m signal_light_node.training.trunk_recipe --out "$out" --cache "$DATA/cache" \
     "${pools[@]}" --val "$DATA/val_split" --model "$MODEL" --looks "$LOOKS" --steps "$STEPS" \
-    --batch "$BATCH" --seq-len "$SEQ_LEN" --lr "$LR" --seed "$SEED" --val-every "$VAL_EVERY" \
+    --batch "$BATCH" --seq-len "$SEQ_LEN" --lr "$LR" --seed "$seed" --val-every "$VAL_EVERY" \
     --threads "$THREADS" --device "$DEVICE" "${trunk[@]}" "${resume[@]}"
+done
+model=$RUN/trunk
+if (( n_seeds > 1 )); then
+  model=$RUN/joined
+  echo "== 2b/5 $n_seeds runs joined into one model over the shared trunk: $model/best.pt"
+  python -m signal_light_node.training.join_members "${members[@]}" --out "$model/best.pt"
 fi
 
 echo "== 3/5 per-head temperatures on the family calibration split"
-python -m signal_light_node.training.calibrate --checkpoint "$RUN/trunk/best.pt" \
-  --split "$DATA/family_cal_split" --cache "$DATA/cache" --out "$RUN/trunk/calibrated.pt"
+python -m signal_light_node.training.calibrate --checkpoint "$model/best.pt" \
+  --split "$DATA/family_cal_split" --cache "$DATA/cache" --out "$model/calibrated.pt"
 
 echo "== 4/5 calibrated checkpoint -> $WEIGHTS"
 mkdir -p "$(dirname "$WEIGHTS")"
-cp "$RUN/trunk/calibrated.pt" "$WEIGHTS"
+cp "$model/calibrated.pt" "$WEIGHTS"
+pool_dirs=()
+for (( i = 1; i < ${#pools[@]}; i += 2 )); do pool_dirs+=("${pools[$i]}"); done
+signal-light adapt --reference "${pool_dirs[@]}" --checkpoint "$WEIGHTS" --out "$WEIGHTS" \
+  --max-frames "${REFERENCE_FRAMES:-30000}"
 if [[ "$EXPORT" == 1 ]]; then
   onnx="${WEIGHTS%.pt}.onnx"
   signal-light export --weights "$WEIGHTS" --onnx "$onnx"
