@@ -12,6 +12,7 @@ import torch
 
 from signal_light_node.boxes import TrackBox
 from signal_light_node.cli import main
+from signal_light_node.errors import ConfigError
 from signal_light_node.io import bagio
 from signal_light_node.io.conversions import boxes_to_detections, make_header
 from signal_light_node.io.image_codec import bgr_to_compressed_fields
@@ -38,10 +39,11 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 @pytest.fixture(scope="module")
 def adapted(tmp_path_factory) -> Path:
-    """The shipped model's statistics replaced by bags/day_street's (a few hundred crops)."""
+    """The shipped model's statistics replaced by bags/day_street's (a few hundred crops),
+    every layer, the stem too."""
     out = tmp_path_factory.mktemp("adapt") / "day.pt"
     assert main(["adapt", str(BAG), "--out", str(out), "--method", "replace",
-                 "--threads", "1", "--no-progress"]) == 0
+                 "--keep-first", "0", "--threads", "1", "--no-progress"]) == 0
     return out
 
 
@@ -142,7 +144,7 @@ def test_the_adapted_checkpoint_exports_to_onnx(adapted: Path, tmp_path: Path) -
 def test_the_same_data_gives_the_same_tensors(adapted: Path, tmp_path: Path) -> None:
     again = tmp_path / "again.pt"
     assert main(["adapt", str(BAG), "--out", str(again), "--method", "replace",
-                 "--threads", "1", "--no-progress"]) == 0
+                 "--keep-first", "0", "--threads", "1", "--no-progress"]) == 0
     first, second = _state(adapted), _state(again)
     assert all(torch.equal(first[k], second[k]) for k in first)
 
@@ -167,12 +169,16 @@ def test_the_shipped_weights_carry_a_reference_that_covers_every_norm() -> None:
 
 @needs_bag
 def test_a_shift_moves_each_mean_by_the_data_less_the_reference(shifted: Path) -> None:
-    """Means: stored + (bag - reference); variances and every other tensor as shipped."""
+    """Means: stored + (bag - reference), but the trunk's stem; variances and every other
+    tensor as shipped."""
     before, after = _state(DEFAULT_WEIGHTS), _state(shifted)
     reference = load_checkpoint(DEFAULT_WEIGHTS).meta[REFERENCE_KEY]["layers"]
     target = _stats(DEFAULT_WEIGHTS)
     model = load_checkpoint(shifted).model
-    means = {f"{name}.running_mean": name for name, _ in batch_norm_layers(model)}
+    layers = batch_norm_layers(model)
+    means = {f"{name}.running_mean": name for name, _ in layers[1:]}
+    stem = f"{layers[0][0]}.running_mean"
+    assert stem.startswith("trunk.stem") and torch.equal(after[stem], before[stem])
     for key in before:
         if key in means:
             name = means[key]
@@ -228,7 +234,7 @@ def test_a_rendered_split_adapts_a_trunk_model(tmp_path: Path) -> None:
                 full_tracks=True, progress=False, vehicles=(1, 2))
     source = save_checkpoint(tmp_path / "trunk.pt", build_model(config), config)
     result = adapt_checkpoint(tmp_path / "adapted.pt", [split], source,
-                              AdaptSettings(window_frames=4, method="replace"))
+                              AdaptSettings(window_frames=4, method="replace", keep_first=0))
     assert result.layers == len(batch_norm_layers(load_checkpoint(source).model)) > 10
     before, after = _state(source), _state(result.out)
     norms = _bn_buffers(load_checkpoint(source).model)
@@ -236,6 +242,38 @@ def test_a_rendered_split_adapts_a_trunk_model(tmp_path: Path) -> None:
     trunk_norms = [k for k in norms if k.startswith("trunk.") and k.endswith("running_mean")]
     assert len(trunk_norms) == result.layers
     assert all(not torch.equal(before[k], after[k]) for k in trunk_norms)
+
+
+def test_the_trunk_model_keeps_its_stem_and_the_stems_reference(tmp_path: Path) -> None:
+    """By default the trunk's first batch norm (the stem: raw colour and tone) is left as
+    it is, and so is its reference; ``keep_first`` leaves more, or none."""
+    from signal_light_node.data.split import write_split
+    from signal_light_node.model.config import ModelConfig
+    from signal_light_node.model.registry import build_model
+
+    config = ModelConfig(encoder="efficientnet_lite0")
+    split = tmp_path / "split"
+    write_split(split, seed=6, n_sequences=2, seq_len=8, crop=config.crop_config(),
+                full_tracks=True, progress=False, vehicles=(1, 2))
+    source = save_checkpoint(tmp_path / "trunk.pt", build_model(config), config)
+    layers = [name for name, _ in batch_norm_layers(load_checkpoint(source).model)]
+    before = _state(source)
+    for keep, kept in ((None, 1), (3, 3)):
+        result = adapt_checkpoint(tmp_path / f"a{keep}.pt", [split], source,
+                                  AdaptSettings(window_frames=4, method="replace", keep_first=keep))
+        assert result.kept == layers[:kept] and result.layers == len(layers) - kept
+        after = _state(result.out)
+        for i, name in enumerate(layers):
+            same = torch.equal(before[f"{name}.running_mean"], after[f"{name}.running_mean"])
+            assert same == (i < kept), name
+        meta = load_checkpoint(result.out).meta
+        assert meta["adapted"]["kept_layers"] == layers[:kept]
+        reference = meta[REFERENCE_KEY]["layers"]
+        assert torch.equal(reference[layers[0]]["mean"], before[f"{layers[0]}.running_mean"])
+    with pytest.raises(ConfigError, match="leaves none"):
+        adapt_checkpoint(tmp_path / "none.pt", [split], source,
+                         AdaptSettings(method="replace", keep_first=len(layers)))
+    assert not (tmp_path / "none.pt").exists()
 
 
 def _refused(capsys, args, out: Path) -> str:

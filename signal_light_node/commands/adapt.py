@@ -52,6 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--reference", nargs="+", type=Path, default=[], metavar="DATA",
                         help="bags or splits like the model's training data: measure the "
                              "reference on them (default: the one the checkpoint carries)")
+    parser.add_argument("--keep-first", type=int, default=default.keep_first, metavar="N",
+                        help="leave the first N batch-norm layers as they are (default: the "
+                             "trunk model's stem, 1; the CNN's none, 0)")
     parser.add_argument("--max-frames", type=int, default=default.max_frames, metavar="N",
                         help="use at most N crops: whole tracks drawn with --seed, the last "
                              "one cut short (default: all)")
@@ -85,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
                           "does not use one")
     settings = AdaptSettings(batch_tracks=args.batch_tracks, window_frames=args.window,
                              max_frames=args.max_frames, seed=args.seed, device=args.device,
-                             method=args.method)
+                             method=args.method, keep_first=args.keep_first)
     reading = InputReading(image_topic=args.image_topic, detection_topic=args.detections_topic,
                            pairing=pairing_from_args(args))
     if args.inputs:

@@ -24,6 +24,14 @@ Two methods (``AdaptSettings.method``):
   shifts from there and never twice.
 * ``replace``: the running means and variances become the new data's (plain AdaBN).
 
+The first ``keep_first`` batch-norm layers are left as they are (default
+:func:`default_keep_first`: the trunk model's stem, none of the CNN's). The trunk's stem
+normalises the raw colour and tone; its per-frame stage learnt under random camera
+responses, so what a shift there removes on a new camera is partly the lamps' own colour
+(measured on the held-out style family: the stem's shift alone costs 0.9 points of brake
+F1, the shift of every other layer costs nothing; docs/results/adapt_family.md). A kept
+layer keeps its reference too, so a later adaptation shifts it from the same place.
+
 How the statistics are taken:
 
 * every track is stepped in frame order from a fresh state (``model.initial_state``,
@@ -92,6 +100,8 @@ class AdaptSettings:
         seed: Seed of that draw (the only randomness).
         device: Where the model runs.
         method: ``shift`` or ``replace`` (see the module doc).
+        keep_first: The first N batch-norm layers (in the model's order) are left as
+            they are; None: :func:`default_keep_first` of the model.
     """
 
     batch_tracks: int = 16
@@ -100,6 +110,7 @@ class AdaptSettings:
     seed: int = 0
     device: str = "cpu"
     method: str = "shift"
+    keep_first: Optional[int] = None
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -110,6 +121,14 @@ class AdaptSettings:
                               f"{self.batch_tracks} and {self.window_frames}")
         if self.max_frames is not None and self.max_frames < 1:
             raise ConfigError(f"--max-frames must be >= 1, got {self.max_frames}")
+        if self.keep_first is not None and self.keep_first < 0:
+            raise ConfigError(f"--keep-first must be >= 0, got {self.keep_first}")
+
+
+def default_keep_first(config: Any) -> int:
+    """Batch-norm layers ``adapt`` leaves alone by default: the pretrained trunk's stem (1),
+    none of the CNN's (module doc)."""
+    return 0 if config.encoder == "cnn" else 1
 
 
 @dataclass(frozen=True)
@@ -136,6 +155,7 @@ class AdaptResult:
         var_ratio: Per layer, the median over channels of ``new var / old var``.
         method: ``shift`` or ``replace``.
         reference: What the reference statistics were measured on (empty: none used).
+        kept: The batch-norm layers left as they were (``keep_first``).
     """
 
     out: Path
@@ -148,6 +168,7 @@ class AdaptResult:
     var_ratio: Dict[str, float]
     method: str = "shift"
     reference: List[str] = field(default_factory=list)
+    kept: List[str] = field(default_factory=list)
 
     def summary_lines(self) -> List[str]:
         """What the command prints."""
@@ -158,7 +179,10 @@ class AdaptResult:
                f"mean less the reference's ({', '.join(self.reference)}); variances kept"
                if self.method == "shift" else
                f"batch-norm statistics of {self.layers} layers replaced by this data's")
-        moved = (f"running means moved {shifts.mean():.2f} old sd on average (largest layer "
+        if self.kept:
+            how += f"; the first {len(self.kept)} left as they were ({', '.join(self.kept)})"
+        moved = (f"running means moved {shifts.mean():.2f} old sd on average over the "
+                 f"adapted layers (largest layer "
                  f"{shifts.max():.2f})")
         if self.method != "shift":  # a shift keeps every variance
             moved += (f"; running variances x{np.median(ratios):.2f} (median layer, range "
@@ -379,11 +403,13 @@ def check_stats(stats: NormStats, model: nn.Module, what: str) -> None:
 
 
 def apply_stats(model: nn.Module, target: NormStats, method: str,
-                reference: Optional[NormStats] = None) -> None:
+                reference: Optional[NormStats] = None, keep: Sequence[str] = ()) -> None:
     """Set the running statistics of ``model`` from the ``target`` data's: ``replace``
     takes them; ``shift`` moves each running mean by ``target - reference`` and keeps the
-    variances (see the module doc)."""
+    variances (see the module doc). Layers named in ``keep`` are left alone."""
     for name, m in batch_norm_layers(model):
+        if name in keep:
+            continue
         mean, var = target[name]["mean"], target[name]["var"]
         with torch.no_grad():
             if method == "replace":
@@ -436,10 +462,27 @@ def adapted_meta(meta: Dict[str, Any], source: Path, result: AdaptResult,
         "previous": meta.get("adapted"),
         "data": [str(p) for p in result.inputs], "reference": result.reference,
         "tracks": result.tracks, "frames": result.frames, "batch_norm_layers": result.layers,
+        "kept_layers": list(result.kept),
         "settings": {k: v for k, v in asdict(settings).items() if k != "device"},
         "mean_shift_sd": result.mean_shift, "var_ratio": result.var_ratio,
     }
     return info
+
+
+def _kept_reference(target: NormStats, keep: Sequence[str], model: nn.Module,
+                    old: Optional[Dict[str, Any]]) -> NormStats:
+    """The adapted file's reference: the new data's statistics, except that a kept layer
+    keeps its old reference (or, without one, its own running statistics)."""
+    layers = dict(target)
+    bns = dict(batch_norm_layers(model))
+    for name in keep:
+        if old is not None and name in old.get("layers", {}):
+            layers[name] = old["layers"][name]
+        else:
+            m = bns[name]
+            layers[name] = {"mean": m.running_mean.detach().cpu().clone(),
+                            "var": m.running_var.detach().cpu().clone()}
+    return layers
 
 
 def _load_adaptable(checkpoint: Optional[Path], device: str) -> Tuple[Path, Any]:
@@ -518,19 +561,30 @@ def adapt_checkpoint(out: Path, inputs: Sequence[Path], checkpoint: Optional[Pat
     if settings.method == "shift":
         check_stats(ref_entry["layers"], loaded.model, f"the reference statistics of {source}")
     sequences = _stepped(inputs, loaded, settings, reading)
+    layers = [name for name, _ in batch_norm_layers(loaded.model)]
+    n_keep = settings.keep_first
+    if n_keep is None:
+        n_keep = default_keep_first(loaded.config)
+    if n_keep >= len(layers):
+        raise ConfigError(f"--keep-first {n_keep} leaves none of the {len(layers)} batch-norm "
+                          f"layers of {source} to adapt")
+    keep = layers[:n_keep]
     before = {k: v.detach().cpu().clone() for k, v in loaded.model.state_dict().items()}
     target = measure_batch_norms(loaded.model, sequences, settings, progress)
     apply_stats(loaded.model, target, settings.method,
-                ref_entry["layers"] if settings.method == "shift" else None)
+                ref_entry["layers"] if settings.method == "shift" else None, keep)
     frames = sum(len(s) for s in sequences)
     shift, ratio = _changes(before, loaded.model)
+    for name in keep:  # unchanged by design: not part of the "moved" figures
+        shift.pop(name), ratio.pop(name)
     result = AdaptResult(out=Path(out), source=source, inputs=inputs,
                          layers=len(shift), tracks=len(sequences), frames=frames,
                          mean_shift=shift, var_ratio=ratio, method=settings.method,
                          reference=list(ref_entry["data"]) if settings.method == "shift"
-                         else [])
+                         else [], kept=keep)
     meta = adapted_meta(loaded.meta, source, result, settings)
-    meta[REFERENCE_KEY] = reference_entry(target, inputs, len(sequences), frames)
+    meta[REFERENCE_KEY] = reference_entry(
+        _kept_reference(target, keep, loaded.model, ref_entry), inputs, len(sequences), frames)
     save_checkpoint(out, loaded.model, loaded.config, meta)
     logger.info("adapted %s (%s): %d batch-norm layers on %d frames of %d tracks -> %s",
                 source, settings.method, result.layers, frames, result.tracks, out)
