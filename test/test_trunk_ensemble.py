@@ -78,6 +78,22 @@ def test_temperatures_apply_to_the_mean(tmp_path):
     assert torch.allclose(hot["intent"], plain["intent"])
 
 
+def test_offsets_on_the_heads_move_the_mean_logits(tmp_path):
+    from signal_light_node.training.unknown_bias import apply_offsets, head_offsets
+
+    _, _, paths = _pair(tmp_path)
+    joined = load_checkpoint(join_members(paths, tmp_path / "j.pt")).model
+    crops = torch.rand(2, 3, 64, 64)
+    with torch.no_grad():
+        before, _ = joined.step_logits(crops, joined.initial_state(2))
+        offsets = head_offsets(joined, margin=0.5, on_offset=-1.0)
+        apply_offsets(joined, offsets)
+        after, _ = joined.step_logits(crops, joined.initial_state(2))
+    for task, delta in offsets.items():
+        assert torch.allclose(after[task] - before[task],
+                              torch.as_tensor(delta, dtype=torch.float32).expand(2, -1), atol=1e-5)
+
+
 def test_a_wrong_state_is_refused():
     model = build_model(trunk_config(members=2, **RECIPE)).eval()
     with pytest.raises(ConfigError, match="layers"):
@@ -100,11 +116,14 @@ def test_members_on_another_trunk_or_model_are_refused_and_nothing_is_written(tm
 def test_calibrated_members_lose_their_temperatures_and_keep_their_history(tmp_path):
     first, second, _ = _pair(tmp_path)
     hot = first.config.replace(temperatures={"brake": 3.0})
-    paths = [save_checkpoint(tmp_path / "a.pt", first, hot, {"validation": {"score": 0.5}}),
-             save_checkpoint(tmp_path / "b.pt", second, second.config, {"validation": {"score": 0.6}})]
+    data = {"training_data": ["pool_1"]}
+    paths = [save_checkpoint(tmp_path / "a.pt", first, hot, dict(data, validation={"score": 0.5})),
+             save_checkpoint(tmp_path / "b.pt", second, second.config,
+                             dict(data, validation={"score": 0.6}))]
     joined = load_checkpoint(join_members(paths, tmp_path / "j.pt"))
     assert joined.config.temperatures == {}
     assert [m["validation"]["score"] for m in joined.meta["members"]] == [0.5, 0.6]
+    assert joined.meta["training_data"] == ["pool_1"]
 
 
 def test_onnx_export_of_a_joined_model_steps_like_torch(tmp_path):

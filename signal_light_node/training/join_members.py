@@ -27,7 +27,7 @@ from signal_light_node.model.trunk_ensemble import member_config
 LOG = logging.getLogger(__name__)
 
 #: Metadata of each member kept in the joined file's ``meta["members"]``.
-MEMBER_META = ("training_data", "trunk_weights", "validation", "step", "args", "created")
+MEMBER_META = ("validation", "step", "args", "created")
 
 
 def _check_same_model(paths: Sequence[Path], loaded: Sequence[LoadedModel]) -> None:
@@ -67,8 +67,12 @@ def join_members(paths: Sequence[Path], out: Path) -> Path:
     for target, source in zip(model.members, loaded):
         state = {k: v for k, v in source.model.state_dict().items() if not k.startswith("trunk.")}
         target.load_state_dict(state)
+    # What the members share (the recipe, training data, trunk weights) stays on top.
     meta: Dict[str, Any] = {k: v for k, v in loaded[0].meta.items()
                             if k not in FILE_META + MEMBER_META + ("calibration",)}
+    data = [m.meta.get("training_data") for m in loaded]
+    if any(d != data[0] for d in data):
+        meta["training_data"] = data
     meta["members"] = [dict({k: m.meta[k] for k in MEMBER_META if k in m.meta}, path=str(p))
                        for p, m in zip(paths, loaded)]
     return save_checkpoint(out, model.eval(), config, meta)

@@ -93,6 +93,14 @@ def unknown_index(model: nn.Module, task: str) -> int:
     return class_index(model, task, "UNKNOWN")
 
 
+def task_heads(model: nn.Module, task: str) -> List[nn.Module]:
+    """The output layers whose logits make ``task``'s: one per member of a model averaging
+    members (``model.trunk_ensemble``; an offset added to each moves their mean by as
+    much), else the model's own."""
+    members = getattr(model, "members", None)
+    return [m.heads[task] for m in members] if members is not None else [model.heads[task]]
+
+
 def class_index(model: nn.Module, task: str, name: str) -> int:
     """Index of class ``name`` among ``task``'s classes.
 
@@ -100,7 +108,8 @@ def class_index(model: nn.Module, task: str, name: str) -> int:
         ConfigError: The head has no such class, or is not a layer with a bias.
     """
     names = tuple(model.config.class_names[task])
-    if name not in names or getattr(model.heads[task], "bias", None) is None:
+    heads = task_heads(model, task)
+    if name not in names or any(getattr(h, "bias", None) is None for h in heads):
         raise ConfigError(f"the {task} head has no {name} class with a bias to move")
     return names.index(name)
 
@@ -122,8 +131,8 @@ def apply_offsets(model: nn.Module, offsets: Dict[str, np.ndarray]) -> None:
     as to every logit)."""
     with torch.no_grad():
         for task, delta in offsets.items():
-            bias = model.heads[task].bias
-            bias += torch.as_tensor(delta, dtype=bias.dtype)
+            for head in task_heads(model, task):
+                head.bias += torch.as_tensor(delta, dtype=head.bias.dtype)
 
 
 def apply_unknown_margin(model: nn.Module, margin: float) -> None:
