@@ -41,10 +41,11 @@ COMMITTED_BAGS = sorted(p for p in (REPO / "bags").glob("*")
 #: on, as the node publishes) and the ground truth of the committed training-renderer bags
 #: (after warm-up, no grace window). The weights shipped 2026-11-22 measured brake 94.3 % /
 #: 97.1 % and intent macro-F1 72.1 % / 68.4 % (day / night; `signal-light evaluate --bags
-#: bags/X`); the bounds leave a margin for the few vehicles of each bag. Raise them with
-#: the weights.
-MIN_BRAKE_ACCURACY = 0.90
-MIN_INTENT_MACRO_F1 = 0.60
+#: bags/X`); the two members shipped 2026-11-26 (fourth session) brake 95.5 % / 98.1 %,
+#: intent 83.7 % / 70.6 % (`--backend torch`); the bounds leave a margin for the few
+#: vehicles of each bag. Raise them with the weights.
+MIN_BRAKE_ACCURACY = 0.93
+MIN_INTENT_MACRO_F1 = 0.65
 #: How far the shipped weights must beat the best constant answer on a committed bag.
 BASELINE_MARGIN = 0.10
 
