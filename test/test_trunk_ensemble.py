@@ -66,14 +66,23 @@ def test_joined_model_steps_the_mean_of_its_members_logits(tmp_path):
     assert len(state) == len(first.initial_state(1)) + len(second.initial_state(1))
 
 
+def _joined(tmp_path):
+    """Two members joined, loaded from the file."""
+    return load_checkpoint(join_members(_pair(tmp_path)[2], tmp_path / "j.pt")).model
+
+
+@torch.no_grad()
+def _first_logits(model, crops):
+    """Logits of one step of new tracks."""
+    return model.step_logits(crops, model.initial_state(len(crops)))[0]
+
+
 def test_temperatures_apply_to_the_mean(tmp_path):
-    _, _, paths = _pair(tmp_path)
-    joined = load_checkpoint(join_members(paths, tmp_path / "j.pt")).model
+    joined = _joined(tmp_path)
     crops = torch.rand(3, 3, 64, 64)
-    with torch.no_grad():
-        plain, _ = joined.step_logits(crops, joined.initial_state(3))
-        joined.config = joined.config.replace(temperatures={"brake": 2.0})
-        hot, _ = joined.step_logits(crops, joined.initial_state(3))
+    plain = _first_logits(joined, crops)
+    joined.config = joined.config.replace(temperatures={"brake": 2.0})
+    hot = _first_logits(joined, crops)
     assert torch.allclose(hot["brake"], plain["brake"] / 2, atol=1e-6)
     assert torch.allclose(hot["intent"], plain["intent"])
 
@@ -81,14 +90,12 @@ def test_temperatures_apply_to_the_mean(tmp_path):
 def test_offsets_on_the_heads_move_the_mean_logits(tmp_path):
     from signal_light_node.training.unknown_bias import apply_offsets, head_offsets
 
-    _, _, paths = _pair(tmp_path)
-    joined = load_checkpoint(join_members(paths, tmp_path / "j.pt")).model
+    joined = _joined(tmp_path)
     crops = torch.rand(2, 3, 64, 64)
-    with torch.no_grad():
-        before, _ = joined.step_logits(crops, joined.initial_state(2))
-        offsets = head_offsets(joined, margin=0.5, on_offset=-1.0)
-        apply_offsets(joined, offsets)
-        after, _ = joined.step_logits(crops, joined.initial_state(2))
+    before = _first_logits(joined, crops)
+    offsets = head_offsets(joined, margin=0.5, on_offset=-1.0)
+    apply_offsets(joined, offsets)
+    after = _first_logits(joined, crops)
     for task, delta in offsets.items():
         assert torch.allclose(after[task] - before[task],
                               torch.as_tensor(delta, dtype=torch.float32).expand(2, -1), atol=1e-5)
