@@ -20,7 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.model.interface import State, state_batch_size
+from signal_light_node.model.interface import State
 from signal_light_node.model.network import apply_temperatures
 from signal_light_node.model.trunk_network import TrunkFront, TrunkLightNet
 
@@ -60,11 +60,9 @@ class TrunkEnsemble(TrunkFront):
         """Zero state for ``n`` new tracks: every member's, one after the other."""
         return tuple(pair for m in self.members for pair in m.initial_state(n))
 
-    def _check_state(self, state: State, n: int) -> None:
-        if len(state) != sum(self._sizes):
-            raise ConfigError(f"state has {len(state)} layers but the model has {sum(self._sizes)}")
-        if state_batch_size(state) != n:
-            raise ConfigError(f"state holds {state_batch_size(state)} tracks but {n} crops were given")
+    def state_layers(self) -> int:
+        """Number of ``(a, b)`` pairs in a track's state: every member's."""
+        return sum(self._sizes)
 
     def _average(self, outputs: List[Dict[str, Tensor]]) -> Dict[str, Tensor]:
         mean = {k: torch.stack([o[k] for o in outputs]).mean(0) for k in outputs[0]}

@@ -135,8 +135,17 @@ class TrunkFront(nn.Module):
         """Zero state for ``n`` new tracks, on the model's device."""
         raise NotImplementedError
 
-    def _check_state(self, state: State, n: int) -> None:
+    def state_layers(self) -> int:
+        """Number of ``(a, b)`` pairs in a track's state."""
         raise NotImplementedError
+
+    def _check_state(self, state: State, n: int) -> None:
+        want = self.state_layers()
+        if len(state) != want:
+            raise ConfigError(f"state has {len(state)} layers but the model has {want}")
+        if state_batch_size(state) != n:
+            raise ConfigError(f"state holds {state_batch_size(state)} tracks but {n} crops "
+                              f"were given")
 
     def step_features(self, features: Tensor, maps: Tensor, state: State
                       ) -> Tuple[Dict[str, Tensor], State]:
@@ -270,12 +279,9 @@ class TrunkLightNet(TrunkFront):
         return state + tuple((ref.new_zeros((n,) + a), ref.new_zeros((n,) + b))
                              for a, b in self._history_shapes())
 
-    def _check_state(self, state: State, n: int) -> None:
-        want = len(self.cells) + len(self._history_shapes())
-        if len(state) != want:
-            raise ConfigError(f"state has {len(state)} layers but the model has {want}")
-        if state_batch_size(state) != n:
-            raise ConfigError(f"state holds {state_batch_size(state)} tracks but {n} crops were given")
+    def state_layers(self) -> int:
+        """Number of ``(a, b)`` pairs in a track's state: ConvLSTM layers, then history."""
+        return len(self.cells) + len(self._history_shapes())
 
     # ------------------------------------------------------------------ recurrent part
 

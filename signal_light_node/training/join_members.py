@@ -20,11 +20,10 @@ from typing import Any, Dict, List, Optional, Sequence
 import torch
 
 from signal_light_node.errors import CheckpointError
-from signal_light_node.model.checkpoint import FILE_META, LoadedModel, load_checkpoint, save_checkpoint
+from signal_light_node.model.checkpoint import (FILE_META, LoadedModel, load_checkpoint,
+                                                save_checkpoint)
 from signal_light_node.model.registry import build_model
 from signal_light_node.model.trunk_ensemble import member_config
-
-LOG = logging.getLogger(__name__)
 
 #: Metadata of each member kept in the joined file's ``meta["members"]``.
 MEMBER_META = ("validation", "step", "args", "created")
