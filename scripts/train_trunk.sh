@@ -7,8 +7,14 @@
 #
 # It writes WEIGHTS (default RUN/trunk.pt) and, with EXPORT=1 (the default when WEIGHTS is
 # the shipped path signal_light_node/weights/default.pt), its ONNX exports beside it
-# (NAME.onnx, NAME_int8.onnx). The shipped weights still come from train_default.sh: this
-# model does not beat them yet.
+# (NAME.onnx, NAME_int8.onnx). The shipped weights (2026-11-26, fourth session: two
+# members over three times the tracks; docs/model.md "Members over one trunk") came from
+#
+#   TRUNK_WEIGHTS=runs/frames/A2_best.pt POOL_SEEDS="31 32 33 34 35 36" \
+#     GLARE_POOL_SEEDS="31 32 33" SEEDS="1 2" WEIGHTS=signal_light_node/weights/default.pt \
+#     scripts/train_trunk.sh
+#
+# (FRAME_STEPS=2000 TRAIN_FROM=-1 instead of TRUNK_WEIGHTS trains that per-frame trunk too).
 #
 # What it does (docs/model.md, "The trunk recipe"):
 #   1. renders the data in parallel worker processes, once (reused when present): POOL_SEEDS
