@@ -46,7 +46,7 @@ class TrunkEnsemble(TrunkFront):
         one = member_config(config)
         self.members = nn.ModuleList(TrunkLightNet(one, with_trunk=False)
                                      for _ in range(config.members))
-        self._sizes = [len(m.initial_state(1)) for m in self.members]
+        self._sizes = [m.state_layers() for m in self.members]
 
     def _split(self, state: State) -> List[State]:
         """The members' parts of an ensemble state."""
