@@ -95,15 +95,17 @@ TRUNK_WEIGHTS=${TRUNK_WEIGHTS:-}
 mkdir -p "$RUN" "$DATA"
 start=$(date +%s)
 echo "== 1/5 data in $DATA: pools (seeds $POOL_SEEDS), validation, test, family test, family calibration"
-pools=()
-for seed in $POOL_SEEDS; do pools+=(--pool "$DATA/pool_$seed"); done
+pool_dirs=()
+for seed in $POOL_SEEDS; do pool_dirs+=("$DATA/pool_$seed"); done
 DATA=$DATA POOL_SEEDS=$POOL_SEEDS POOL_NAME=pool CAL_TRACKS=${CAL_TRACKS:-120} \
   bash scripts/render_data.sh
 if [[ -n "$GLARE_POOL_SEEDS" ]]; then
   DATA=$DATA POOL_SEEDS=$GLARE_POOL_SEEDS POOL_NAME=glare_pool TAIL_GLARE=$GLARE_SHARE \
     CAL_TRACKS=${CAL_TRACKS:-120} bash scripts/render_data.sh
-  for seed in $GLARE_POOL_SEEDS; do pools+=(--pool "$DATA/glare_pool_$seed"); done
+  for seed in $GLARE_POOL_SEEDS; do pool_dirs+=("$DATA/glare_pool_$seed"); done
 fi
+pools=()
+for dir in "${pool_dirs[@]}"; do pools+=(--pool "$dir"); done
 if [[ -n "${DATA_ONLY:-}" ]]; then
   echo "== DATA_ONLY set: splits ready in $DATA"
   exit 0
@@ -154,8 +156,6 @@ python -m signal_light_node.training.calibrate --checkpoint "$model/best.pt" \
 echo "== 4/5 calibrated checkpoint -> $WEIGHTS"
 mkdir -p "$(dirname "$WEIGHTS")"
 cp "$model/calibrated.pt" "$WEIGHTS"
-pool_dirs=()
-for (( i = 1; i < ${#pools[@]}; i += 2 )); do pool_dirs+=("${pools[$i]}"); done
 signal-light adapt --reference "${pool_dirs[@]}" --checkpoint "$WEIGHTS" --out "$WEIGHTS" \
   --max-frames "${REFERENCE_FRAMES:-30000}"
 if [[ "$EXPORT" == 1 ]]; then

@@ -14,7 +14,7 @@ Temperatures apply to the averaged logits (the members' own are 1).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Dict, List, Optional, Tuple
+from typing import TYPE_CHECKING, Callable, Dict, List, Optional, Tuple
 
 import torch
 from torch import Tensor, nn
@@ -68,23 +68,25 @@ class TrunkEnsemble(TrunkFront):
         mean = {k: torch.stack([o[k] for o in outputs]).mean(0) for k in outputs[0]}
         return apply_temperatures(mean, self.config.temperatures)
 
-    def step_features(self, features: Tensor, maps: Tensor, state: State
-                      ) -> Tuple[Dict[str, Tensor], State]:
-        """One frame from per-frame features: the members' mean logits and the new state."""
+    def _run_members(self, run: Callable[[nn.Module, Optional[State]],
+                                         Tuple[Dict[str, Tensor], State]],
+                     state: Optional[State]) -> Tuple[Dict[str, Tensor], State]:
+        """``run(member, its part of state)`` for every member: mean logits, new state."""
+        parts = self._split(state) if state is not None else [None] * len(self.members)
         outputs, new_state = [], []
-        for member, part in zip(self.members, self._split(state)):
-            logits, part = member.step_features(features, maps, part)
+        for member, part in zip(self.members, parts):
+            logits, part = run(member, part)
             outputs.append(logits)
             new_state.extend(part)
         return self._average(outputs), tuple(new_state)
 
+    def step_features(self, features: Tensor, maps: Tensor, state: State
+                      ) -> Tuple[Dict[str, Tensor], State]:
+        """One frame from per-frame features: the members' mean logits and the new state."""
+        return self._run_members(lambda m, part: m.step_features(features, maps, part), state)
+
     def sequence_features(self, features: Tensor, maps: Tensor, state: Optional[State] = None
                           ) -> Tuple[Dict[str, Tensor], State]:
         """``T`` frames from per-frame features ``[N, T, ...]``: mean logits, new state."""
-        parts = self._split(state) if state is not None else [None] * len(self.members)
-        outputs, new_state = [], []
-        for member, part in zip(self.members, parts):
-            logits, part = member.sequence_features(features, maps, part)
-            outputs.append(logits)
-            new_state.extend(part)
-        return self._average(outputs), tuple(new_state)
+        return self._run_members(lambda m, part: m.sequence_features(features, maps, part),
+                                 state)

@@ -43,7 +43,7 @@ from signal_light_node.model import lamp_evidence as lamps
 from signal_light_node.model.interface import State, state_batch_size
 from signal_light_node.model.network import (apply_temperatures, check_crops, convlstm_stack,
                                                 eval_frozen, register_normalisation)
-from signal_light_node.model.trunk import EfficientLiteTrunk, load_imagenet_weights
+from signal_light_node.model.trunk import CUTS, EfficientLiteTrunk, load_imagenet_weights
 
 if TYPE_CHECKING:  # pragma: no cover - typing only
     from signal_light_node.model.config import ModelConfig
@@ -77,13 +77,13 @@ class TrunkFront(nn.Module):
         self.config = config
         self.input_size = config.input_size
         register_normalisation(self, config)
-        trunk = EfficientLiteTrunk(config.input_size, config.trunk_stride)
-        if pretrained:
-            load_imagenet_weights(trunk)
         if with_trunk:
-            self.trunk = trunk
-        self.grid = trunk.out_size
-        self.trunk_channels = trunk.out_channels
+            self.trunk = EfficientLiteTrunk(config.input_size, config.trunk_stride)
+            if pretrained:
+                load_imagenet_weights(self.trunk)
+        # The trunk's output side and width follow from the config, trunk or not.
+        self.grid = config.feature_size
+        self.trunk_channels = CUTS[config.trunk_stride][1]
         self._trunk_frozen = False
         self._norms_frozen = False
 

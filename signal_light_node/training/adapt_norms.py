@@ -576,7 +576,7 @@ def adapt_checkpoint(out: Path, inputs: Sequence[Path], checkpoint: Optional[Pat
     frames = sum(len(s) for s in sequences)
     shift, ratio = _changes(before, loaded.model)
     for name in keep:  # unchanged by design: not part of the "moved" figures
-        shift.pop(name), ratio.pop(name)
+        del shift[name], ratio[name]
     result = AdaptResult(out=Path(out), source=source, inputs=inputs,
                          layers=len(shift), tracks=len(sequences), frames=frames,
                          mean_shift=shift, var_ratio=ratio, method=settings.method,
