@@ -202,6 +202,41 @@ def test_frozen_encoder_run_moves_only_the_recurrent_part_and_heads(tmp_path):
         assert unchanged == encoder or name.endswith("num_batches_tracked"), name
 
 
+def test_heads_only_run_moves_only_the_output_layers(tmp_path):
+    ucm = tmp_path / "ucm"
+    make_ucm(ucm, CODES[:3], frames=8)
+    with pytest.raises(ConfigError, match="--heads-only needs --init-from"):
+        tiny_options(tmp_path / "bad", ucm, heads_only=True).validate()
+    Trainer(tiny_options(tmp_path / "init", ucm, max_steps=1)).run()
+    init = load_checkpoint(tmp_path / "init" / "last.pt").model.state_dict()
+    Trainer(tiny_options(tmp_path / "run", ucm, max_steps=5, heads_only=True,
+                         init_from=tmp_path / "init" / "last.pt")).run()
+    trained = load_checkpoint(tmp_path / "run" / "last.pt").model.state_dict()
+    moved = {name for name, before in init.items() if not torch.equal(before, trained[name])}
+    # Everything else, batch-norm statistics included, is as it was.
+    assert moved and all(name.startswith(("fc.", "heads.")) for name in moved), moved
+    assert any(name.startswith("heads.") for name in moved)
+
+
+def test_a_fine_tune_scores_its_init_weights_before_the_first_step(tmp_path):
+    """A run from --init-from validates at step 0, so best.pt is never worse than the init
+    on validation: with a learning rate that only does harm, best.pt is the init."""
+    ucm = tmp_path / "ucm"
+    make_ucm(ucm, CODES, frames=8)
+    Trainer(tiny_options(tmp_path / "init", ucm, max_steps=40, val_fraction=0.34,
+                         val_every=40)).run()
+    Trainer(tiny_options(tmp_path / "run", ucm, max_steps=4, lr=5.0, val_fraction=0.34,
+                         val_every=2, init_from=tmp_path / "init" / "last.pt")).run()
+    records = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text()
+               .splitlines()]
+    assert [r["step"] for r in records] == [0, 2, 4]
+    assert records[0]["best"] and not any(r["best"] for r in records[1:])
+    init = load_checkpoint(tmp_path / "init" / "last.pt").model.state_dict()
+    best = load_checkpoint(tmp_path / "run" / "best.pt")
+    assert best.meta["training"]["step"] == 0
+    assert all(torch.equal(v, best.model.state_dict()[k]) for k, v in init.items())
+
+
 def test_warm_start_into_temporal_input_with_camera_response(tmp_path):
     """--init-from with --model temporal_input=true grows the first conv and trains on."""
     ucm = tmp_path / "ucm"

@@ -94,6 +94,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="start from these weights ('default' = the shipped weights)")
     g.add_argument("--freeze-encoder", action="store_true",
                    help="train only the ConvLSTM and the heads on the --init-from encoder")
+    g.add_argument("--heads-only", action="store_true",
+                   help="train only the output layers (last dense layer and task heads); the "
+                        "rest, batch norms included, keeps the --init-from weights")
     add_torch_options(g)
 
     g = parser.add_argument_group("data")
@@ -216,6 +219,7 @@ def options_from_args(args: argparse.Namespace) -> TrainOptions:
         seed=args.seed, threads=args.threads, workers=args.workers, resume=resume,
         init_from=Path(args.init_from) if args.init_from else None,
         freeze_encoder=args.freeze_encoder, freeze_norms=args.freeze_norms,
+        heads_only=args.heads_only,
         grown_init_scale=args.grown_init_scale, bags=list(args.bags),
         ucm=list(args.ucm), pools=list(args.pools), mode=args.mode,
         frame_targets=args.frame_targets,

@@ -18,8 +18,9 @@ Recipe (after the research the model follows, scaled to a CPU), and where each p
   on the dense layers' weights; ``ReduceLROnPlateau`` on the validation loss, optionally
   a cosine decay to ``min_lr`` over the last ``anneal_fraction`` of the budget.
 * **Precision** (:mod:`.precision`): the forward pass optionally under bfloat16 autocast.
-* **Validation** every ``val_every`` steps on fixed sequences (:mod:`.validation`); the
-  best checkpoint by the selection score is kept as ``best.pt``.
+* **Validation** every ``val_every`` steps on fixed sequences (:mod:`.validation`), and
+  before the first step of a run from ``init_from``; the best checkpoint by the selection
+  score is kept as ``best.pt``.
 * **Files** in ``out`` (:mod:`.checkpointing`, :mod:`.progress`): ``last.pt`` /
   ``best.pt`` (model checkpoints), ``last.state.pt`` (what ``--resume`` needs),
   ``log.jsonl`` (one line per validation), ``options.json`` and ``summary.json``.
@@ -126,7 +127,8 @@ class Trainer:
         loaded = load_run_model(opts)
         resumed = load_training_state(Path(opts.resume)) if opts.resume is not None else None
         self.config, self.meta_from_init = loaded.config, loaded.init_meta
-        freeze_parts(loaded.model, self.config, opts.freeze_encoder, opts.freeze_norms)
+        freeze_parts(loaded.model, self.config, opts.freeze_encoder, opts.freeze_norms,
+                     opts.heads_only)
         self.model = loaded.model.to(self.device).train()
         self.precision = resolve_precision(opts.precision, self.device)
         logger.info("training precision: %s", self.precision)
@@ -195,6 +197,10 @@ class Trainer:
         data_iter = iter(self.loader)
         last_val: Optional[Dict[str, Any]] = None
         try:
+            if self.start_step == 0 and opts.init_from is not None:
+                # The weights it starts from compete for best.pt: a fine-tune on a few
+                # tracks that only loses on validation hands them back unchanged.
+                last_val = self._validate_and_keep()
             while True:
                 elapsed = time.monotonic() - started
                 if self._should_stop(elapsed, budget):

@@ -75,6 +75,10 @@ class TrainOptions:
             backbone keep their (``init_from``) weights (``LightStateNet.freeze_encoder``).
         freeze_norms: Keep the batch-norm statistics of the init weights
             (``LightStateNet.freeze_norms``); the weights still train.
+        heads_only: Train only the output layers (the last dense layer and the task
+            heads, every member's); everything before them, batch norms included, keeps
+            its ``init_from`` weights (:func:`.run_model.freeze_to_heads`). What a few
+            labelled tracks of a user's camera can move without overfitting.
         grown_init_scale: With ``init_from`` and ``model`` changes that add input
             channels: their initial weights' spread relative to the trained ones (0: zeros).
         bags: Labelled bags to train on.
@@ -147,6 +151,7 @@ class TrainOptions:
     init_from: Optional[Path] = None
     freeze_encoder: bool = False
     freeze_norms: bool = False
+    heads_only: bool = False
     grown_init_scale: float = 0.0
     bags: List[Path] = field(default_factory=list)
     ucm: List[Path] = field(default_factory=list)
@@ -226,6 +231,9 @@ class TrainOptions:
         if self.freeze_encoder and self.init_from is None and self.resume is None:
             raise ConfigError("--freeze-encoder needs --init-from (or --resume): a frozen "
                               "untrained encoder would never learn")
+        if self.heads_only and self.init_from is None and self.resume is None:
+            raise ConfigError("--heads-only needs --init-from (or --resume): heads on an "
+                              "untrained network would learn nothing")
         if not 0 <= self.val_fraction < 1:
             raise ConfigError(f"validation fraction must be in [0, 1), got {self.val_fraction}")
         if not 0 <= self.holdout_fraction < 1:

@@ -7,7 +7,8 @@
 * otherwise a fresh ``ModelConfig`` (with the ``--model`` changes), initialised from the
   torch seed.
 
-``--freeze-encoder`` / ``--freeze-norms`` then fix parts of it (:func:`freeze_parts`).
+``--freeze-encoder`` / ``--freeze-norms`` / ``--heads-only`` then fix parts of it
+(:func:`freeze_parts`).
 """
 
 from __future__ import annotations
@@ -84,9 +85,11 @@ def _warm_started(init: Path, changes: Mapping[str, Any], grown_init_scale: floa
     return RunModel(config, model, meta)
 
 
-def freeze_parts(model: nn.Module, config: ModelConfig, encoder: bool, norms: bool) -> None:
+def freeze_parts(model: nn.Module, config: ModelConfig, encoder: bool, norms: bool,
+                 heads_only: bool = False) -> None:
     """``--freeze-encoder`` (train only the ConvLSTM and the heads) and ``--freeze-norms``
-    (keep the batch-norm statistics; the weights still train).
+    (keep the batch-norm statistics; the weights still train) and ``--heads-only``
+    (:func:`freeze_to_heads`).
 
     Raises:
         ConfigError: The architecture cannot freeze what is asked.
@@ -101,3 +104,33 @@ def freeze_parts(model: nn.Module, config: ModelConfig, encoder: bool, norms: bo
             raise ConfigError(f"--freeze-norms: architecture {config.arch!r} cannot "
                               "freeze its norms")
         model.freeze_norms()
+    if heads_only:
+        freeze_to_heads(model, config)
+
+
+#: Parameters under a module of one of these names train with ``--heads-only``: the last
+#: dense layer and the task heads (of every member of an ensemble).
+HEAD_MODULES = ("fc", "heads")
+
+
+def freeze_to_heads(model: nn.Module, config: ModelConfig) -> None:
+    """Fix everything but the output layers (:data:`HEAD_MODULES`), batch norms included.
+
+    On a few labelled tracks a fine-tune of the recurrent part learns them by heart (on
+    24 tracks of a held-out style family it lowered intent macro-F1 on the other 32:
+    docs/results/adapt_family.md); the output layers alone re-weigh features the model
+    already has.
+
+    Raises:
+        ConfigError: The model has no such layers or cannot keep its norms.
+    """
+    trainable = 0
+    for name, parameter in model.named_parameters():
+        keep = any(part in HEAD_MODULES for part in name.split(".")[:-1])
+        parameter.requires_grad_(keep)
+        trainable += parameter.numel() if keep else 0
+    if not trainable or not hasattr(model, "freeze_norms"):
+        raise ConfigError(f"--heads-only: architecture {config.arch!r} has no output layers "
+                          f"named {' / '.join(HEAD_MODULES)} to train")
+    model.freeze_norms()
+    logger.info("--heads-only: %d trainable parameters", trainable)
