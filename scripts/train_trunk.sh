@@ -8,7 +8,8 @@
 # It writes WEIGHTS (default RUN/trunk.pt) and, with EXPORT=1 (the default when WEIGHTS is
 # the shipped path signal_light_node/weights/default.pt), its ONNX exports beside it
 # (NAME.onnx, NAME_int8.onnx). The shipped weights (2026-11-26, fourth session: two
-# members over three times the tracks; docs/model.md "Members over one trunk") came from
+# members over three times the tracks; docs/model.md "Members over one trunk"; the fifth
+# session added step 3's ON offset to that file) came from
 #
 #   TRUNK_WEIGHTS=runs/frames/A2_best.pt POOL_SEEDS="31 32 33 34 35 36" \
 #     GLARE_POOL_SEEDS="31 32 33" SEEDS="1 2" WEIGHTS=signal_light_node/weights/default.pt \
@@ -33,7 +34,9 @@
 #      seed of SEEDS (default SEED); with two seeds or more, the runs (RUN/trunk_sSEED) are
 #      joined into one model averaging them over the shared trunk (RUN/joined,
 #      training/join_members.py; docs/model.md, "Members over one trunk");
-#   3. fits one temperature per head on the family calibration split (never a test set);
+#   3. fits one temperature per head on the family calibration split (never a test set),
+#      then on the same split the UNKNOWN margin and the blinkers' ON offset the node's
+#      filter scores best with (`signal-light calibrate`);
 #   4. copies the calibrated checkpoint to WEIGHTS, records the trunk's batch-norm
 #      statistics on the training pools as its reference (`signal-light adapt --reference`)
 #      and, with EXPORT=1, exports it to ONNX and int8 ONNX (calibrated on
@@ -149,9 +152,13 @@ if (( n_seeds > 1 )); then
   python -m signal_light_node.training.join_members "${members[@]}" --out "$model/best.pt"
 fi
 
-echo "== 3/5 per-head temperatures on the family calibration split"
+echo "== 3/5 per-head temperatures, then the UNKNOWN margin and blinker ON offset, on the family calibration split"
 python -m signal_light_node.training.calibrate --checkpoint "$model/best.pt" \
   --split "$DATA/family_cal_split" --cache "$DATA/cache" --out "$model/calibrated.pt"
+# Temperatures make the probabilities honest; the offsets move the decisions the node's
+# filter takes from them (docs/model.md, "The blinkers' ON offset fitted for the shipped file").
+signal-light calibrate "$DATA/family_cal_split" --checkpoint "$model/calibrated.pt" \
+  --out "$model/calibrated.pt" --threads "$THREADS" --device "$DEVICE" --no-progress
 
 echo "== 4/5 calibrated checkpoint -> $WEIGHTS"
 mkdir -p "$(dirname "$WEIGHTS")"
