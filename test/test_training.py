@@ -186,16 +186,22 @@ def test_tiny_model_overfits_fixed_sequences(tmp_path, precision, steps):
     assert "UCM" in best.meta["training_data"]["sources"][0]
 
 
-def test_frozen_encoder_run_moves_only_the_recurrent_part_and_heads(tmp_path):
+def _fine_tuned_from_a_start(tmp_path, flag: str):
+    """(start, fine-tuned) state dicts of a 5-step run with ``flag`` set on a 1-step
+    start; the flag alone (without --init-from) is refused."""
     ucm = tmp_path / "ucm"
     make_ucm(ucm, CODES[:3], frames=8)
     with pytest.raises(ConfigError, match="needs --init-from"):
-        tiny_options(tmp_path / "bad", ucm, freeze_encoder=True).validate()
+        tiny_options(tmp_path / "bad", ucm, **{flag: True}).validate()
     Trainer(tiny_options(tmp_path / "init", ucm, max_steps=1)).run()
     init = load_checkpoint(tmp_path / "init" / "last.pt").model.state_dict()
-    Trainer(tiny_options(tmp_path / "run", ucm, max_steps=5, freeze_encoder=True,
-                         init_from=tmp_path / "init" / "last.pt")).run()
-    trained = load_checkpoint(tmp_path / "run" / "last.pt").model.state_dict()
+    Trainer(tiny_options(tmp_path / "run", ucm, max_steps=5, init_from=tmp_path / "init" /
+                         "last.pt", **{flag: True})).run()
+    return init, load_checkpoint(tmp_path / "run" / "last.pt").model.state_dict()
+
+
+def test_frozen_encoder_run_moves_only_the_recurrent_part_and_heads(tmp_path):
+    init, trained = _fine_tuned_from_a_start(tmp_path, "freeze_encoder")
     for name, before in init.items():
         unchanged = torch.equal(before, trained[name])
         encoder = name.startswith(("backbone.", "attention_net."))
@@ -203,15 +209,7 @@ def test_frozen_encoder_run_moves_only_the_recurrent_part_and_heads(tmp_path):
 
 
 def test_heads_only_run_moves_only_the_output_layers(tmp_path):
-    ucm = tmp_path / "ucm"
-    make_ucm(ucm, CODES[:3], frames=8)
-    with pytest.raises(ConfigError, match="--heads-only needs --init-from"):
-        tiny_options(tmp_path / "bad", ucm, heads_only=True).validate()
-    Trainer(tiny_options(tmp_path / "init", ucm, max_steps=1)).run()
-    init = load_checkpoint(tmp_path / "init" / "last.pt").model.state_dict()
-    Trainer(tiny_options(tmp_path / "run", ucm, max_steps=5, heads_only=True,
-                         init_from=tmp_path / "init" / "last.pt")).run()
-    trained = load_checkpoint(tmp_path / "run" / "last.pt").model.state_dict()
+    init, trained = _fine_tuned_from_a_start(tmp_path, "heads_only")
     moved = {name for name, before in init.items() if not torch.equal(before, trained[name])}
     # Everything else, batch-norm statistics included, is as it was.
     assert moved and all(name.startswith(("fc.", "heads.")) for name in moved), moved
