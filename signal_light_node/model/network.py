@@ -317,6 +317,10 @@ class LightStateNet(nn.Module):
                     self._norms_frozen)
         return self
 
+    def output_layers(self, task: str) -> List[nn.Module]:
+        """The layers whose logits are ``task``'s (one: its head)."""
+        return [self.heads[task]]
+
     # ------------------------------------------------------------------ recurrent part
 
     def initial_state(self, n: int) -> State:

@@ -64,6 +64,11 @@ class TrunkEnsemble(TrunkFront):
         """Number of ``(a, b)`` pairs in a track's state: every member's."""
         return sum(self._sizes)
 
+    def output_layers(self, task: str) -> List[nn.Module]:
+        """The layers whose logits are averaged into ``task``'s: every member's head (an
+        offset added to each moves the mean by as much)."""
+        return [layer for m in self.members for layer in m.output_layers(task)]
+
     def _average(self, outputs: List[Dict[str, Tensor]]) -> Dict[str, Tensor]:
         mean = {k: torch.stack([o[k] for o in outputs]).mean(0) for k in outputs[0]}
         return apply_temperatures(mean, self.config.temperatures)

@@ -252,6 +252,10 @@ class TrunkLightNet(TrunkFront):
                 nn.Sequential(nn.Linear(lit_in, config.lit_hidden), nn.ReLU(inplace=True),
                               nn.Linear(config.lit_hidden, n_lit))
 
+    def output_layers(self, task: str) -> List[nn.Module]:
+        """The layers whose logits are ``task``'s (one: its head)."""
+        return [self.heads[task]]
+
     # ------------------------------------------------------------------ state
 
     def _history_shapes(self) -> List[Tuple[Tuple[int, ...], Tuple[int, ...]]]:

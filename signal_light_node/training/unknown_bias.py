@@ -94,11 +94,16 @@ def unknown_index(model: nn.Module, task: str) -> int:
 
 
 def task_heads(model: nn.Module, task: str) -> List[nn.Module]:
-    """The output layers whose logits make ``task``'s: one per member of a model averaging
-    members (``model.trunk_ensemble``; an offset added to each moves their mean by as
-    much), else the model's own."""
-    members = getattr(model, "members", None)
-    return [m.heads[task] for m in members] if members is not None else [model.heads[task]]
+    """The output layers whose logits make ``task``'s (the network's ``output_layers``:
+    one per member of a model averaging members).
+
+    Raises:
+        ConfigError: The network does not name its output layers.
+    """
+    if not hasattr(model, "output_layers"):
+        raise ConfigError(f"{type(model).__name__} does not name its output layers: its "
+                          "biases cannot be moved")
+    return model.output_layers(task)
 
 
 def class_index(model: nn.Module, task: str, name: str) -> int:
