@@ -16,8 +16,9 @@ from signal_light_node.model.checkpoint import DEFAULT_WEIGHTS
 from signal_light_node.model.interface import to_input
 from signal_light_node.training.unknown_bias import (MARGIN_HEADS, META_KEY, ON_HEADS,
                                                      apply_offsets, apply_unknown_margin,
-                                                     fit_unknown_margin, head_offsets,
-                                                     task_heads, unknown_index, with_offsets)
+                                                     MarginFit, fit_unknown_margin, grid_edges,
+                                                     head_offsets, summary_lines, task_heads,
+                                                     unknown_index, with_offsets)
 
 REPO = Path(__file__).resolve().parents[1]
 BAG = REPO / "bags" / "day_street"
@@ -141,6 +142,24 @@ def test_calibrate_writes_the_margin_and_a_held_out_report(tmp_path: Path, capsy
     assert "UNKNOWN margin and ON offsets" in out.with_suffix(".report.md").read_text()
     assert f"UNKNOWN margin {margin:g}" in printed and "held-out after" in printed
     assert f"blinker ON offset {on:+g}" in printed
+    # Margin 3 of (0, 3) and offsets -1 / +1 of (-1, 0, 1) lie at a grid's end.
+    assert ("a wider grid may score better" in printed) == (margin == 3.0 or on != 0.0)
+
+
+def test_a_choice_at_the_end_of_its_grid_is_named() -> None:
+    grid, on_grid = (0.0, 1.0, 2.0), (-1.0, 0.0, 1.0)
+    assert grid_edges(1.0, 0.0, grid, on_grid) == []
+    assert grid_edges(0.0, 0.0, grid, on_grid) == []  # 0 is the end of the margin's range
+    assert grid_edges(2.0, -1.0, grid, on_grid) == [
+        "UNKNOWN margin 2 is the largest of --grid",
+        "blinker ON offset -1 is the smallest of --on-grid"]
+    assert grid_edges(0.0, 1.0, grid, on_grid) == [
+        "blinker ON offset +1 is the largest of --on-grid"]
+    assert grid_edges(2.0, 0.0, (2.0,), (0.0,)) == []  # a single value is no grid to widen
+    lines = summary_lines(MarginFit(margin=2.0, edges=grid_edges(2.0, 0.0, grid, on_grid)),
+                          Path("m.pt"), None)
+    assert lines[-1] == ("note: UNKNOWN margin 2 is the largest of --grid: a wider grid may "
+                         "score better")
 
 
 def _refused(capsys, args, out: Path) -> str:

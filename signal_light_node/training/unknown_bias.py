@@ -79,6 +79,8 @@ class MarginFit:
             that margin's best blinker ON offset.
         fit_tracks: Tracks it was fitted on.
         fit_frames: Their frames scored.
+        edges: What was chosen at the end of its grid (:func:`grid_edges`): a wider grid
+            might score better still.
     """
 
     margin: float
@@ -86,6 +88,20 @@ class MarginFit:
     scores: Dict[float, float] = field(default_factory=dict)
     fit_tracks: int = 0
     fit_frames: int = 0
+    edges: List[str] = field(default_factory=list)
+
+
+def grid_edges(margin: float, on_offset: float, grid: Sequence[float],
+               on_grid: Sequence[float]) -> List[str]:
+    """The chosen values that lie at the end of a grid of several values, named with the
+    option that widens it. A margin of 0 is the end of its range, not of the grid."""
+    edges = []
+    if len(set(grid)) > 1 and margin == max(grid) and margin > 0:
+        edges.append(f"UNKNOWN margin {margin:g} is the largest of --grid")
+    if len(set(on_grid)) > 1 and on_offset in (min(on_grid), max(on_grid)):
+        end = "smallest" if on_offset == min(on_grid) else "largest"
+        edges.append(f"blinker ON offset {on_offset:+g} is the {end} of --on-grid")
+    return edges
 
 
 def unknown_index(model: nn.Module, task: str) -> int:
@@ -229,6 +245,8 @@ def fit_unknown_margin(model: nn.Module, tracks: Sequence[TrackSequence],
     best = max(fit.scores.values())
     fit.margin = min(m for m, s in fit.scores.items() if s == best)
     fit.on_offset = chosen[fit.margin]
+    fit.edges = grid_edges(fit.margin, fit.on_offset, [float(m) for m in grid],
+                           [float(o) for o in on_grid])
     return fit
 
 
@@ -305,6 +323,8 @@ def summary_lines(fit: MarginFit, out: Path, report: Optional[Dict[str, Any]]) -
              f"UNKNOWN margin {fit.margin:g} (UNKNOWN logit of {', '.join(MARGIN_HEADS)} "
              f"lowered by it); blinker ON offset {fit.on_offset:+g} (added to the ON logit "
              f"of {', '.join(ON_HEADS)}); wrote {out}"]
+    if fit.edges:
+        lines.append(f"note: {'; '.join(fit.edges)}: a wider grid may score better")
     if report is not None:
         for key in ("before", "after"):
             r = report[key]
