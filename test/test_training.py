@@ -214,6 +214,10 @@ def test_heads_only_run_moves_only_the_output_layers(tmp_path):
     # Everything else, batch-norm statistics included, is as it was.
     assert moved and all(name.startswith(("fc.", "heads.")) for name in moved), moved
     assert any(name.startswith("heads.") for name in moved)
+    # Without validation tracks the start weights are not scored, so nothing is kept at 0.
+    steps = [json.loads(line)["step"] for line in
+             (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert steps == [5]
 
 
 def test_a_fine_tune_scores_its_init_weights_before_the_first_step(tmp_path):

@@ -200,7 +200,7 @@ class Trainer:
             if self.start_step == 0 and opts.init_from is not None:
                 # The weights it starts from compete for best.pt: a fine-tune on a few
                 # tracks that only loses on validation hands them back unchanged.
-                last_val = self._validate_and_keep()
+                last_val = self._validate_and_keep(only_scored=True)
             while True:
                 elapsed = time.monotonic() - started
                 if self._should_stop(elapsed, budget):
@@ -278,8 +278,12 @@ class Trainer:
 
     # ------------------------------------------------------- validation and files
 
-    def _validate_and_keep(self) -> Optional[Dict[str, Any]]:
-        """Rank 0 validates and saves; every rank steps its scheduler with the same loss."""
+    def _validate_and_keep(self, only_scored: bool = False) -> Optional[Dict[str, Any]]:
+        """Rank 0 validates and saves; every rank steps its scheduler with the same loss.
+
+        ``only_scored``: save nothing when there is nothing to validate on (the start
+        weights, unscored, are no checkpoint worth writing).
+        """
         val = None
         if self.dist.main and self.val_items:
             opts = self.opts
@@ -289,7 +293,7 @@ class Trainer:
         loss = broadcast_float(math.nan if val is None else val["loss"], self.dist, self.device)
         if not math.isnan(loss):
             self.scheduler.step(loss)
-        if self.dist.main:
+        if self.dist.main and (val is not None or not only_scored):
             self._keep(val)
         return val
 
