@@ -47,3 +47,22 @@ def test_shape_warp_is_one_warp_for_the_whole_sequence():
     assert not np.array_equal(out[0], frame)  # and it moved something
     none = warp_sequence(crops, np.random.default_rng(4), strength=0.0)
     assert np.abs(none.astype(int) - crops.astype(int)).max() <= 1
+
+
+def test_white_balance_scales_each_channel_before_the_tone_curve():
+    crops = np.full((2, 8, 8, 3), 100, np.uint8)
+    warm = CameraResponse(gain=1.0, gamma=1.0, saturation=1.0, noise=0.0, blur=0.0,
+                          scale=1.0, jpeg_quality=0, white_balance=(0.8, 1.0, 1.3))
+    out = apply_camera(crops, warm, np.random.default_rng(1))
+    assert tuple(int(v) for v in out[0, 0, 0]) == (80, 100, 130)
+
+
+def test_white_balance_draws_gains_in_range_and_leaves_the_rest_alone_when_off():
+    off = CameraResponse.draw(np.random.default_rng(7))
+    assert off.white_balance == (1.0, 1.0, 1.0)
+    assert off == CameraResponse.draw(np.random.default_rng(7), white_balance=0.0)
+    gains = np.array([CameraResponse.draw(np.random.default_rng(s), white_balance=0.3)
+                      .white_balance for s in range(200)])
+    assert gains.min() >= np.exp(-0.3) - 1e-6 and gains.max() <= np.exp(0.3) + 1e-6
+    assert gains.std(axis=0).min() > 0.1  # every channel moves, each on its own
+    assert abs(np.corrcoef(gains[:, 0], gains[:, 2])[0, 1]) < 0.3

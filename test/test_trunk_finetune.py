@@ -75,6 +75,17 @@ def test_a_batch_takes_frames_of_many_tracks(split):
     assert y.shape == (12, 4) and int(y.min()) >= -1
 
 
+def test_white_balance_reaches_the_batches_camera(split):
+    pool = FramePool.load([split])
+    plain, _ = sample_batch(pool, np.random.default_rng(1), tracks=4, per_track=3, augment=1.0)
+    again, _ = sample_batch(pool, np.random.default_rng(1), tracks=4, per_track=3, augment=1.0,
+                            white_balance=0.0)
+    tinted, _ = sample_batch(pool, np.random.default_rng(1), tracks=4, per_track=3,
+                             augment=1.0, white_balance=0.3)
+    assert torch.equal(plain, again)
+    assert not torch.equal(plain, tinted)
+
+
 @pytest.mark.parametrize("train_from,blocks", [(FROZEN, 0), (8, 3), (0, 11), (-1, 11)])
 def test_train_from_chooses_the_blocks_that_learn(train_from, blocks):
     model = build_model(trunk_config())

@@ -11,6 +11,7 @@ transform and small OpenCV calls: a few milliseconds for a 150-frame track.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Tuple
 
 import cv2
 import numpy as np
@@ -28,6 +29,8 @@ class CameraResponse:
         blur: Gaussian blur sigma in crop pixels (0: sharp).
         scale: Resolution factor (< 1: the crop is seen through fewer pixels).
         jpeg_quality: JPEG quality of each frame, 0 for none.
+        white_balance: Gains on the B, G and R channels before the colour transform (a
+            camera's white balance and tint; (1, 1, 1) leaves the colours as rendered).
     """
 
     gain: float
@@ -37,11 +40,22 @@ class CameraResponse:
     blur: float
     scale: float
     jpeg_quality: int
+    white_balance: Tuple[float, float, float] = (1.0, 1.0, 1.0)
 
     @classmethod
-    def draw(cls, rng: np.random.Generator) -> "CameraResponse":
-        """A random response; about a third of the draws keep each effect off."""
-        return cls(gain=float(np.exp(rng.uniform(np.log(0.7), np.log(1.8)))),
+    def draw(cls, rng: np.random.Generator, white_balance: float = 0.0) -> "CameraResponse":
+        """A random response; about a third of the draws keep each effect off.
+
+        Args:
+            rng: Source of the draws.
+            white_balance: Each channel's gain is drawn log-uniform in
+                ``[exp(-white_balance), exp(white_balance)]``; 0 keeps (1, 1, 1) and draws
+                nothing for it, so the other fields come out as without it.
+        """
+        gains = (1.0, 1.0, 1.0)
+        if white_balance > 0:
+            gains = tuple(float(g) for g in np.exp(rng.uniform(-white_balance, white_balance, 3)))
+        return cls(white_balance=gains, gain=float(np.exp(rng.uniform(np.log(0.7), np.log(1.8)))),
                    gamma=float(np.exp(rng.uniform(np.log(0.7), np.log(1.4)))),
                    saturation=float(rng.uniform(0.5, 1.5)),
                    noise=float(rng.uniform(0.0, 8.0) if rng.random() < 0.7 else 0.0),
@@ -55,11 +69,12 @@ def _tone_lut(gain: float, gamma: float) -> np.ndarray:
     return np.clip(255.0 * np.clip(x * gain, 0.0, 1.0) ** gamma, 0, 255).astype(np.uint8)
 
 
-def _saturation_matrix(saturation: float) -> np.ndarray:
-    # Mix each channel with the luma (BGR weights): 1 keeps, 0 greys out.
+def _colour_matrix(saturation: float, white_balance: Tuple[float, float, float]) -> np.ndarray:
+    # Channel gains first (the sensor's white balance), then each channel mixed with the
+    # luma (BGR weights): saturation 1 keeps, 0 greys out.
     luma = np.array([0.114, 0.587, 0.299], np.float32)
-    return (saturation * np.eye(3, dtype=np.float32)
-            + (1.0 - saturation) * np.tile(luma, (3, 1))).astype(np.float32)
+    mix = saturation * np.eye(3, dtype=np.float32) + (1.0 - saturation) * np.tile(luma, (3, 1))
+    return (mix @ np.diag(np.asarray(white_balance, np.float32))).astype(np.float32)
 
 
 def apply_camera(crops: np.ndarray, response: CameraResponse,
@@ -69,7 +84,7 @@ def apply_camera(crops: np.ndarray, response: CameraResponse,
         return crops.copy()
     t, size = crops.shape[0], crops.shape[1]
     flat = crops.reshape(t * size, size, 3)
-    out = cv2.transform(flat, _saturation_matrix(response.saturation))
+    out = cv2.transform(flat, _colour_matrix(response.saturation, response.white_balance))
     out = cv2.LUT(out, _tone_lut(response.gain, response.gamma))
     if response.noise > 0:
         noise = rng.normal(0.0, response.noise, out.shape).astype(np.float32)
@@ -92,6 +107,8 @@ def apply_camera(crops: np.ndarray, response: CameraResponse,
     return np.stack(frames)
 
 
-def randomise_camera(crops: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """One random :class:`CameraResponse` applied to a whole sequence of crops."""
-    return apply_camera(crops, CameraResponse.draw(rng), rng)
+def randomise_camera(crops: np.ndarray, rng: np.random.Generator,
+                     white_balance: float = 0.0) -> np.ndarray:
+    """One random :class:`CameraResponse` (:meth:`CameraResponse.draw`'s ``white_balance``)
+    applied to a whole sequence of crops."""
+    return apply_camera(crops, CameraResponse.draw(rng, white_balance), rng)

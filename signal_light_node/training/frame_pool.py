@@ -96,29 +96,32 @@ class FramePool:
 
 
 def _augment_track(crops: np.ndarray, lit: np.ndarray, labels: np.ndarray,
-                   rng: np.random.Generator, augment: float) -> Tuple[np.ndarray, np.ndarray,
-                                                                       np.ndarray]:
+                   rng: np.random.Generator, augment: float,
+                   white_balance: float = 0.0) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One track's frames mirrored with probability 0.5, then, with probability
-    ``augment``, one perspective warp and one camera response."""
+    ``augment``, one perspective warp and one camera response (its channel gains drawn
+    within ``white_balance``, :meth:`.CameraResponse.draw`)."""
     if rng.random() < 0.5:
         item = mirror_sequence({"crops": crops, "labels": labels, "lit_labels": lit,
                                 "mask": np.ones(len(crops), bool), "meta": {}})
         crops, labels, lit = item["crops"], item["labels"], item["lit_labels"]
     if rng.random() < augment:
-        crops = randomise_camera(warp_sequence(crops, rng), rng)
+        crops = randomise_camera(warp_sequence(crops, rng), rng, white_balance)
     return crops, lit, labels
 
 
 def sample_batch(pool: FramePool, rng: np.random.Generator, tracks: int, per_track: int,
-                 augment: float) -> Tuple[torch.Tensor, torch.Tensor]:
+                 augment: float, white_balance: float = 0.0) -> Tuple[torch.Tensor,
+                                                                      torch.Tensor]:
     """``tracks x per_track`` random frames (tracks drawn uniformly, frames uniformly in
-    each), augmented per track: crops ``[N, 3, S, S]`` uint8 and targets ``[N, 4]``."""
+    each), augmented per track (:func:`_augment_track`): crops ``[N, 3, S, S]`` uint8 and
+    targets ``[N, 4]``."""
     crops, targets = [], []
     for track in rng.integers(0, pool.n_tracks, tracks):
         a, b = int(pool.offsets[track]), int(pool.offsets[track + 1])
         index = np.sort(rng.integers(a, b, per_track))
         c, lit, labels = _augment_track(pool.crops[index], pool.lit_labels[index],
-                                        pool.labels[index], rng, augment)
+                                        pool.labels[index], rng, augment, white_balance)
         crops.append(c)
         targets.append(frame_targets(lit, labels))
     x = torch.from_numpy(np.ascontiguousarray(np.concatenate(crops))).permute(0, 3, 1, 2)
@@ -130,17 +133,19 @@ class FrameBatches(torch.utils.data.IterableDataset):
     stream (``seed``, the worker's id and ``start``, the step a resumed run is at)."""
 
     def __init__(self, pool: FramePool, seed: int, tracks: int, per_track: int,
-                 augment: float, start: int = 0) -> None:
+                 augment: float, start: int = 0, white_balance: float = 0.0) -> None:
         super().__init__()
         self.pool, self.seed, self.start = pool, seed, start
         self.tracks, self.per_track, self.augment = tracks, per_track, augment
+        self.white_balance = white_balance
 
     def __iter__(self) -> Iterator[Tuple[torch.Tensor, torch.Tensor]]:
         info = torch.utils.data.get_worker_info()
         worker = 0 if info is None else info.id
         rng = np.random.default_rng([self.seed, worker, self.start])
         while True:
-            yield sample_batch(self.pool, rng, self.tracks, self.per_track, self.augment)
+            yield sample_batch(self.pool, rng, self.tracks, self.per_track, self.augment,
+                               self.white_balance)
 
 
 def frame_arrays(pool: FramePool, stride: int = 1) -> Dict[str, np.ndarray]:

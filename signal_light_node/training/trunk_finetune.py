@@ -238,7 +238,7 @@ def train(run: FineTune, pool: FramePool, val: Dict[str, Dict[str, np.ndarray]],
     """The loop of the module doc; returns the best validation."""
     weights = [w.to(run.device) for w in class_weights(pool)]
     batches = FrameBatches(pool, args.seed, args.tracks, args.per_track, args.augment,
-                           start=run.progress["step"])
+                           start=run.progress["step"], white_balance=args.white_balance)
     loader = torch.utils.data.DataLoader(batches, batch_size=None, num_workers=args.workers,
                                          pin_memory=run.device.type == "cuda",
                                          prefetch_factor=4 if args.workers else None)
@@ -295,6 +295,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--per-track", type=int, default=8, help="frames per track")
     parser.add_argument("--augment", type=float, default=0.8,
                         help="share of tracks warped and seen through a random camera")
+    parser.add_argument("--white-balance", type=float, default=0.0,
+                        help="that camera's B, G, R gains are drawn log-uniform within "
+                             "+-this (0: none; 0.3 spans 0.74-1.35)")
     parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument("--trunk-lr-scale", type=float, default=0.3)
     parser.add_argument("--seed", type=int, default=1)
