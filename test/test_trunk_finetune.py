@@ -86,6 +86,33 @@ def test_white_balance_reaches_the_batches_camera(split):
     assert not torch.equal(plain, tinted)
 
 
+def test_a_partner_is_the_same_tracks_earlier_frame_clipped_at_its_start():
+    offsets = np.array([0, 5, 12])
+    index = np.array([0, 2, 4, 5, 6, 11])
+    assert frame_pool.partner_index(offsets, index, 3).tolist() == [0, 0, 1, 5, 5, 8]
+
+
+def test_pairs_stack_each_frame_with_its_partner_through_one_camera(split):
+    pool = FramePool.load([split])
+    x, y = sample_batch(pool, np.random.default_rng(1), tracks=4, per_track=3, augment=0.0,
+                        pair_gap=2)
+    assert x.shape == (12, 6, 64, 64) and y.shape == (12, 4)
+    arrays = frame_pool.frame_arrays(pool, stride=1, pair_gap=2)
+    first = pool.offsets[:-1]
+    # A track's first frame has no earlier one: its partner is itself.
+    assert np.array_equal(arrays["crops"][first, ..., :3], arrays["crops"][first, ..., 3:])
+    later = first[0] + 3
+    assert np.array_equal(arrays["crops"][later, ..., 3:], pool.crops[later - 2])
+    # Without augmentation every stacked pair is a frame of the pool and the one before it.
+    frames = {pool.crops[i].tobytes(): i for i in range(len(pool))}
+    for pair in x.permute(0, 2, 3, 1).numpy():
+        now, before = frames.get(pair[..., :3].tobytes()), frames.get(pair[..., 3:].tobytes())
+        if now is None:  # mirrored (mirroring is drawn even without augmentation)
+            now = frames[pair[:, ::-1, :3].tobytes()]
+            before = frames[pair[:, ::-1, 3:].tobytes()]
+        assert before == frame_pool.partner_index(pool.offsets, np.array([now]), 2)[0]
+
+
 @pytest.mark.parametrize("train_from,blocks", [(FROZEN, 0), (8, 3), (0, 11), (-1, 11)])
 def test_train_from_chooses_the_blocks_that_learn(train_from, blocks):
     model = build_model(trunk_config())
@@ -134,6 +161,21 @@ def test_stage_trains_resumes_and_hands_its_trunk_to_the_temporal_recipe(split, 
                               "--threads", "1", "--trunk-weights", str(out / "best.pt")]) == 0
     meta = torch.load(run / "last.pt", weights_only=False)["meta"]
     assert meta["trunk_weights"]["train_from"] == 9
+
+
+def test_the_stage_trains_on_pairs_and_its_trunk_loads_as_any_other(split, tmp_path):
+    out = tmp_path / "pairs"
+    assert trunk_finetune.main(["--out", str(out), "--pool", str(split), "--val", str(split),
+                                "--tracks", "2", "--per-track", "2", "--val-every", "2",
+                                "--threads", "1", "--train-from", "10", "--steps", "2",
+                                "--pair-gap", "3"]) == 0
+    saved = torch.load(out / "best.pt", weights_only=False)
+    width = build_model(trunk_config()).trunk.out_channels
+    assert saved["head"]["conv.0.weight"].shape[1] == 2 * width  # frame and difference
+    assert load_trunk_weights(build_model(trunk_config()), out / "best.pt")["step"] == 2
+    with pytest.raises(SystemExit):
+        trunk_finetune.main(["--out", str(out), "--pool", str(split), "--val", str(split),
+                             "--pair-gap", "-1"])
 
 
 def test_a_trunk_of_another_shape_is_refused(split, tmp_path):

@@ -7,6 +7,10 @@ frame (``lit_labels``: a blink's dark half is OFF) and the viewed face. A
 directly, not item by item) with the slice each track occupies, so a batch can take a few
 frames from each of many tracks and augment each track's frames together: one mirror, one
 perspective warp and one camera response per track, as a camera would treat them.
+
+With a ``pair_gap`` every frame comes with the same track's frame that many frames earlier
+(:func:`partner_index`; the track's first frame where there is none), augmented with it,
+so a head can read a lamp's change as well as its look.
 """
 
 from __future__ import annotations
@@ -100,29 +104,47 @@ def _augment_track(crops: np.ndarray, lit: np.ndarray, labels: np.ndarray,
                    white_balance: float = 0.0) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One track's frames mirrored with probability 0.5, then, with probability
     ``augment``, one perspective warp and one camera response (its channel gains drawn
-    within ``white_balance``, :meth:`.CameraResponse.draw`)."""
+    within ``white_balance``, :meth:`.CameraResponse.draw`). ``crops`` may hold more
+    frames than the label rows (their partners, behind them): all get the same treatment."""
     if rng.random() < 0.5:
         item = mirror_sequence({"crops": crops, "labels": labels, "lit_labels": lit,
-                                "mask": np.ones(len(crops), bool), "meta": {}})
+                                "mask": np.ones(len(labels), bool), "meta": {}})
         crops, labels, lit = item["crops"], item["labels"], item["lit_labels"]
     if rng.random() < augment:
         crops = randomise_camera(warp_sequence(crops, rng), rng, white_balance)
     return crops, lit, labels
 
 
+def partner_index(offsets: np.ndarray, index: np.ndarray, gap: int) -> np.ndarray:
+    """For frames ``index`` of a pool with track ``offsets``, the same track's frame
+    ``gap`` frames earlier, or the track's first frame where the track is younger."""
+    start = offsets[np.searchsorted(offsets, index, side="right") - 1]
+    return np.maximum(index - gap, start)
+
+
+def _with_partners(frames: np.ndarray, pair_gap: int) -> np.ndarray:
+    """``[2n, S, S, 3]`` frames then their partners -> ``[n, S, S, 6]`` (channels stacked)."""
+    n = len(frames) // 2
+    return np.concatenate([frames[:n], frames[n:]], axis=-1) if pair_gap else frames
+
+
 def sample_batch(pool: FramePool, rng: np.random.Generator, tracks: int, per_track: int,
-                 augment: float, white_balance: float = 0.0) -> Tuple[torch.Tensor,
-                                                                      torch.Tensor]:
+                 augment: float, white_balance: float = 0.0,
+                 pair_gap: int = 0) -> Tuple[torch.Tensor, torch.Tensor]:
     """``tracks x per_track`` random frames (tracks drawn uniformly, frames uniformly in
     each), augmented per track (:func:`_augment_track`): crops ``[N, 3, S, S]`` uint8 and
-    targets ``[N, 4]``."""
+    targets ``[N, 4]``. With ``pair_gap`` > 0 each frame's partner (:func:`partner_index`,
+    augmented with it) is stacked behind it: crops ``[N, 6, S, S]``."""
     crops, targets = [], []
     for track in rng.integers(0, pool.n_tracks, tracks):
         a, b = int(pool.offsets[track]), int(pool.offsets[track + 1])
         index = np.sort(rng.integers(a, b, per_track))
-        c, lit, labels = _augment_track(pool.crops[index], pool.lit_labels[index],
+        frames = index
+        if pair_gap:
+            frames = np.concatenate([index, np.maximum(index - pair_gap, a)])
+        c, lit, labels = _augment_track(pool.crops[frames], pool.lit_labels[index],
                                         pool.labels[index], rng, augment, white_balance)
-        crops.append(c)
+        crops.append(_with_partners(c, pair_gap))
         targets.append(frame_targets(lit, labels))
     x = torch.from_numpy(np.ascontiguousarray(np.concatenate(crops))).permute(0, 3, 1, 2)
     return x, torch.from_numpy(np.concatenate(targets))
@@ -133,11 +155,12 @@ class FrameBatches(torch.utils.data.IterableDataset):
     stream (``seed``, the worker's id and ``start``, the step a resumed run is at)."""
 
     def __init__(self, pool: FramePool, seed: int, tracks: int, per_track: int,
-                 augment: float, start: int = 0, white_balance: float = 0.0) -> None:
+                 augment: float, start: int = 0, white_balance: float = 0.0,
+                 pair_gap: int = 0) -> None:
         super().__init__()
         self.pool, self.seed, self.start = pool, seed, start
         self.tracks, self.per_track, self.augment = tracks, per_track, augment
-        self.white_balance = white_balance
+        self.white_balance, self.pair_gap = white_balance, pair_gap
 
     def __iter__(self) -> Iterator[Tuple[torch.Tensor, torch.Tensor]]:
         info = torch.utils.data.get_worker_info()
@@ -145,10 +168,15 @@ class FrameBatches(torch.utils.data.IterableDataset):
         rng = np.random.default_rng([self.seed, worker, self.start])
         while True:
             yield sample_batch(self.pool, rng, self.tracks, self.per_track, self.augment,
-                               self.white_balance)
+                               self.white_balance, self.pair_gap)
 
 
-def frame_arrays(pool: FramePool, stride: int = 1) -> Dict[str, np.ndarray]:
-    """Every ``stride``-th frame of a pool, unaugmented: ``crops`` and ``targets``."""
+def frame_arrays(pool: FramePool, stride: int = 1, pair_gap: int = 0) -> Dict[str, np.ndarray]:
+    """Every ``stride``-th frame of a pool, unaugmented: ``crops`` and ``targets`` (with
+    ``pair_gap`` > 0 the crops ``[M, S, S, 6]`` carry each frame's partner behind it)."""
     index = np.arange(0, len(pool), stride)
-    return {"crops": pool.crops[index], "targets": pool.targets(index)}
+    crops = pool.crops[index]
+    if pair_gap:
+        partners = pool.crops[partner_index(pool.offsets, index, pair_gap)]
+        crops = np.concatenate([crops, partners], axis=-1)
+    return {"crops": crops, "targets": pool.targets(index)}

@@ -13,7 +13,10 @@ teaches it, frame by frame, before the temporal part is trained on its cached fe
    very frame (ON / OFF / UNKNOWN) and the viewed face, a few frames from each of many
    tracks, each track mirrored, warped and seen through a random camera response
    (``training.frame_pool``); batch-norm statistics stay ImageNet's (only their scale and
-   shift learn), so a crop is normalised the same way in every domain;
+   shift learn), so a crop is normalised the same way in every domain. With
+   ``--pair-gap G`` the head reads each frame's features and their difference to those of
+   the same track's frame G earlier (:func:`head_input`): the trunk must then encode how a
+   lamp changes, which the temporal part compares the same way;
 3. validates every ``--val-every`` steps on whole splits (ROC AUC of each lamp's
    P(ON) / (P(ON) + P(OFF)), view accuracy), keeps ``best.pt`` by the mean lamp AUC on
    the last ``--val`` split and ``last.pt`` + ``last.state.pt`` for ``--resume``.
@@ -111,16 +114,27 @@ def frame_loss(logits: Sequence[Tensor], targets: Tensor, weights: Sequence[Tens
     return total, parts
 
 
+def head_input(model: nn.Module, x: Tensor) -> Tensor:
+    """What :class:`FrameHead` reads of crops ``x`` ``[N, 3, S, S]`` in [0, 1]: the trunk's
+    features; of pairs ``[N, 6, S, S]`` (``--pair-gap``), the features of the frame and
+    their difference to those of its partner."""
+    if x.shape[1] == 3:
+        return model.trunk_features(x)
+    now, before = model.trunk_features(torch.cat([x[:, :3], x[:, 3:]])).chunk(2)
+    return torch.cat([now, now - before], 1)
+
+
 @torch.no_grad()
 def frame_logits(model: nn.Module, head: nn.Module, crops: np.ndarray, batch: int = 1024
                  ) -> List[np.ndarray]:
-    """Per target the probabilities ``[M, K]`` of uint8 crops ``[M, S, S, 3]``."""
+    """Per target the probabilities ``[M, K]`` of uint8 crops ``[M, S, S, 3]`` (or pairs
+    ``[M, S, S, 6]``, :func:`head_input`)."""
     device = next(head.parameters()).device
     out: List[List[np.ndarray]] = [[] for _ in FRAME_TARGETS]
     for start in range(0, len(crops), batch):
         x = torch.from_numpy(np.ascontiguousarray(crops[start:start + batch])).to(device)
         x = x.permute(0, 3, 1, 2).float().mul_(1.0 / 255.0)
-        for i, logits in enumerate(head(model.trunk_features(x))):
+        for i, logits in enumerate(head(head_input(model, x))):
             out[i].append(torch.softmax(logits.float(), 1).cpu().numpy())
     return [np.concatenate(parts) for parts in out]
 
@@ -157,10 +171,11 @@ class FineTune:
     """The model, head, optimiser and progress of one per-frame run (module doc)."""
 
     def __init__(self, model: nn.Module, train_from: int, lr: float, trunk_lr_scale: float,
-                 device: torch.device) -> None:
+                 device: torch.device, pairs: bool = False) -> None:
         self.model, self.train_from, self.device = model.to(device), train_from, device
         model.eval()  # ImageNet batch-norm statistics stay; only scale and shift learn
-        self.head = FrameHead(model.trunk.out_channels, model.grid).to(device)
+        channels = model.trunk.out_channels * (2 if pairs else 1)  # head_input's width
+        self.head = FrameHead(channels, model.grid).to(device)
         trunk_params = set_trainable(model.trunk, train_from)
         groups = [{"params": list(self.head.parameters()), "lr": lr, "base": lr}]
         if trunk_params:
@@ -191,7 +206,7 @@ class FineTune:
         targets = targets.to(self.device, non_blocking=True)
         with torch.autocast(self.device.type, dtype=torch.bfloat16,
                             enabled=self.device.type == "cuda"):
-            logits = self.head(self.model.trunk_features(x))
+            logits = self.head(head_input(self.model, x))
         loss, parts = frame_loss(logits, targets, weights)
         self.optim.zero_grad(set_to_none=True)
         loss.backward()
@@ -238,7 +253,8 @@ def train(run: FineTune, pool: FramePool, val: Dict[str, Dict[str, np.ndarray]],
     """The loop of the module doc; returns the best validation."""
     weights = [w.to(run.device) for w in class_weights(pool)]
     batches = FrameBatches(pool, args.seed, args.tracks, args.per_track, args.augment,
-                           start=run.progress["step"], white_balance=args.white_balance)
+                           start=run.progress["step"], white_balance=args.white_balance,
+                           pair_gap=args.pair_gap)
     loader = torch.utils.data.DataLoader(batches, batch_size=None, num_workers=args.workers,
                                          pin_memory=run.device.type == "cuda",
                                          prefetch_factor=4 if args.workers else None)
@@ -298,6 +314,10 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--white-balance", type=float, default=0.0,
                         help="that camera's B, G, R gains are drawn log-uniform within "
                              "+-this (0: none; 0.3 spans 0.74-1.35)")
+    parser.add_argument("--pair-gap", type=int, default=0,
+                        help="frames: the head also reads each frame's trunk features less "
+                             "those of the same track's frame this many frames earlier "
+                             "(0: the frame alone)")
     parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument("--trunk-lr-scale", type=float, default=0.3)
     parser.add_argument("--seed", type=int, default=1)
@@ -317,16 +337,20 @@ def main(argv: Optional[List[str]] = None) -> int:
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         parser.error("CUDA requested but not available")
+    if args.pair_gap < 0:
+        parser.error(f"--pair-gap must be >= 0 frames, got {args.pair_gap}")
     args.out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(args.seed)
     model = build_model(trunk_config(**json.loads(args.model)), pretrained=True)
-    run = FineTune(model, args.train_from, args.lr, args.trunk_lr_scale, device)
+    run = FineTune(model, args.train_from, args.lr, args.trunk_lr_scale, device,
+                   pairs=args.pair_gap > 0)
     if args.resume and (args.out / "last.state.pt").is_file():
         run.load_state(torch.load(args.out / "last.state.pt", map_location=device,
                                   weights_only=False))
         LOG.info("resumed at step %d", run.progress["step"])
     pool = FramePool.load(args.pool)
-    val = {p.name: frame_arrays(FramePool.load([p]), args.val_stride) for p in args.val}
+    val = {p.name: frame_arrays(FramePool.load([p]), args.val_stride, args.pair_gap)
+           for p in args.val}
     LOG.info("%d frames of %d tracks; validation %s", len(pool), pool.n_tracks,
              {k: len(v["crops"]) for k, v in val.items()})
     meta = {"recipe": "trunk_finetune", "args": {k: str(v) for k, v in vars(args).items()}}
