@@ -93,6 +93,9 @@ FRAME_STEPS=${FRAME_STEPS:-0}
 TRAIN_FROM=${TRAIN_FROM:--1}
 FRAME_TRACKS=${FRAME_TRACKS:-32}
 FRAME_WORKERS=${FRAME_WORKERS:-0}
+# Per-channel white-balance gains of the per-frame stage's random camera, log-uniform within
+# +-FRAME_WHITE_BALANCE (0: none; docs/model.md, "White balance in the per-frame stage").
+FRAME_WHITE_BALANCE=${FRAME_WHITE_BALANCE:-0}
 TRUNK_WEIGHTS=${TRUNK_WEIGHTS:-}
 
 mkdir -p "$RUN" "$DATA"
@@ -121,7 +124,8 @@ if [[ -z "$TRUNK_WEIGHTS" && "$FRAME_STEPS" -gt 0 ]]; then
   [[ -f "$RUN/frames/summary.json" ]] || python -m signal_light_node.training.trunk_finetune \
     --out "$RUN/frames" "${pools[@]}" --val "$DATA/val_split" --val "$DATA/family_cal_split" \
     --model "$MODEL" --train-from "$TRAIN_FROM" --steps "$FRAME_STEPS" --tracks "$FRAME_TRACKS" \
-    --workers "$FRAME_WORKERS" --seed "$SEED" --threads "$THREADS" --device "$DEVICE" "${resume[@]}"
+    --workers "$FRAME_WORKERS" --white-balance "$FRAME_WHITE_BALANCE" --seed "$SEED" \
+    --threads "$THREADS" --device "$DEVICE" "${resume[@]}"
   TRUNK_WEIGHTS=$RUN/frames/best.pt
 fi
 trunk=()
