@@ -141,7 +141,7 @@ def sample_batch(pool: FramePool, rng: np.random.Generator, tracks: int, per_tra
         index = np.sort(rng.integers(a, b, per_track))
         frames = index
         if pair_gap:
-            frames = np.concatenate([index, np.maximum(index - pair_gap, a)])
+            frames = np.concatenate([index, partner_index(pool.offsets, index, pair_gap)])
         c, lit, labels = _augment_track(pool.crops[frames], pool.lit_labels[index],
                                         pool.labels[index], rng, augment, white_balance)
         crops.append(_with_partners(c, pair_gap))
