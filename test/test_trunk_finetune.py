@@ -1,6 +1,8 @@
 """The trunk recipe's per-frame stage: frames in memory, which blocks learn, its checkpoint."""
 
 import json
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -189,3 +191,15 @@ def test_a_trunk_of_another_shape_is_refused(split, tmp_path):
     with pytest.raises(ConfigError, match="not a per-frame"):
         torch.save({"x": 1}, tmp_path / "bad.pt")
         load_trunk_weights(other, tmp_path / "bad.pt")
+
+
+def test_every_flag_the_recipe_script_passes_to_the_stage_exists():
+    """scripts/train_trunk.sh calls this stage; a renamed flag would only fail hours in."""
+    script = (Path(__file__).parents[1] / "scripts" / "train_trunk.sh").read_text()
+    call = script[script.index("training.trunk_finetune"):]
+    call = call[:call.index("\n", call.index('"${resume[@]}"'))]
+    passed = set(re.findall(r"(--[a-z][a-z-]*)", call))
+    known = {flag for action in trunk_finetune._parser()._actions
+             for flag in action.option_strings}
+    assert {"--pair-gap", "--white-balance", "--steps"} <= passed
+    assert passed <= known, passed - known
