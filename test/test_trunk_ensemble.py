@@ -8,6 +8,7 @@ from signal_light_node.model.checkpoint import load_checkpoint, save_checkpoint
 from signal_light_node.model.config import trunk_config
 from signal_light_node.model.registry import build_model
 from signal_light_node.model.trunk_ensemble import TrunkEnsemble
+from signal_light_node.training import join_members as join_cli
 from signal_light_node.training.join_members import join_members
 
 RECIPE = {"frequency_evidence": False, "lamp_detail": 2, "lit_hidden": 16, "blink_levels": False}
@@ -75,6 +76,15 @@ def _joined(tmp_path):
 def _first_logits(model, crops):
     """Logits of one step of new tracks."""
     return model.step_logits(crops, model.initial_state(len(crops)))[0]
+
+
+def test_the_command_line_joins_what_the_recipe_script_names(tmp_path, capsys):
+    """scripts/train_trunk.sh runs this entry point after hours of training."""
+    paths = _pair(tmp_path)[2]
+    args = [a for p in paths for a in ("--member", str(p))] + ["--out", str(tmp_path / "j.pt")]
+    assert join_cli.main(args) == 0
+    assert load_checkpoint(tmp_path / "j.pt").config.members == 2
+    assert str(tmp_path / "j.pt") in capsys.readouterr().out
 
 
 def test_temperatures_apply_to_the_mean(tmp_path):
