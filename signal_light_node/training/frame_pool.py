@@ -122,6 +122,13 @@ def partner_index(offsets: np.ndarray, index: np.ndarray, gap: int) -> np.ndarra
     return np.maximum(index - gap, start)
 
 
+def _with_partner_rows(offsets: np.ndarray, index: np.ndarray, pair_gap: int) -> np.ndarray:
+    """Rows ``index`` then, with ``pair_gap`` > 0, their partners (:func:`partner_index`)."""
+    if not pair_gap:
+        return index
+    return np.concatenate([index, partner_index(offsets, index, pair_gap)])
+
+
 def _with_partners(frames: np.ndarray, pair_gap: int) -> np.ndarray:
     """``[2n, S, S, 3]`` frames then their partners -> ``[n, S, S, 6]`` (channels stacked)."""
     n = len(frames) // 2
@@ -139,9 +146,7 @@ def sample_batch(pool: FramePool, rng: np.random.Generator, tracks: int, per_tra
     for track in rng.integers(0, pool.n_tracks, tracks):
         a, b = int(pool.offsets[track]), int(pool.offsets[track + 1])
         index = np.sort(rng.integers(a, b, per_track))
-        frames = index
-        if pair_gap:
-            frames = np.concatenate([index, partner_index(pool.offsets, index, pair_gap)])
+        frames = _with_partner_rows(pool.offsets, index, pair_gap)
         c, lit, labels = _augment_track(pool.crops[frames], pool.lit_labels[index],
                                         pool.labels[index], rng, augment, white_balance)
         crops.append(_with_partners(c, pair_gap))
@@ -175,8 +180,6 @@ def frame_arrays(pool: FramePool, stride: int = 1, pair_gap: int = 0) -> Dict[st
     """Every ``stride``-th frame of a pool, unaugmented: ``crops`` and ``targets`` (with
     ``pair_gap`` > 0 the crops ``[M, S, S, 6]`` carry each frame's partner behind it)."""
     index = np.arange(0, len(pool), stride)
-    crops = pool.crops[index]
-    if pair_gap:
-        partners = pool.crops[partner_index(pool.offsets, index, pair_gap)]
-        crops = np.concatenate([crops, partners], axis=-1)
+    crops = _with_partners(pool.crops[_with_partner_rows(pool.offsets, index, pair_gap)],
+                           pair_gap)
     return {"crops": crops, "targets": pool.targets(index)}
