@@ -13,6 +13,7 @@ from signal_light_node.evaluation.metrics import LightOutcomes, reliability_repo
 from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
 from signal_light_node.evaluation.tracks import TrackSequence
 from signal_light_node.labels import LIGHT_TASKS, TASKS, LightStatus
+from signal_light_node.model import load_checkpoint
 
 BAG = Path(__file__).resolve().parents[1] / "bags" / "day_street"
 OFF, ON, UNK = int(LightStatus.OFF), int(LightStatus.ON), int(LightStatus.UNKNOWN)
@@ -123,6 +124,40 @@ def test_holdout_fraction_accepts_pool_tracks_and_needs_some_labelled_tracks(tmp
     TrainOptions(pools=[tmp_path / "split"], **common).validate()  # a --pool split counts
     with pytest.raises(ConfigError, match="--bags, --ucm or --pool"):
         TrainOptions(**common).validate()
+
+
+def test_select_by_published_needs_whole_labelled_validation_tracks(tmp_path):
+    from signal_light_node.errors import ConfigError
+    from signal_light_node.training.options import TrainOptions
+
+    common = dict(out=tmp_path, max_steps=1, init_from=Path("default"), select_by="published")
+    TrainOptions(bags=[BAG], val_fraction=0.3, **common).validate()
+    for wrong in (dict(bags=[BAG], val_fraction=0.0), dict(val_fraction=0.3),
+                  dict(bags=[BAG], val_fraction=0.3, val_split=tmp_path / "split")):
+        with pytest.raises(ConfigError, match="--select-by published"):
+            TrainOptions(**wrong, **common).validate()
+    with pytest.raises(ConfigError, match="--select-by must be one of"):
+        TrainOptions(bags=[BAG], **dict(common, select_by="loss")).validate()
+
+
+def test_select_by_published_keeps_the_step_the_node_would_publish_best(tmp_path):
+    """Each validation's score is the mean of intent macro-F1 and brake F1 as the node's
+    filter publishes them on the validation tracks, and best.pt is the step that scored
+    highest by it (a large learning rate makes the steps differ)."""
+    out = tmp_path / "ft"
+    assert main(["train", "--out", str(out), "--init-from", "default", "--bags", str(BAG),
+                 "--select-by", "published", "--val-fraction", "0.3", "--heads-only",
+                 "--lr", "0.05", "--steps", "4", "--batch", "2", "--seq-len", "4",
+                 "--workers", "0", "--threads", "1", "--val-every", "2", "--no-progress"]) == 0
+    records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in records] == [0, 2, 4]
+    for r in records:
+        published = r["published"]
+        assert published["scored_frames"] > 0
+        expected = 0.5 * ((published["intent_macro_f1"] or 0.0) + (published["brake_f1"] or 0.0))
+        assert r["score"] == pytest.approx(expected, abs=1e-5)
+    best = max(records, key=lambda r: r["score"])  # the first of equal scores, as the run
+    assert load_checkpoint(out / "best.pt").meta["training"]["step"] == best["step"]
 
 
 def test_train_holdout_fraction_writes_a_before_after_report(tmp_path, capsys):

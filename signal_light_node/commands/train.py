@@ -39,7 +39,7 @@ from typing import Any, Dict
 from signal_light_node.commands.options import add_labelled_data_options, add_torch_options
 from signal_light_node.errors import ConfigError
 from signal_light_node.training import BATCH_MODES, FRAME_TARGETS, PRECISIONS
-from signal_light_node.training.options import TrainOptions
+from signal_light_node.training.options import SELECT_BY, TrainOptions
 
 #: The default of a training option (``TrainOptions``: the one place they are set).
 _default = TrainOptions.default
@@ -183,6 +183,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "(drawn with --seed) held out of the run; the --init-from model and "
                         "the fine-tuned one are then evaluated on them (OUT/adapt_report.md "
                         "and .json)")
+    g.add_argument("--select-by", choices=SELECT_BY, default=_default("select_by"),
+                   help="what best.pt is chosen by: 'frames', the validation windows' "
+                        "per-frame argmax, or 'published', whole validation tracks (from "
+                        "--val-fraction of --bags/--pool) scored through the node's intent "
+                        "filter as the before/after report scores them")
     g.add_argument("--patience", type=int, default=_default("plateau_patience"),
                    help="validations without improvement before the LR drops")
     g.add_argument("--anneal-fraction", type=float,
@@ -213,7 +218,7 @@ def options_from_args(args: argparse.Namespace) -> TrainOptions:
         val_split=args.val_split,
         val_sequences=args.val_sequences, val_every=args.val_every,
         val_fraction=args.val_fraction, holdout_fraction=args.holdout_fraction,
-        plateau_patience=args.patience,
+        select_by=args.select_by, plateau_patience=args.patience,
         anneal_fraction=args.anneal_fraction, device=args.device,
         precision=args.precision,
         seed=args.seed, threads=args.threads, workers=args.workers, resume=resume,

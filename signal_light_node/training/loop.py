@@ -84,7 +84,7 @@ from signal_light_node.training.run_model import freeze_parts, load_run_model
 from signal_light_node.training.sampling import ClassFrequency
 from signal_light_node.training.schedule import annealed_step, budget_progress, plateau_scheduler
 from signal_light_node.training.seeding import data_seed, seed_everything
-from signal_light_node.training.validation import validate
+from signal_light_node.training.validation import validate, with_published_score
 
 logger = logging.getLogger(__name__)
 
@@ -168,6 +168,7 @@ class Trainer:
             self._check_lit_maps()
         self.val_items = (validation_items(opts, self.crop, held_out, self.synthetic_share)
                           if self.dist.main else [])
+        self.val_tracks = held_out  # whole, for --select-by published
         self.loader = training_loader(opts, self.crop, self.train_tracks, self.synthetic_share,
                                       data_seed(opts.seed, self.start_step), self.dist.rank)
 
@@ -290,6 +291,8 @@ class Trainer:
             val = validate(self.model, self.val_items, self.device, opts.task_weights,
                            opts.val_warmup, warmup_seconds=opts.val_warmup_seconds,
                            per_frame=opts.mode == "frames")
+            if opts.select_by == "published":
+                val = with_published_score(val, self.model, self.val_tracks, self.device)
         loss = broadcast_float(math.nan if val is None else val["loss"], self.dist, self.device)
         if not math.isnan(loss):
             self.scheduler.step(loss)

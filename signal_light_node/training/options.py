@@ -20,6 +20,9 @@ from signal_light_node.training import BATCH_MODES, FRAME_TARGETS, PRECISIONS
 DEFAULT_TASK_WEIGHTS: Dict[str, float] = {"intent": 1.0, "brake": 1.0, "left": 0.5,
                                           "right": 0.5, "view": 0.5}
 
+#: What a run's ``best.pt`` can be chosen by (``--select-by``).
+SELECT_BY = ("frames", "published")
+
 
 @dataclass
 class TrainOptions:
@@ -53,6 +56,10 @@ class TrainOptions:
         val_fraction: Share of bag/UCM tracks held out for validation (no val_split).
         holdout_fraction: Share of the track IDs the run loads (bags, UCM, pools) held
             out of it altogether, for the before/after report (:mod:`.holdout`); 0: none.
+        select_by: What ``best.pt`` is chosen by: ``frames`` (the validation windows'
+            per-frame argmax, :func:`.validation.validate`) or ``published`` (whole
+            validation tracks through the node's intent filter, as the before/after report
+            and ``signal-light calibrate`` score them).
         plateau_patience: Validations without improvement before the LR drops.
         plateau_factor: LR multiplier on a plateau.
         min_lr: Lowest LR.
@@ -138,6 +145,7 @@ class TrainOptions:
     val_seq_len: int = 48
     val_fraction: float = 0.1
     holdout_fraction: float = 0.0
+    select_by: str = "frames"
     plateau_patience: int = 3
     plateau_factor: float = 0.3
     min_lr: float = 1e-5
@@ -243,6 +251,18 @@ class TrainOptions:
             raise ConfigError("--holdout-fraction needs --init-from and labelled tracks "
                               "(--bags, --ucm or --pool): it compares the model before and "
                               "after")
+        self._check_selection()
+
+    def _check_selection(self) -> None:
+        if self.select_by not in SELECT_BY:
+            raise ConfigError(f"--select-by must be one of {list(SELECT_BY)}, got "
+                              f"{self.select_by!r}")
+        if self.select_by == "published" and (self.val_split is not None
+                                              or self.val_fraction <= 0
+                                              or not (self.bags or self.pools)):
+            raise ConfigError("--select-by published scores whole labelled tracks the run "
+                              "holds out: it needs --bags or --pool, --val-fraction > 0 and "
+                              "no --val-split")
 
     def _check_mode(self) -> None:
         if self.mode not in BATCH_MODES:

@@ -107,6 +107,8 @@ def validation_record(step: int, train_seconds: float, lr: float,
     if val is not None:
         record.update(val_loss=round(val["loss"], 5), score=round(val["score"], 5),
                       summary=val["summary"], accuracy=val["accuracy"], best=improved)
+        if "published" in val:
+            record.update(published=val["published"], frame_score=round(val["frame_score"], 5))
     return record
 
 

@@ -4,7 +4,9 @@ The first ``max(warmup, warmup_seconds * fps)`` frames of each sequence are left
 the metrics and of the intent/left/right loss; with ``per_frame`` every frame is judged
 alone from a zero state, as ``--mode frames`` trains. The score is
 :func:`signal_light_node.evaluation.metrics.selection_score` (the mean of intent macro-F1 and
-brake accuracy), by which a run keeps its best checkpoint.
+brake accuracy), by which a run keeps its best checkpoint. With ``--select-by published``
+:func:`with_published_score` replaces it by what the node would publish on whole validation
+tracks (the before/after report's and ``signal-light calibrate``'s objective).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import torch
 from torch import nn
 
 from signal_light_node.data.stream import collate_sequences
+from signal_light_node.evaluation.tracks import TrackSequence
 from signal_light_node.labels import TASKS
 from signal_light_node.evaluation.metrics import MetricAccumulator, selection_score
 from signal_light_node.training.loss import multitask_loss, warmup_frames
@@ -98,3 +101,30 @@ def _forward(model: nn.Module, x: torch.Tensor, chunk: Mapping[str, Any], device
     logits, _ = model(x)
     return logits, warm
 
+
+
+def with_published_score(val: Dict[str, Any], model: nn.Module,
+                         tracks: Sequence[TrackSequence], device: torch.device) -> Dict[str, Any]:
+    """``val`` with its ``score`` taken from what the node publishes on ``tracks``.
+
+    A fine-tune is judged afterwards through the node's intent filter (the before/after
+    report); selecting its checkpoint by the raw heads' per-frame argmax can keep a step
+    that publishes worse. The per-frame score stays under ``frame_score``, the published
+    headline under ``published``.
+
+    Args:
+        val: :func:`validate`'s result.
+        model: The model (put back into its previous train/eval mode afterwards).
+        tracks: Whole validation tracks with ground truth.
+        device: Where the model runs.
+    """
+    from signal_light_node.evaluation.streaming import evaluate_tracks
+    from signal_light_node.training.holdout import headline
+    from signal_light_node.training.unknown_bias import score
+
+    was_training = model.training
+    try:
+        result = evaluate_tracks(model.eval(), tracks, device=device, progress=False)
+    finally:
+        model.train(was_training)
+    return dict(val, frame_score=val["score"], published=headline(result), score=score(result))
