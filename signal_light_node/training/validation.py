@@ -102,7 +102,6 @@ def _forward(model: nn.Module, x: torch.Tensor, chunk: Mapping[str, Any], device
     return logits, warm
 
 
-
 def with_published_score(val: Dict[str, Any], model: nn.Module,
                          tracks: Sequence[TrackSequence], device: torch.device) -> Dict[str, Any]:
     """``val`` with its ``score`` taken from what the node publishes on ``tracks``.
