@@ -5,8 +5,10 @@
 # held-out family test split (style family 2), plus a family-2 calibration split when
 # CAL_TRACKS > 0. OBLIQUE (default 0) is the share of the pools' front and rear views drawn
 # turned (synth.traffic.OBLIQUE_YAW_DEG), TAIL_GLARE (default 0) the share of their lit
-# dusk and night vehicles with clipped tail lamps (synth.traffic.Vehicle.glare); the
-# evaluation splits never have either, so that they stay comparable across data versions.
+# dusk and night vehicles with clipped tail lamps (synth.traffic.Vehicle.glare), REAR_BAR
+# (default 0) the share of their rear views with a full-width tail bar (synth.lamps.tail_bar),
+# WIDE_TRUCK_LAMPS (default 0) that of their truck and bus rear views with wider clusters; the
+# evaluation splits never have any of them, so that they stay comparable across data versions.
 # POOL_NAME (default pool) names the pools DATA/POOL_NAME_SEED, so that pools of the same
 # seeds drawn with other settings (train_trunk.sh's glare pools) can sit beside them.
 # A split whose manifest exists is reused. Called by train_default.sh and train_trunk.sh
@@ -29,6 +31,8 @@ TEST_FRAMES=${TEST_FRAMES:-150}
 CAL_TRACKS=${CAL_TRACKS:-0}
 OBLIQUE=${OBLIQUE:-0}
 TAIL_GLARE=${TAIL_GLARE:-0}
+REAR_BAR=${REAR_BAR:-0}
+WIDE_TRUCK_LAMPS=${WIDE_TRUCK_LAMPS:-0}
 POOL_NAME=${POOL_NAME:-pool}
 
 mkdir -p "$DATA"
@@ -38,7 +42,8 @@ for seed in $POOL_SEEDS; do
   if [[ ! -f "$pool/manifest.json" ]]; then
     python -m signal_light_node.data.split "$pool" --seed "$seed" \
       --sequences "$POOL_TRACKS" --seq-len "$POOL_FRAMES" --full-tracks --overwrite \
-      --oblique "$OBLIQUE" --tail-glare "$TAIL_GLARE" \
+      --oblique "$OBLIQUE" --tail-glare "$TAIL_GLARE" --rear-bar "$REAR_BAR" \
+      --wide-truck-lamps "$WIDE_TRUCK_LAMPS" \
       > "$pool.log" 2>&1 &
     pids+=($!)
   fi

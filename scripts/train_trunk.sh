@@ -73,6 +73,13 @@ POOL_SEEDS=${POOL_SEEDS:-"31 32 33"}
 # more tracks": POOL_SEEDS="31 32 33 34 35 36" GLARE_POOL_SEEDS="31 32 33").
 GLARE_POOL_SEEDS=${GLARE_POOL_SEEDS:-}
 GLARE_SHARE=${GLARE_SHARE:-0.5}
+# REAR_POOL_SEEDS (default none) adds pools of those seeds, DATA/rear_pool_SEED, whose rear
+# views carry a full-width tail bar on REAR_BAR (default 0.5) of them and whose trucks and
+# buses seen from behind have clusters as wide as real combination lamps on WIDE_TRUCK_LAMPS
+# (default 1) of them (docs/model.md, "Rear lamps the renderer drew too seldom").
+REAR_POOL_SEEDS=${REAR_POOL_SEEDS:-}
+REAR_BAR=${REAR_BAR:-0.5}
+WIDE_TRUCK_LAMPS=${WIDE_TRUCK_LAMPS:-1}
 # JSON changes on model.config.trunk_config(): the recipe's model (docs/model.md, "Finer lamp
 # maps, a non-linear lit head, blink evidence by period only").
 RECIPE_MODEL='{"frequency_evidence": false, "lamp_detail": 2, "lit_hidden": 128, "blink_levels": false}'
@@ -113,6 +120,11 @@ if [[ -n "$GLARE_POOL_SEEDS" ]]; then
   DATA=$DATA POOL_SEEDS=$GLARE_POOL_SEEDS POOL_NAME=glare_pool TAIL_GLARE=$GLARE_SHARE \
     CAL_TRACKS=${CAL_TRACKS:-120} bash scripts/render_data.sh
   for seed in $GLARE_POOL_SEEDS; do pool_dirs+=("$DATA/glare_pool_$seed"); done
+fi
+if [[ -n "$REAR_POOL_SEEDS" ]]; then
+  DATA=$DATA POOL_SEEDS=$REAR_POOL_SEEDS POOL_NAME=rear_pool REAR_BAR=$REAR_BAR \
+    WIDE_TRUCK_LAMPS=$WIDE_TRUCK_LAMPS CAL_TRACKS=${CAL_TRACKS:-120} bash scripts/render_data.sh
+  for seed in $REAR_POOL_SEEDS; do pool_dirs+=("$DATA/rear_pool_$seed"); done
 fi
 pools=()
 for dir in "${pool_dirs[@]}"; do pools+=(--pool "$dir"); done

@@ -309,9 +309,18 @@ def main(argv: Optional[List[str]] = None) -> int:
                         help="share of lit vehicles in dusk and night scenes whose tail lamps "
                              "are drawn clipped like a brake (synth.traffic.Vehicle.glare); "
                              "default 0")
+    parser.add_argument("--rear-bar", type=float, default=0.0, metavar="SHARE",
+                        help="share of rear views given a full-width tail bar joining their "
+                             "side clusters (synth.lamps.tail_bar); default 0")
+    parser.add_argument("--wide-truck-lamps", type=float, default=0.0, metavar="SHARE",
+                        help="share of truck and bus rear views whose side clusters are drawn "
+                             "as wide as real combination lamps (synth.lamps.widen_clusters); "
+                             "default 0")
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
-    overrides = {k: v for k, v in (("oblique", args.oblique), ("tail_glare", args.tail_glare)) if v}
+    overrides = {k: v for k, v in (("oblique", args.oblique), ("tail_glare", args.tail_glare),
+                                                   ("rear_bar", args.rear_bar),
+                                                   ("wide_truck_lamps", args.wide_truck_lamps)) if v}
     extra = {"renderer_overrides": overrides} if overrides else {}
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:

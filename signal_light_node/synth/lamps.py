@@ -245,6 +245,49 @@ def rear_lamps(style: LampStyle, kind: str, rng: np.random.Generator, chmsl_v: f
     return lamps
 
 
+def widen_clusters(lamps: Sequence[Lamp], factor: float, limit: float = 0.42) -> None:
+    """Widen a rear face's per-side clusters in place by ``factor``, about the box edge
+    each one sits on (a truck's combination lamps are wider than ``rear_lamps`` draws
+    them); adjacent segments stay adjacent and no cluster passes ``limit`` of the width.
+    Reflectors and centre lamps stay as they were."""
+    sides = [lamp for lamp in lamps if lamp.side in ("L", "R") and lamp.role != "reflector"]
+    # How far from its own box edge the innermost end of any cluster reaches.
+    reach = max([lamp.rect[2] if lamp.rect[0] + lamp.rect[2] < 1.0 else 1.0 - lamp.rect[0] for lamp in sides] + [1e-6])
+    f = max(1.0, min(factor, limit / reach))
+    for lamp in sides:
+        u0, v0, u1, v1 = lamp.rect
+        if u0 + u1 < 1.0:
+            lamp.rect = (u0 * f, v0, u1 * f, v1)
+        else:
+            lamp.rect = (1.0 - (1.0 - u0) * f, v0, 1.0 - (1.0 - u1) * f, v1)
+
+
+def tail_bar(lamps: Sequence[Lamp], style: LampStyle, rng: np.random.Generator) -> Optional[Lamp]:
+    """A full-width tail bar across a rear face, joining its two per-side clusters.
+
+    Tail level only (a centre tail lamp never brakes or blinks, ``shows_brake``); it sits
+    at the top, middle or bottom of the clusters' band. None when the face has no pair of
+    side clusters or already has a centre tail bar.
+
+    Args:
+        lamps: The rear face's lamps (``rear_lamps``).
+        style: The vehicle's lamp style (colours, glow).
+        rng: The bar's own stream.
+    """
+    if any(lamp.role == "tail" and lamp.side == "C" for lamp in lamps):
+        return None
+    rects = [lamp.rect for lamp in lamps if lamp.side in ("L", "R") and lamp.role in ("tail", "turn", "turn_tail")]
+    left = [r for r in rects if r[0] + r[2] < 1.0]
+    right = [r for r in rects if r[0] + r[2] > 1.0]
+    if not left or not right:
+        return None
+    u0, u1 = max(r[2] for r in left), min(r[0] for r in right)
+    v0, v1 = min(r[1] for r in rects), max(r[3] for r in rects)
+    h = (v1 - v0) * rng.uniform(0.25, 0.6)
+    top = v0 + (v1 - v0 - h) * float(rng.choice([0.0, 0.5, 1.0]))
+    return Lamp("tail", "C", (u0, top, u1, top + h), "strip", style.red, style.red_lens, glow=style.glow * 0.5)
+
+
 def front_lamps(style: LampStyle, kind: str, rng: np.random.Generator) -> List[Lamp]:
     """Lamps on the front face (view FRONT): the vehicle's left is the image right."""
     if kind in ("truck", "bus"):

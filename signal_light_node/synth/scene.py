@@ -20,7 +20,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-from typing import Any, Iterator, List, Optional
+from typing import Any, Dict, Iterator, List, Optional
 
 import cv2
 import numpy as np
@@ -41,9 +41,18 @@ LOG = logging.getLogger(__name__)
 
 _MARGIN = 12
 _SCENE_KEYS = {"vehicles", "occluders", "poles", "distractors", "weather", "effects", "shake", "respawn", "horizon", "focal",
-               "family", "oblique", "tail_glare"}
+               "family", "oblique", "tail_glare", "rear_bar",
+               "wide_truck_lamps"}
 _VEHICLE_KEYS = {"view", "kind", "lamp_design", "tech", "chmsl", "intent", "brake", "colour", "lights_on", "center_x",
                  "width_px", "speed", "blink_hz", "duty", "phase", "shear", "roll", "specular", "yaw"}
+
+
+def _share(overrides: Dict[str, Any], key: str) -> float:
+    """A share override (default 0), refused in one line outside [0, 1]."""
+    value = float(overrides.get(key, 0.0))
+    if not 0.0 <= value <= 1.0:
+        raise ConfigError(f"{key} must be a share in [0, 1], got {overrides[key]!r}")
+    return value
 
 
 class SceneRenderer:
@@ -70,7 +79,11 @@ class SceneRenderer:
             rear views drawn turned by 10-40 degrees, foreshortened with their flank in
             view; default 0), ``tail_glare`` (share of lit vehicles in dusk and night
             scenes whose tail lamps are drawn clipped, told from a brake only by its
-            larger glow, hotter core and the centre lamp; default 0). Vehicle keys:
+            larger glow, hotter core and the centre lamp; default 0), ``rear_bar`` (share
+            of rear views given a full-width tail bar joining their side clusters, tail
+            level only; default 0), ``wide_truck_lamps`` (share of truck and bus rear
+            views whose side clusters are drawn as wide as real combination lamps;
+            default 0). Vehicle keys:
             ``view`` (View), ``kind``, ``lamp_design``, ``tech`` ("led"/"bulb"), ``chmsl``,
             ``intent`` (Intent held for the whole sequence), ``brake`` (bool held),
             ``colour`` (BGR), ``lights_on``, ``center_x`` (pixels), ``width_px`` (box width),
@@ -123,12 +136,10 @@ class SceneRenderer:
         if family not in STYLE_FAMILIES:
             raise ConfigError(f"family must be one of {STYLE_FAMILIES}, got {family!r}")
         self.family = int(family)
-        self.oblique = float(overrides.get("oblique", 0.0))
-        if not 0.0 <= self.oblique <= 1.0:
-            raise ConfigError(f"oblique must be a share in [0, 1], got {overrides['oblique']!r}")
-        self.tail_glare = float(overrides.get("tail_glare", 0.0))
-        if not 0.0 <= self.tail_glare <= 1.0:
-            raise ConfigError(f"tail_glare must be a share in [0, 1], got {overrides['tail_glare']!r}")
+        self.oblique = _share(overrides, "oblique")
+        self.tail_glare = _share(overrides, "tail_glare")
+        self.rear_bar = _share(overrides, "rear_bar")
+        self.wide_truck_lamps = _share(overrides, "wide_truck_lamps")
 
     # ------------------------------------------------------------------ setup
     def _setup(self) -> None:
@@ -161,7 +172,8 @@ class SceneRenderer:
         LOG.debug("scene seed=%d %dx%d fps=%.1f lighting=%s weather=%s focal=%.0f horizon=%.0f vehicles=%d",
                   self.seed, W, H, self.fps, self.lighting, weather, f, hy, self.n_vehicles)
         self._traffic = Traffic(self.seed, rng, W, self._geo, self._light, self.lighting, self.family,
-                                self.oblique, self.tail_glare)
+                                self.oblique, self.tail_glare, self.rear_bar,
+                                self.wide_truck_lamps)
         vo = o.get("vehicles") or []
         for i in range(self.n_vehicles):
             self._traffic.vehicles.append(self._traffic.spawn(vo[i] if i < len(vo) else {}, entering=False))

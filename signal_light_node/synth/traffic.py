@@ -36,6 +36,11 @@ OBLIQUE_YAW_DEG = (10.0, 40.0)
 #: gain) and the level of their brake and flashes over it.
 GLARE_TAIL_LEVEL = (0.7, 1.0)
 GLARE_LEVEL = (2.0, 4.0)
+#: How much wider ``wide_truck_lamps`` draws a truck's or bus's rear clusters: ``rear_lamps``
+#: makes them 7-13 % of the width, split in two on some designs, so that on a tall body many
+#: fall under the truth's size rule (``truth.LAMP_MIN_BOX_SHARE``); real combination lamps
+#: are 0.3-0.5 m of a 2.5 m rear.
+WIDE_TRUCK_FACTOR = (1.6, 2.6)
 #: Largest |yaw| a vehicle override may ask for.
 MAX_YAW_DEG = 44.0
 
@@ -101,10 +106,14 @@ class Traffic:
         oblique: Share of front and rear views drawn turned (``OBLIQUE_YAW_DEG``).
         tail_glare: Share of vehicles with lamps lit in a dusk or night scene whose tail
             lamps are drawn clipped like their brake lamps (``Vehicle.glare``).
+        rear_bar: Share of rear views given a full-width tail bar (``lamps.tail_bar``).
+        wide_truck_lamps: Share of truck and bus rear views whose side clusters are drawn
+            ``WIDE_TRUCK_FACTOR`` times wider (``lamps.widen_clusters``).
     """
 
     def __init__(self, seed: int, rng: np.random.Generator, width: int, geo: StreetGeometry, light: Lighting, lighting: str,
-                 family: int, oblique: float = 0.0, tail_glare: float = 0.0) -> None:
+                 family: int, oblique: float = 0.0, tail_glare: float = 0.0, rear_bar: float = 0.0,
+                 wide_truck_lamps: float = 0.0) -> None:
         self.seed = seed
         self.width = width
         self._rng = rng
@@ -114,6 +123,8 @@ class Traffic:
         self.family = family
         self.oblique = oblique
         self.tail_glare = tail_glare
+        self.rear_bar = rear_bar
+        self.wide_truck_lamps = wide_truck_lamps
         self._next_id = int(rng.integers(1, 50))
         self.vehicles: List[Vehicle] = []
 
@@ -231,6 +242,8 @@ class Traffic:
                     tracker_sigma=float(vrng.uniform(0.008, 0.035)), tracker_amodal=bool(vrng.random() < 0.3))
         v.yaw = self._yaw(vo, v)
         self._glare(v)
+        self._wide_truck_lamps(v)
+        self._rear_bar(v)
         pts, splits, sil = [], [], []
         n = 0
         for key, poly in shape.parts:
@@ -275,6 +288,30 @@ class Traffic:
             return
         v.style = replace(v.style, tail_level=float(grng.uniform(*GLARE_TAIL_LEVEL)))
         v.glare = float(grng.uniform(*GLARE_LEVEL))
+
+    def _wide_truck_lamps(self, v: Vehicle) -> None:
+        """With probability ``wide_truck_lamps``, a truck or bus seen from behind gets side
+        clusters as wide as real combination lamps (a stream of its own)."""
+        if self.wide_truck_lamps <= 0 or v.view != View.BEHIND or v.kind not in ("truck", "bus"):
+            return
+        wrng = np.random.default_rng([self.seed, 700 + int(v.track_id)])
+        if wrng.random() >= self.wide_truck_lamps:
+            return
+        lamp_mod.widen_clusters(v.lamps, float(wrng.uniform(*WIDE_TRUCK_FACTOR)))
+        v.lamp_polys = [lamp_outlines(lamp) for lamp in v.lamps]
+
+    def _rear_bar(self, v: Vehicle) -> None:
+        """With probability ``rear_bar``, a rear view gets a full-width tail bar (a stream
+        of its own, as ``_yaw``'s: the scene's other draws stay as they were)."""
+        if self.rear_bar <= 0 or v.view != View.BEHIND:
+            return
+        brng = np.random.default_rng([self.seed, 600 + int(v.track_id)])
+        if brng.random() >= self.rear_bar:
+            return
+        bar = lamp_mod.tail_bar(v.lamps, v.style, brng)
+        if bar is not None:
+            v.lamps.append(bar)
+            v.lamp_polys.append(lamp_outlines(bar))
 
     def _place(self, vo: Dict[str, Any], view: View, face_w: float, face_h: float, entering: bool,
                vrng: np.random.Generator, z_min: float, z_max: float) -> Tuple[float, float]:
