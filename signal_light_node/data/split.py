@@ -318,9 +318,9 @@ def main(argv: Optional[List[str]] = None) -> int:
                              "default 0")
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
-    overrides = {k: v for k, v in (("oblique", args.oblique), ("tail_glare", args.tail_glare),
-                                                   ("rear_bar", args.rear_bar),
-                                                   ("wide_truck_lamps", args.wide_truck_lamps)) if v}
+    shares = (("oblique", args.oblique), ("tail_glare", args.tail_glare),
+              ("rear_bar", args.rear_bar), ("wide_truck_lamps", args.wide_truck_lamps))
+    overrides = {k: v for k, v in shares if v}
     extra = {"renderer_overrides": overrides} if overrides else {}
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:

@@ -41,8 +41,7 @@ LOG = logging.getLogger(__name__)
 
 _MARGIN = 12
 _SCENE_KEYS = {"vehicles", "occluders", "poles", "distractors", "weather", "effects", "shake", "respawn", "horizon", "focal",
-               "family", "oblique", "tail_glare", "rear_bar",
-               "wide_truck_lamps"}
+               "family", "oblique", "tail_glare", "rear_bar", "wide_truck_lamps"}
 _VEHICLE_KEYS = {"view", "kind", "lamp_design", "tech", "chmsl", "intent", "brake", "colour", "lights_on", "center_x",
                  "width_px", "speed", "blink_hz", "duty", "phase", "shear", "roll", "specular", "yaw"}
 
@@ -172,8 +171,7 @@ class SceneRenderer:
         LOG.debug("scene seed=%d %dx%d fps=%.1f lighting=%s weather=%s focal=%.0f horizon=%.0f vehicles=%d",
                   self.seed, W, H, self.fps, self.lighting, weather, f, hy, self.n_vehicles)
         self._traffic = Traffic(self.seed, rng, W, self._geo, self._light, self.lighting, self.family,
-                                self.oblique, self.tail_glare, self.rear_bar,
-                                self.wide_truck_lamps)
+                                self.oblique, self.tail_glare, self.rear_bar, self.wide_truck_lamps)
         vo = o.get("vehicles") or []
         for i in range(self.n_vehicles):
             self._traffic.vehicles.append(self._traffic.spawn(vo[i] if i < len(vo) else {}, entering=False))
