@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from signal_light_node.data import split as split_cli
 from signal_light_node.errors import ConfigError
 from signal_light_node.labels import Intent, LightStatus, View
 from signal_light_node.synth import SceneRenderer
@@ -89,3 +90,19 @@ def test_a_bad_share_is_refused():
         SceneRenderer(seed=1, rear_bar=1.5)
     with pytest.raises(ConfigError, match="wide_truck_lamps"):
         SceneRenderer(seed=1, wide_truck_lamps=-0.5)
+
+
+def test_the_split_command_hands_both_shares_to_the_renderer(monkeypatch, tmp_path):
+    seen = {}
+
+    def capture(*args, **kwargs):
+        seen.update(kwargs)
+        raise ConfigError("captured")  # nothing is rendered
+
+    monkeypatch.setattr(split_cli, "write_split", capture)
+    argv = [str(tmp_path / "pool"), "--seed", "3", "--sequences", "2", "--full-tracks"]
+    assert split_cli.main(argv + ["--rear-bar", "0.5", "--wide-truck-lamps", "1"]) == 2
+    assert seen["renderer_overrides"] == {"rear_bar": 0.5, "wide_truck_lamps": 1.0}
+    seen.clear()
+    assert split_cli.main(argv) == 2
+    assert "renderer_overrides" not in seen
