@@ -285,6 +285,19 @@ class SequenceSplit(Dataset):
                                                "n_observations", "label_histogram", "lighting")}
 
 
+#: The renderer's share overrides the command takes (``synth.SceneRenderer``), with what
+#: each is a share of. Evaluation splits are drawn without any of them.
+RENDERER_SHARES = {
+    "oblique": "front and rear views drawn turned (10-40 degrees: foreshortened, flank in view)",
+    "tail_glare": "lit vehicles in dusk and night scenes whose tail lamps are drawn clipped "
+                  "like a brake (synth.traffic.Vehicle.glare)",
+    "rear_bar": "rear views given a full-width tail bar joining their side clusters "
+                "(synth.lamps.tail_bar)",
+    "wide_truck_lamps": "truck and bus rear views whose side clusters are drawn as wide as "
+                        "real combination lamps (synth.lamps.widen_clusters)",
+}
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     """Write a split from the command line (``python -m signal_light_node.data.split``)."""
     parser = argparse.ArgumentParser(prog="python -m signal_light_node.data.split",
@@ -302,25 +315,12 @@ def main(argv: Optional[List[str]] = None) -> int:
                         help="one lighting for every scene (default: drawn per scene)")
     parser.add_argument("--lit-maps", action="store_true",
                         help="store where each vehicle's signal lamps are lit (training target)")
-    parser.add_argument("--oblique", type=float, default=0.0, metavar="SHARE",
-                        help="share of front and rear views drawn turned (10-40 degrees: "
-                             "foreshortened, flank in view); default 0")
-    parser.add_argument("--tail-glare", type=float, default=0.0, metavar="SHARE",
-                        help="share of lit vehicles in dusk and night scenes whose tail lamps "
-                             "are drawn clipped like a brake (synth.traffic.Vehicle.glare); "
-                             "default 0")
-    parser.add_argument("--rear-bar", type=float, default=0.0, metavar="SHARE",
-                        help="share of rear views given a full-width tail bar joining their "
-                             "side clusters (synth.lamps.tail_bar); default 0")
-    parser.add_argument("--wide-truck-lamps", type=float, default=0.0, metavar="SHARE",
-                        help="share of truck and bus rear views whose side clusters are drawn "
-                             "as wide as real combination lamps (synth.lamps.widen_clusters); "
-                             "default 0")
+    for key, text in RENDERER_SHARES.items():
+        parser.add_argument("--" + key.replace("_", "-"), type=float, default=0.0,
+                            metavar="SHARE", help=f"share of {text}; default 0")
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
-    shares = (("oblique", args.oblique), ("tail_glare", args.tail_glare),
-              ("rear_bar", args.rear_bar), ("wide_truck_lamps", args.wide_truck_lamps))
-    overrides = {k: v for k, v in shares if v}
+    overrides = {key: getattr(args, key) for key in RENDERER_SHARES if getattr(args, key)}
     extra = {"renderer_overrides": overrides} if overrides else {}
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
