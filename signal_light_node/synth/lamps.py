@@ -245,18 +245,28 @@ def rear_lamps(style: LampStyle, kind: str, rng: np.random.Generator, chmsl_v: f
     return lamps
 
 
+def _cluster_lamps(lamps: Sequence[Lamp]) -> List[Lamp]:
+    """The lamps of a rear face's two per-side clusters (no reflector, no centre lamp)."""
+    return [lamp for lamp in lamps if lamp.side in ("L", "R") and lamp.role in ("tail", "turn", "turn_tail")]
+
+
+def _image_left(rect: Tuple[float, float, float, float]) -> bool:
+    """Whether a lamp's rect lies on the image-left half of its face."""
+    return rect[0] + rect[2] < 1.0
+
+
 def widen_clusters(lamps: Sequence[Lamp], factor: float, limit: float = 0.42) -> None:
     """Widen a rear face's per-side clusters in place by ``factor``, about the box edge
     each one sits on (a truck's combination lamps are wider than ``rear_lamps`` draws
     them); adjacent segments stay adjacent and no cluster passes ``limit`` of the width.
     Reflectors and centre lamps stay as they were."""
-    sides = [lamp for lamp in lamps if lamp.side in ("L", "R") and lamp.role != "reflector"]
+    sides = _cluster_lamps(lamps)
     # How far from its own box edge the innermost end of any cluster reaches.
-    reach = max([lamp.rect[2] if lamp.rect[0] + lamp.rect[2] < 1.0 else 1.0 - lamp.rect[0] for lamp in sides] + [1e-6])
+    reach = max([lamp.rect[2] if _image_left(lamp.rect) else 1.0 - lamp.rect[0] for lamp in sides] + [1e-6])
     f = max(1.0, min(factor, limit / reach))
     for lamp in sides:
         u0, v0, u1, v1 = lamp.rect
-        if u0 + u1 < 1.0:
+        if _image_left(lamp.rect):
             lamp.rect = (u0 * f, v0, u1 * f, v1)
         else:
             lamp.rect = (1.0 - (1.0 - u0) * f, v0, 1.0 - (1.0 - u1) * f, v1)
@@ -276,9 +286,9 @@ def tail_bar(lamps: Sequence[Lamp], style: LampStyle, rng: np.random.Generator) 
     """
     if any(lamp.role == "tail" and lamp.side == "C" for lamp in lamps):
         return None
-    rects = [lamp.rect for lamp in lamps if lamp.side in ("L", "R") and lamp.role in ("tail", "turn", "turn_tail")]
-    left = [r for r in rects if r[0] + r[2] < 1.0]
-    right = [r for r in rects if r[0] + r[2] > 1.0]
+    rects = [lamp.rect for lamp in _cluster_lamps(lamps)]
+    left = [r for r in rects if _image_left(r)]
+    right = [r for r in rects if not _image_left(r)]
     if not left or not right:
         return None
     u0, u1 = max(r[2] for r in left), min(r[0] for r in right)

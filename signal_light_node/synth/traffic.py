@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Any, Dict, List, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -259,6 +259,13 @@ class Traffic:
         self._prepare_lamps(v)
         return v
 
+    def _picked(self, v: Vehicle, stream: int, share: float) -> Optional[np.random.Generator]:
+        """The vehicle's own stream number ``stream`` (+ its track ID) when its first draw
+        picks the vehicle with probability ``share``, else None. A stream of its own per
+        option keeps every other draw of the scene as it was without that option."""
+        rng = np.random.default_rng([self.seed, stream + int(v.track_id)])
+        return rng if rng.random() < share else None
+
     def _yaw(self, vo: Dict[str, Any], v: Vehicle) -> float:
         """The yaw of a new vehicle: the override, else with probability ``oblique`` one
         drawn from ``OBLIQUE_YAW_DEG`` (a stream of its own: every other draw of the scene
@@ -272,8 +279,8 @@ class Traffic:
             return yaw
         if self.oblique <= 0 or v.view not in (View.BEHIND, View.FRONT):
             return 0.0
-        yrng = np.random.default_rng([self.seed, 400 + int(v.track_id)])
-        if yrng.random() >= self.oblique:
+        yrng = self._picked(v, 400, self.oblique)
+        if yrng is None:
             return 0.0
         return float(yrng.uniform(*OBLIQUE_YAW_DEG) * (1.0 if yrng.random() < 0.5 else -1.0))
 
@@ -283,8 +290,8 @@ class Traffic:
         ``_yaw``'s)."""
         if self.tail_glare <= 0 or self.lighting == "day" or not v.lights_on:
             return
-        grng = np.random.default_rng([self.seed, 500 + int(v.track_id)])
-        if grng.random() >= self.tail_glare:
+        grng = self._picked(v, 500, self.tail_glare)
+        if grng is None:
             return
         v.style = replace(v.style, tail_level=float(grng.uniform(*GLARE_TAIL_LEVEL)))
         v.glare = float(grng.uniform(*GLARE_LEVEL))
@@ -294,8 +301,8 @@ class Traffic:
         clusters as wide as real combination lamps (a stream of its own)."""
         if self.wide_truck_lamps <= 0 or v.view != View.BEHIND or v.kind not in ("truck", "bus"):
             return
-        wrng = np.random.default_rng([self.seed, 700 + int(v.track_id)])
-        if wrng.random() >= self.wide_truck_lamps:
+        wrng = self._picked(v, 700, self.wide_truck_lamps)
+        if wrng is None:
             return
         lamp_mod.widen_clusters(v.lamps, float(wrng.uniform(*WIDE_TRUCK_FACTOR)))
         v.lamp_polys = [lamp_outlines(lamp) for lamp in v.lamps]
@@ -305,8 +312,8 @@ class Traffic:
         of its own, as ``_yaw``'s: the scene's other draws stay as they were)."""
         if self.rear_bar <= 0 or v.view != View.BEHIND:
             return
-        brng = np.random.default_rng([self.seed, 600 + int(v.track_id)])
-        if brng.random() >= self.rear_bar:
+        brng = self._picked(v, 600, self.rear_bar)
+        if brng is None:
             return
         bar = lamp_mod.tail_bar(v.lamps, v.style, brng)
         if bar is not None:
