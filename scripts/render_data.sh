@@ -9,6 +9,9 @@
 # (default 0) the share of their rear views with a full-width tail bar (synth.lamps.tail_bar),
 # WIDE_TRUCK_LAMPS (default 0) that of their truck and bus rear views with wider clusters; the
 # evaluation splits never have any of them, so that they stay comparable across data versions.
+# TRUTH_RULE (default lamp; synth.truth.TRUTH_RULES) labels every split, pools and evaluation
+# splits alike: data of another rule is another data version, and a model trained on it is
+# scored against models of the old one on this DATA's evaluation splits.
 # POOL_NAME (default pool) names the pools DATA/POOL_NAME_SEED, so that pools of the same
 # seeds drawn with other settings (train_trunk.sh's glare pools) can sit beside them.
 # A split whose manifest exists is reused. Called by train_default.sh and train_trunk.sh
@@ -33,6 +36,7 @@ OBLIQUE=${OBLIQUE:-0}
 TAIL_GLARE=${TAIL_GLARE:-0}
 REAR_BAR=${REAR_BAR:-0}
 WIDE_TRUCK_LAMPS=${WIDE_TRUCK_LAMPS:-0}
+TRUTH_RULE=${TRUTH_RULE:-lamp}
 POOL_NAME=${POOL_NAME:-pool}
 
 mkdir -p "$DATA"
@@ -43,13 +47,13 @@ for seed in $POOL_SEEDS; do
     python -m signal_light_node.data.split "$pool" --seed "$seed" \
       --sequences "$POOL_TRACKS" --seq-len "$POOL_FRAMES" --full-tracks --overwrite \
       --oblique "$OBLIQUE" --tail-glare "$TAIL_GLARE" --rear-bar "$REAR_BAR" \
-      --wide-truck-lamps "$WIDE_TRUCK_LAMPS" \
+      --wide-truck-lamps "$WIDE_TRUCK_LAMPS" --truth-rule "$TRUTH_RULE" \
       > "$pool.log" 2>&1 &
     pids+=($!)
   fi
 done
 python - "$DATA" "$VAL_SEED" "$VAL_SEQUENCES" "$VAL_LEN" "$TEST_SEED" "$FAMILY_SEED" \
-  "$TEST_TRACKS" "$TEST_FRAMES" "$CAL_SEED" "$CAL_TRACKS" <<'PY'
+  "$TEST_TRACKS" "$TEST_FRAMES" "$CAL_SEED" "$CAL_TRACKS" "$TRUTH_RULE" <<'PY'
 import sys
 from pathlib import Path
 
@@ -57,7 +61,7 @@ from signal_light_node.data.split import write_split
 from signal_light_node.model import ModelConfig
 from signal_light_node.synth.lamps import HELD_OUT_FAMILY
 
-run, val_seed, val_n, val_len, test_seed, family_seed, test_n, test_len, cal_seed, cal_n = \
+run, val_seed, val_n, val_len, test_seed, family_seed, test_n, test_len, cal_seed, cal_n, rule = \
     sys.argv[1:]
 crop = ModelConfig().crop_config()
 splits = [("val_split", val_seed, val_n, val_len, False, None),
@@ -70,7 +74,10 @@ for name, seed, n, length, full, family in splits:
     if (out / "manifest.json").is_file():
         print(f"{out} exists; reusing it")
         continue
-    extra = {} if family is None else {"renderer_overrides": {"family": family}}
+    overrides = {} if family is None else {"family": family}
+    if rule != "lamp":
+        overrides["truth_rule"] = rule
+    extra = {"renderer_overrides": overrides} if overrides else {}
     write_split(out, seed=int(seed), n_sequences=int(n), seq_len=int(length), crop=crop,
                 full_tracks=full, progress=False, **extra)
 PY

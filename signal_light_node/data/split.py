@@ -300,6 +300,8 @@ RENDERER_SHARES = {
 
 def main(argv: Optional[List[str]] = None) -> int:
     """Write a split from the command line (``python -m signal_light_node.data.split``)."""
+    from signal_light_node.synth.truth import TRUTH_RULES  # heavy; the command renders anyway
+
     parser = argparse.ArgumentParser(prog="python -m signal_light_node.data.split",
                                      description="materialise a fixed synthetic split")
     parser.add_argument("out", help="directory to write")
@@ -318,9 +320,14 @@ def main(argv: Optional[List[str]] = None) -> int:
     for key, text in RENDERER_SHARES.items():
         parser.add_argument("--" + key.replace("_", "-"), type=float, default=0.0,
                             metavar="SHARE", help=f"share of {text}; default 0")
+    parser.add_argument("--truth-rule", choices=TRUTH_RULES, default=TRUTH_RULES[0],
+                        help="how large the seen lamps of a light must be for it to be "
+                        "labelled (synth.truth.TRUTH_RULES); default %(default)s")
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
     overrides = {key: getattr(args, key) for key in RENDERER_SHARES if getattr(args, key)}
+    if args.truth_rule != TRUTH_RULES[0]:
+        overrides["truth_rule"] = args.truth_rule
     extra = {"renderer_overrides": overrides} if overrides else {}
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:

@@ -33,15 +33,15 @@ from signal_light_node.synth.lamps import STYLE_FAMILIES, TRAIN_FAMILIES
 from signal_light_node.synth.lit_maps import draw_lit_map
 from signal_light_node.synth.tracker import tracker_box
 from signal_light_node.synth.traffic import Traffic
-from signal_light_node.synth.truth import (RenderedFrame, VehicleTruth, lamp_states, lamp_visibility, listed_box, mark_visible,
-                                          vehicle_truth)
+from signal_light_node.synth.truth import (TRUTH_RULES, RenderedFrame, VehicleTruth, lamp_states, lamp_visibility, listed_box,
+                                          mark_visible, vehicle_truth)
 from signal_light_node.synth.vehicle_drawing import Drawn, VehiclePainter
 
 LOG = logging.getLogger(__name__)
 
 _MARGIN = 12
 _SCENE_KEYS = {"vehicles", "occluders", "poles", "distractors", "weather", "effects", "shake", "respawn", "horizon", "focal",
-               "family", "oblique", "tail_glare", "rear_bar", "wide_truck_lamps"}
+               "family", "oblique", "tail_glare", "rear_bar", "wide_truck_lamps", "truth_rule"}
 _VEHICLE_KEYS = {"view", "kind", "lamp_design", "tech", "chmsl", "intent", "brake", "colour", "lights_on", "center_x",
                  "width_px", "speed", "blink_hz", "duty", "phase", "shear", "roll", "specular", "yaw"}
 
@@ -82,7 +82,8 @@ class SceneRenderer:
             of rear views given a full-width tail bar joining their side clusters, tail
             level only; default 0), ``wide_truck_lamps`` (share of truck and bus rear
             views whose side clusters are drawn as wide as real combination lamps;
-            default 0). Vehicle keys:
+            default 0), ``truth_rule`` (how large the seen lamps of a light must be for
+            it to be labelled, ``synth.truth.TRUTH_RULES``; default "lamp"). Vehicle keys:
             ``view`` (View), ``kind``, ``lamp_design``, ``tech`` ("led"/"bulb"), ``chmsl``,
             ``intent`` (Intent held for the whole sequence), ``brake`` (bool held),
             ``colour`` (BGR), ``lights_on``, ``center_x`` (pixels), ``width_px`` (box width),
@@ -139,6 +140,9 @@ class SceneRenderer:
         self.tail_glare = _share(overrides, "tail_glare")
         self.rear_bar = _share(overrides, "rear_bar")
         self.wide_truck_lamps = _share(overrides, "wide_truck_lamps")
+        self.truth_rule = str(overrides.get("truth_rule", "lamp"))
+        if self.truth_rule not in TRUTH_RULES:
+            raise ConfigError(f"truth_rule must be one of {TRUTH_RULES}, got {self.truth_rule!r}")
 
     # ------------------------------------------------------------------ setup
     def _setup(self) -> None:
@@ -250,7 +254,7 @@ class SceneRenderer:
             return None
         box, occlusion = listed
         tracker = tracker_box(d.v, box, d.box, self.width, self.height, frng)
-        truth = vehicle_truth(d.v, box, occlusion, states, seen, tracker)
+        truth = vehicle_truth(d.v, box, occlusion, states, seen, tracker, self.truth_rule)
         if not self.lit_maps:
             return truth
         lit = states.flash_lit

@@ -5,20 +5,21 @@ The rules: which lamps are lit at a time (``lamp_states``: blinker and brake tim
 flasher phase, tail and head lamps); which pixels of a vehicle are visible (``mark_visible``:
 occluders and nearer vehicles hide them); which lamps are seen (``lamp_visibility``: at
 least ``LAMP_VISIBLE_FRACTION`` of a lamp visible); whether the vehicle is listed
-(``listed_box``); and each light's label (``vehicle_truth``: ON or OFF when a lamp showing
-it is seen and large enough to be judged, else UNKNOWN).
+(``listed_box``); and each light's label (``vehicle_truth``: ON or OFF when the lamps
+showing it are seen and large enough to be judged by one of ``TRUTH_RULES``, else UNKNOWN).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import List, NamedTuple, Optional, Tuple
+from typing import Dict, List, NamedTuple, Optional, Tuple
 
 import cv2
 import numpy as np
 
 from signal_light_node.boxes import TrackBox
+from signal_light_node.errors import ConfigError
 from signal_light_node.labels import Intent, LightStatus, View, intent_from_lights
 from signal_light_node.synth.lit_maps import LitMap
 from signal_light_node.synth.lamps import TURN_ROLES, flasher_level, shows_brake
@@ -36,6 +37,14 @@ LAMP_VISIBLE_FRACTION = 0.5
 LAMP_MIN_BOX_SHARE = 1.0 / 600.0
 #: Nor can a lamp be judged from fewer image pixels than this, however small the box.
 LAMP_MIN_PIXELS = 2.0
+#: The rules a truth can be labelled by (``vehicle_truth``'s ``rule``): ``lamp`` (each lamp
+#: on its own must reach ``LAMP_MIN_BOX_SHARE``) and ``function`` (the seen lamps of one
+#: function, a side's blinker or the brake, together reach ``FUNCTION_MIN_BOX_SHARE``,
+#: about 2 crop pixels). Under ``lamp`` a car's rear turn lamp of 3 crop pixels in plain
+#: sight is UNKNOWN, and so are three-quarter and side views whose lamps are each slivers;
+#: an annotator marks what the lamps of one function show together.
+TRUTH_RULES = ("lamp", "function")
+FUNCTION_MIN_BOX_SHARE = 1.0 / 1200.0
 #: Vehicles smaller than this (visible box, pixels) or more hidden than this are not listed.
 MIN_LISTED_PX = 8.0
 MAX_LISTED_OCCLUSION = 0.9
@@ -233,22 +242,32 @@ def listed_box(d: Drawn) -> Optional[Tuple[Box, float]]:
     return (bx0, by0, bx1, by1), occlusion
 
 
-def vehicle_truth(v: Vehicle, box: Box, occlusion: float, states: LampStates, seen: List[Tuple[str, str, float]],
-                  tracker: Optional[TrackBox]) -> VehicleTruth:
-    """The truth of a listed vehicle: a light is ON or OFF when a lamp showing it is seen
-    (``lamp_visibility``) and large enough in the ``box`` to be judged, else UNKNOWN."""
+def judged_lights(box: Box, seen: List[Tuple[str, str, float]], rule: str = "lamp") -> Dict[str, bool]:
+    """Which lights (``L``, ``R``, ``brake``) a vehicle's seen lamps (``lamp_visibility``)
+    show large enough in its ``box`` to be judged, by one of ``TRUTH_RULES``."""
+    if rule not in TRUTH_RULES:
+        raise ConfigError(f"truth_rule must be one of {TRUTH_RULES}, got {rule!r}")
     bx0, by0, bx1, by1 = box
-    min_px = max(LAMP_MIN_PIXELS, LAMP_MIN_BOX_SHARE * max(bx1 - bx0, by1 - by0) ** 2)
-    visible = {"L": False, "R": False, "brake": False}
-    for role, side, pixels in seen:
-        if pixels < min_px:
-            continue
-        if role in TURN_ROLES and side in ("L", "R"):
-            visible[side] = True
+    share = LAMP_MIN_BOX_SHARE if rule == "lamp" else FUNCTION_MIN_BOX_SHARE
+    min_px = max(LAMP_MIN_PIXELS, share * max(bx1 - bx0, by1 - by0) ** 2)
+    pixels = {"L": 0.0, "R": 0.0, "brake": 0.0}
+    for role, side, px in seen:
+        keys = [side] if role in TURN_ROLES and side in ("L", "R") else []
         # The centre brake lamp shows the brake on its own; a centre tail bar does not
         # (it never brightens on braking).
         if shows_brake(role, side):
-            visible["brake"] = True
+            keys.append("brake")
+        for key in keys:
+            pixels[key] = pixels[key] + px if rule == "function" else max(pixels[key], px)
+    return {key: px >= min_px for key, px in pixels.items()}
+
+
+def vehicle_truth(v: Vehicle, box: Box, occlusion: float, states: LampStates, seen: List[Tuple[str, str, float]],
+                  tracker: Optional[TrackBox], rule: str = "lamp") -> VehicleTruth:
+    """The truth of a listed vehicle: a light is ON or OFF when the lamps showing it are
+    seen (``lamp_visibility``) and large enough in the ``box`` to be judged by ``rule``
+    (``judged_lights``), else UNKNOWN."""
+    visible = judged_lights(box, seen, rule)
     left = light_status(states.left_on, visible["L"])
     right = light_status(states.right_on, visible["R"])
     brake_s = light_status(states.brake, visible["brake"])
