@@ -7,13 +7,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from signal_light_node.cli import main
 from signal_light_node.evaluation.metrics import LightOutcomes, reliability_report
 from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
 from signal_light_node.evaluation.tracks import TrackSequence
 from signal_light_node.labels import LIGHT_TASKS, TASKS, LightStatus
-from signal_light_node.model import load_checkpoint
+from signal_light_node.model import DEFAULT_WEIGHTS, load_checkpoint
 
 BAG = Path(__file__).resolve().parents[1] / "bags" / "day_street"
 OFF, ON, UNK = int(LightStatus.OFF), int(LightStatus.ON), int(LightStatus.UNKNOWN)
@@ -159,6 +160,31 @@ def test_select_by_published_keeps_the_step_the_node_would_publish_best(tmp_path
     best = max(records, key=lambda r: r["score"])  # the first of equal scores, as the run
     assert load_checkpoint(out / "best.pt").meta["training"]["step"] == best["step"]
 
+
+
+def test_train_trunk_from_moves_the_last_trunk_blocks_and_the_output_layers_only(tmp_path, capsys):
+    out = tmp_path / "ft"
+    common = ["train", "--init-from", "default", "--bags", str(BAG), "--heads-only", "--lr", "0.05",
+              "--steps", "2", "--batch", "2", "--seq-len", "4", "--workers", "0", "--threads", "1",
+              "--no-progress"]
+    assert main(common + ["--out", str(out), "--train-trunk-from", "9"]) == 0
+    before = load_checkpoint(DEFAULT_WEIGHTS).model.state_dict()
+    after = load_checkpoint(out / "last.pt").model.state_dict()
+    moved = {name for name, value in before.items() if not torch.equal(value, after[name])}
+    assert any(name.startswith("trunk.blocks.9.") for name in moved)
+    assert any(name.startswith("trunk.blocks.10.") for name in moved)
+    assert any(".heads." in name for name in moved)
+    for name in moved:  # nothing earlier in the trunk, and no batch-norm statistics
+        assert name.startswith(("trunk.blocks.9.", "trunk.blocks.10.")) or ".heads." in name \
+            or ".fc." in name, name
+        assert not name.endswith(("running_mean", "running_var")), name
+    # Refused in one line: without --heads-only, or naming no block.
+    assert main(common[:-1] + ["--out", str(tmp_path / "a"), "--train-trunk-from", "11",
+                               "--no-progress"]) == 2
+    assert "--train-trunk-from must name a block 0..10" in capsys.readouterr().err
+    no_heads = [a for a in common if a != "--heads-only"]
+    assert main(no_heads + ["--out", str(tmp_path / "b"), "--train-trunk-from", "9"]) == 2
+    assert "goes with --heads-only" in capsys.readouterr().err
 
 def test_train_holdout_fraction_writes_a_before_after_report(tmp_path, capsys):
     out = tmp_path / "ft"

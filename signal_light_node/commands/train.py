@@ -97,6 +97,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--heads-only", action="store_true",
                    help="train only the output layers (last dense layer and task heads); the "
                         "rest, batch norms included, keeps the --init-from weights")
+    g.add_argument("--train-trunk-from", type=int, default=None, metavar="N",
+                   help="with --heads-only: the pretrained trunk's blocks N.. learn too "
+                        "(their batch norms keep their statistics)")
     add_torch_options(g)
 
     g = parser.add_argument_group("data")
@@ -224,7 +227,7 @@ def options_from_args(args: argparse.Namespace) -> TrainOptions:
         seed=args.seed, threads=args.threads, workers=args.workers, resume=resume,
         init_from=Path(args.init_from) if args.init_from else None,
         freeze_encoder=args.freeze_encoder, freeze_norms=args.freeze_norms,
-        heads_only=args.heads_only,
+        heads_only=args.heads_only, trunk_from=args.train_trunk_from,
         grown_init_scale=args.grown_init_scale, bags=list(args.bags),
         ucm=list(args.ucm), pools=list(args.pools), mode=args.mode,
         frame_targets=args.frame_targets,

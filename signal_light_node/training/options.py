@@ -86,6 +86,9 @@ class TrainOptions:
             heads, every member's); everything before them, batch norms included, keeps
             its ``init_from`` weights (:func:`.run_model.freeze_to_heads`). What a few
             labelled tracks of a user's camera can move without overfitting.
+        trunk_from: With ``heads_only``: the pretrained trunk's blocks from this index on
+            learn too, their batch norms keeping their statistics
+            (:func:`.run_model.train_trunk_blocks`); None: the trunk stays fixed.
         grown_init_scale: With ``init_from`` and ``model`` changes that add input
             channels: their initial weights' spread relative to the trained ones (0: zeros).
         bags: Labelled bags to train on.
@@ -160,6 +163,7 @@ class TrainOptions:
     freeze_encoder: bool = False
     freeze_norms: bool = False
     heads_only: bool = False
+    trunk_from: Optional[int] = None
     grown_init_scale: float = 0.0
     bags: List[Path] = field(default_factory=list)
     ucm: List[Path] = field(default_factory=list)
@@ -242,6 +246,9 @@ class TrainOptions:
         if self.heads_only and self.init_from is None and self.resume is None:
             raise ConfigError("--heads-only needs --init-from (or --resume): heads on an "
                               "untrained network would learn nothing")
+        if self.trunk_from is not None and not self.heads_only:
+            raise ConfigError("--train-trunk-from goes with --heads-only: it adds trunk blocks "
+                              "to the output layers that learn")
         if not 0 <= self.val_fraction < 1:
             raise ConfigError(f"validation fraction must be in [0, 1), got {self.val_fraction}")
         if not 0 <= self.holdout_fraction < 1:

@@ -25,6 +25,7 @@ from signal_light_node.model import DEFAULT_WEIGHTS, ModelConfig, build_model, l
 from signal_light_node.model.config import trunk_config
 from signal_light_node.model.warm_start import warm_start
 from signal_light_node.training.options import TrainOptions
+from signal_light_node.training.trunk_finetune import set_trainable
 
 logger = logging.getLogger(__name__)
 
@@ -86,10 +87,10 @@ def _warm_started(init: Path, changes: Mapping[str, Any], grown_init_scale: floa
 
 
 def freeze_parts(model: nn.Module, config: ModelConfig, encoder: bool, norms: bool,
-                 heads_only: bool = False) -> None:
+                 heads_only: bool = False, trunk_from: Optional[int] = None) -> None:
     """``--freeze-encoder`` (train only the ConvLSTM and the heads) and ``--freeze-norms``
     (keep the batch-norm statistics; the weights still train) and ``--heads-only``
-    (:func:`freeze_to_heads`).
+    (:func:`freeze_to_heads`), with ``--train-trunk-from`` (:func:`train_trunk_blocks`).
 
     Raises:
         ConfigError: The architecture cannot freeze what is asked.
@@ -106,6 +107,8 @@ def freeze_parts(model: nn.Module, config: ModelConfig, encoder: bool, norms: bo
         model.freeze_norms()
     if heads_only:
         freeze_to_heads(model, config)
+    if trunk_from is not None:
+        train_trunk_blocks(model, config, trunk_from)
 
 
 #: Parameters under a module of one of these names train with ``--heads-only``: the last
@@ -134,3 +137,24 @@ def freeze_to_heads(model: nn.Module, config: ModelConfig) -> None:
                           f"named {' / '.join(HEAD_MODULES)} to train")
     model.freeze_norms()
     logger.info("--heads-only: %d trainable parameters", trainable)
+
+
+def train_trunk_blocks(model: nn.Module, config: ModelConfig, first: int) -> None:
+    """Let the pretrained trunk's blocks ``first``.. learn too (their batch norms keep their
+    statistics), on a model :func:`freeze_to_heads` has fixed: the output layers re-weigh
+    only features the trunk already computes, and its last blocks are where a new
+    camera's look can still be met.
+
+    Raises:
+        ConfigError: The model has no pretrained trunk, or ``first`` names no block.
+    """
+    trunk = getattr(model, "trunk", None)
+    blocks = getattr(trunk, "blocks", None)
+    if blocks is None:
+        raise ConfigError(f"--train-trunk-from: architecture {config.arch!r} with encoder "
+                          f"{config.encoder!r} has no pretrained trunk")
+    if not 0 <= first < len(blocks):
+        raise ConfigError(f"--train-trunk-from must name a block 0..{len(blocks) - 1}, got {first}")
+    trainable = sum(p.numel() for p in set_trainable(trunk, first))
+    logger.info("--train-trunk-from %d: %d more trainable parameters in %d trunk blocks",
+                first, trainable, len(blocks) - first)
