@@ -8,13 +8,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from signal_light_node.data import split as split_cli
 from signal_light_node.errors import ConfigError
 from signal_light_node.labels import Intent, LightStatus, View
 from signal_light_node.synth import SceneRenderer
 from signal_light_node.synth.lamps import shows_brake
 
-from scene_helpers import first_frame_vehicles
+from scene_helpers import first_frame_vehicles, split_overrides
 
 CLEAN = dict(distractors=False, effects=False, poles=0, weather="clear", respawn=False, shake=False)
 
@@ -93,16 +92,7 @@ def test_a_bad_share_is_refused():
 
 
 def test_the_split_command_hands_both_shares_to_the_renderer(monkeypatch, tmp_path):
-    seen = {}
-
-    def capture(*args, **kwargs):
-        seen.update(kwargs)
-        raise ConfigError("captured")  # nothing is rendered
-
-    monkeypatch.setattr(split_cli, "write_split", capture)
-    argv = [str(tmp_path / "pool"), "--seed", "3", "--sequences", "2", "--full-tracks"]
-    assert split_cli.main(argv + ["--rear-bar", "0.5", "--wide-truck-lamps", "1"]) == 2
-    assert seen["renderer_overrides"] == {"rear_bar": 0.5, "wide_truck_lamps": 1.0}
-    seen.clear()
-    assert split_cli.main(argv) == 2
-    assert "renderer_overrides" not in seen
+    shares = ["--rear-bar", "0.5", "--wide-truck-lamps", "1"]
+    assert split_overrides(monkeypatch, tmp_path / "pool", shares) == {"rear_bar": 0.5,
+                                                                      "wide_truck_lamps": 1.0}
+    assert split_overrides(monkeypatch, tmp_path / "pool", []) is None

@@ -7,11 +7,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from signal_light_node.data import split as split_cli
 from signal_light_node.errors import ConfigError
 from signal_light_node.labels import Intent, LightStatus, View
 from signal_light_node.synth import SceneRenderer
 from signal_light_node.synth.truth import FUNCTION_MIN_BOX_SHARE, LAMP_MIN_BOX_SHARE, judged_lights
+
+from scene_helpers import split_overrides
 
 CLEAN = dict(distractors=False, effects=False, poles=0, weather="clear", respawn=False, shake=False)
 BOX = (0.0, 0.0, 120.0, 60.0)  # longer side 120 px
@@ -77,16 +78,6 @@ def test_an_unknown_rule_is_refused():
 
 
 def test_the_split_command_hands_the_rule_to_the_renderer(monkeypatch, tmp_path):
-    seen = {}
-
-    def capture(*args, **kwargs):
-        seen.update(kwargs)
-        raise ConfigError("captured")  # nothing is rendered
-
-    monkeypatch.setattr(split_cli, "write_split", capture)
-    argv = [str(tmp_path / "pool"), "--seed", "3", "--sequences", "2", "--full-tracks"]
-    assert split_cli.main(argv + ["--truth-rule", "function"]) == 2
-    assert seen["renderer_overrides"] == {"truth_rule": "function"}
-    seen.clear()
-    assert split_cli.main(argv + ["--truth-rule", "lamp"]) == 2
-    assert "renderer_overrides" not in seen
+    rule = split_overrides(monkeypatch, tmp_path / "pool", ["--truth-rule", "function"])
+    assert rule == {"truth_rule": "function"}
+    assert split_overrides(monkeypatch, tmp_path / "pool", ["--truth-rule", "lamp"]) is None
