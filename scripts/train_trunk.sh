@@ -16,6 +16,9 @@
 #     scripts/train_trunk.sh
 #
 # (FRAME_STEPS=2000 TRAIN_FROM=-1 instead of TRUNK_WEIGHTS trains that per-frame trunk too).
+# Since 2026-11-27 (tenth session) the recipe's pools 34-36 are truck pools instead
+# (POOL_SEEDS="31 32 33" REAR_POOL_SEEDS="34 35 36" REAR_BAR=0; docs/model.md, "Rear lamps
+# the renderer drew too seldom"); no file shipped from it yet.
 #
 # What it does (docs/model.md, "The trunk recipe"):
 #   1. renders the data in parallel worker processes, once (reused when present): POOL_SEEDS
@@ -66,8 +69,8 @@ EXPORT=${EXPORT:-$([[ "$WEIGHTS" == "$SHIPPED" ]] && echo 1 || echo 0)}
 SEED=${SEED:-1}
 SEEDS=${SEEDS:-$SEED}   # one temporal run per seed; two or more are joined
 POOL_SEEDS=${POOL_SEEDS:-"31 32 33"}
-# The other data settings (POOL_TRACKS, VAL_*, TEST_*, FAMILY_SEED, CAL_*, OBLIQUE, TAIL_GLARE):
-# scripts/render_data.sh. GLARE_POOL_SEEDS (default none) adds pools of those seeds drawn
+# The other data settings (POOL_TRACKS, VAL_*, TEST_*, FAMILY_SEED, CAL_*, OBLIQUE, TAIL_GLARE,
+# TRUTH_RULE for every split of DATA): scripts/render_data.sh. GLARE_POOL_SEEDS (default none) adds pools of those seeds drawn
 # with clipped night tail lamps on GLARE_SHARE (default 0.5) of the lit dusk and night
 # vehicles, DATA/glare_pool_SEED, to both stages (docs/model.md, "What a seed moves, and
 # more tracks": POOL_SEEDS="31 32 33 34 35 36" GLARE_POOL_SEEDS="31 32 33").
