@@ -220,6 +220,16 @@ def test_heads_only_run_moves_only_the_output_layers(tmp_path):
     assert steps == [5]
 
 
+
+def test_train_trunk_from_is_refused_on_a_model_without_a_pretrained_trunk(tmp_path):
+    ucm = tmp_path / "ucm"
+    make_ucm(ucm, CODES[:3], frames=8)
+    Trainer(tiny_options(tmp_path / "init", ucm, max_steps=1)).run()
+    opts = tiny_options(tmp_path / "run", ucm, max_steps=1, init_from=tmp_path / "init" / "last.pt",
+                        heads_only=True, trunk_from=0)
+    with pytest.raises(ConfigError, match="no pretrained trunk"):
+        Trainer(opts).run()
+
 def test_a_fine_tune_scores_its_init_weights_before_the_first_step(tmp_path):
     """A run from --init-from validates at step 0, so best.pt is never worse than the init
     on validation: with a learning rate that only does harm, best.pt is the init."""
