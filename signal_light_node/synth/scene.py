@@ -33,7 +33,7 @@ from signal_light_node.synth.lamps import STYLE_FAMILIES, TRAIN_FAMILIES
 from signal_light_node.synth.lit_maps import draw_lit_map
 from signal_light_node.synth.tracker import tracker_box
 from signal_light_node.synth.traffic import Traffic
-from signal_light_node.synth.truth import (TRUTH_RULES, RenderedFrame, VehicleTruth, lamp_states, lamp_visibility, listed_box,
+from signal_light_node.synth.truth import (RenderedFrame, VehicleTruth, checked_rule, lamp_states, lamp_visibility, listed_box,
                                           mark_visible, vehicle_truth)
 from signal_light_node.synth.vehicle_drawing import Drawn, VehiclePainter
 
@@ -140,9 +140,7 @@ class SceneRenderer:
         self.tail_glare = _share(overrides, "tail_glare")
         self.rear_bar = _share(overrides, "rear_bar")
         self.wide_truck_lamps = _share(overrides, "wide_truck_lamps")
-        self.truth_rule = str(overrides.get("truth_rule", "lamp"))
-        if self.truth_rule not in TRUTH_RULES:
-            raise ConfigError(f"truth_rule must be one of {TRUTH_RULES}, got {self.truth_rule!r}")
+        self.truth_rule = checked_rule(str(overrides.get("truth_rule", "lamp")))
 
     # ------------------------------------------------------------------ setup
     def _setup(self) -> None:

@@ -242,11 +242,17 @@ def listed_box(d: Drawn) -> Optional[Tuple[Box, float]]:
     return (bx0, by0, bx1, by1), occlusion
 
 
+def checked_rule(rule: str) -> str:
+    """``rule`` if it is one of ``TRUTH_RULES``; else ConfigError in one line."""
+    if rule not in TRUTH_RULES:
+        raise ConfigError(f"truth_rule must be one of {TRUTH_RULES}, got {rule!r}")
+    return rule
+
+
 def judged_lights(box: Box, seen: List[Tuple[str, str, float]], rule: str = "lamp") -> Dict[str, bool]:
     """Which lights (``L``, ``R``, ``brake``) a vehicle's seen lamps (``lamp_visibility``)
     show large enough in its ``box`` to be judged, by one of ``TRUTH_RULES``."""
-    if rule not in TRUTH_RULES:
-        raise ConfigError(f"truth_rule must be one of {TRUTH_RULES}, got {rule!r}")
+    checked_rule(rule)
     bx0, by0, bx1, by1 = box
     share = LAMP_MIN_BOX_SHARE if rule == "lamp" else FUNCTION_MIN_BOX_SHARE
     min_px = max(LAMP_MIN_PIXELS, share * max(bx1 - bx0, by1 - by0) ** 2)
