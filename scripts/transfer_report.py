@@ -112,6 +112,8 @@ def markdown(rows: Dict[str, Dict[str, Optional[float]]]) -> str:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
+    from signal_light_node.evaluation.metrics import unknown_by_view_markdown
+
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--checkpoint", type=Path, default=REPO / "signal_light_node/weights/default.pt")
     p.add_argument("--data", type=Path, default=REPO / "runs/default",
@@ -137,6 +139,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             for folder, name, data in sets}
     args.out.mkdir(parents=True, exist_ok=True)
     table = markdown(rows)
+    by_view = {name: json.loads((args.out / folder / "metrics.json").read_text())
+               .get("unknown_by_view", []) for folder, name, _ in sets}
+    for name in [n for n in by_view if n.startswith("independent")]:
+        table += (f"\nWhere the UNKNOWNs come from, {name} (brake, left and right where the "
+                  f"truth is OFF or ON):\n\n{unknown_by_view_markdown(by_view[name])}")
     negatives = hard_negatives(args.checkpoint, args.out)
     table += ("\nHard negatives (no signal at all; share of judged vehicle-frames reporting "
               "a light ON; target for blinkers < 5 %):\n\n| bag | blinker ON | brake ON | "
@@ -147,7 +154,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     (args.out / "transfer.md").write_text(table)
     (args.out / "transfer.json").write_text(json.dumps(
         {"checkpoint": str(args.checkpoint), "intent_filter": not args.no_intent_filter,
-         "sets": rows, "hard_negatives": negatives}, indent=2) + "\n")
+         "sets": rows, "unknown_by_view": by_view, "hard_negatives": negatives},
+        indent=2) + "\n")
     print(table)
     return 0
 

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from signal_light_node.cli import main
+from signal_light_node.errors import ConfigError
 from signal_light_node.evaluation.metrics import LightOutcomes, reliability_report
 from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
 from signal_light_node.evaluation.tracks import TrackSequence
@@ -58,6 +59,31 @@ def test_flicker_table_and_unknown_share_by_hand():
     assert result["calibration"] == {}  # no probabilities given
 
 
+def test_unknown_by_view_names_the_view_the_unknowns_came_with():
+    scorer = TrackScorer(EvalSettings(warmup_frames=0, warmup_seconds=0.0))
+    view = TASKS.index("view")
+    # Truth: a rear view (BEHIND) throughout, brake ON; the view head calls the last two
+    # frames FRONT, and brake is published UNKNOWN on one BEHIND frame and both FRONT ones.
+    track = _track("a", [ON, ON, ON, ON])
+    pred = np.zeros((4, len(TASKS)), np.int64)
+    pred[:, BRAKE] = [ON, UNK, UNK, UNK]
+    pred[:, view] = [0, 0, 2, 2]
+    scorer.add(track, pred)
+    rows = {(r["true_view"], r["published_view"]): r
+            for r in scorer.result()["unknown_by_view"]}
+    # Three heads' frames with a true OFF/ON: brake ON, left and right OFF (never UNKNOWN).
+    assert rows[("BEHIND", "FRONT")] == {"true_view": "BEHIND", "published_view": "FRONT",
+                                         "frames": 6, "unknown": 2, "share": 2 / 6,
+                                         "share_of_unknown": 2 / 3}
+    assert rows[("BEHIND", "BEHIND")]["unknown"] == 1 and rows[("BEHIND", "BEHIND")]["frames"] == 6
+    assert scorer.result()["unknown_by_view"][0]["published_view"] == "FRONT"  # most first
+    unbroken = TrackScorer(EvalSettings(warmup_frames=0, warmup_seconds=0.0))
+    unbroken.add(track, pred, breakdowns=False)
+    assert unbroken.result()["unknown_by_view"] == []
+    with pytest.raises(ConfigError, match="views of"):
+        LightOutcomes().add("brake", [ON, OFF], [ON, OFF], views=(["BEHIND"], ["BEHIND"]))
+
+
 def test_reliability_report_by_hand():
     probs = np.array([[0.9, 0.1, 0.0], [0.85, 0.15, 0.0], [0.3, 0.7, 0.0], [0.35, 0.65, 0.0]])
     labels = np.array([OFF, ON, ON, ON])
@@ -85,8 +111,12 @@ def test_evaluate_on_a_committed_bag_writes_flicker_unknown_and_reliability(tmp_
     share = result["unknown_share"]
     assert set(share) == set(LIGHT_TASKS) | {"overall"}
     assert share["overall"]["frames"] == sum(share[t]["frames"] for t in LIGHT_TASKS) > 0
+    by_view = result["unknown_by_view"]
+    assert sum(r["frames"] for r in by_view) == share["overall"]["frames"]
+    assert sum(r["unknown"] for r in by_view) == share["overall"]["unknown"]
     markdown = (out / "metrics.md").read_text()
     assert "Flicker per track" in markdown and "UNKNOWN published" in markdown
+    assert "Where the UNKNOWNs come from" in markdown
     for light in LIGHT_TASKS:
         image = cv2.imread(str(out / f"reliability_{light}.png"))
         assert image is not None and image.ndim == 3 and image.shape[0] > 100

@@ -151,7 +151,8 @@ def _headline(result: Dict[str, Any]) -> str:
 def render_markdown(result: Dict[str, Any]) -> str:
     """The whole evaluation as Markdown (headline, then both full reports)."""
     from signal_light_node.evaluation.metrics import (flicker_markdown, light_outcomes_markdown,
-                                                      markdown_report, switches_markdown)
+                                                      markdown_report, switches_markdown,
+                                                      unknown_by_view_markdown)
 
     st, counts = result["settings"], result["counts"]
     intent = result["switches"]["intent"]
@@ -182,6 +183,9 @@ def render_markdown(result: Dict[str, Any]) -> str:
            if result.get("calibration") else ""), "",
         light_outcomes_markdown(result["unknown_share"], result.get("calibration")),
     ]
+    by_view = unknown_by_view_markdown(result.get("unknown_by_view", []))
+    if by_view:
+        parts += ["### Where the UNKNOWNs come from: true view -> view published", "", by_view]
     return "\n".join(parts)
 
 

@@ -481,22 +481,31 @@ class LightOutcomes:
     and (with probabilities) the reliability of the published probabilities.
 
     The UNKNOWN share of a head is the fraction of its scored frames with a true OFF or
-    ON whose published state is UNKNOWN; ``overall`` pools the three heads.
+    ON whose published state is UNKNOWN; ``overall`` pools the three heads. Given the
+    frames' true and published views, the same counts are also kept per pair of views
+    (:meth:`unknown_by_view`): a lamp is published UNKNOWN because the view head took a
+    rear for a front, or because the light head could not judge a view it named right.
     """
 
     def __init__(self) -> None:
         self._unknown = {t: [0, 0] for t in LIGHT_TASKS}  # [UNKNOWN published, frames]
+        self._by_view: Dict[Tuple[str, str], List[int]] = {}  # same, per (true, published)
         self._probs: Dict[str, List[np.ndarray]] = {t: [] for t in LIGHT_TASKS}
         self._labels: Dict[str, List[np.ndarray]] = {t: [] for t in LIGHT_TASKS}
 
     def add(self, task: str, y_true: ArrayLike, y_pred: ArrayLike,
-            probs: Optional[np.ndarray] = None) -> None:
+            probs: Optional[np.ndarray] = None,
+            views: Optional[Tuple[ArrayLike, ArrayLike]] = None) -> None:
         """Add a light head's scored frames (``probs``: their ``[N, K]`` published
-        probabilities, if known)."""
+        probabilities, if known; ``views``: their true and published view names, if
+        known)."""
         t, p = _pair(y_true, y_pred)
         keep = (t == int(LightStatus.OFF)) | (t == int(LightStatus.ON))
-        self._unknown[task][0] += int(np.count_nonzero(p[keep] == int(LightStatus.UNKNOWN)))
+        unknown = p == int(LightStatus.UNKNOWN)
+        self._unknown[task][0] += int(np.count_nonzero(unknown[keep]))
         self._unknown[task][1] += int(keep.sum())
+        if views is not None:
+            self._add_views(keep, unknown, *views)
         if probs is not None:
             q = np.asarray(probs, np.float64)[keep]
             finite = np.isfinite(q).all(axis=1)
@@ -513,6 +522,29 @@ class LightOutcomes:
         n = sum(v[1] for v in self._unknown.values())
         out["overall"] = {"unknown": u, "frames": n, "share": _ratio(u, n)}
         return out
+
+    def _add_views(self, keep: np.ndarray, unknown: np.ndarray, true_views: ArrayLike,
+                   published_views: ArrayLike) -> None:
+        true_views, published_views = np.asarray(true_views), np.asarray(published_views)
+        if true_views.shape != keep.shape or published_views.shape != keep.shape:
+            raise ConfigError(f"views of {true_views.shape} and {published_views.shape} "
+                              f"frames for {keep.shape} labels")
+        for pair in set(zip(true_views[keep].tolist(), published_views[keep].tolist())):
+            rows = keep & (true_views == pair[0]) & (published_views == pair[1])
+            cell = self._by_view.setdefault(pair, [0, 0])
+            cell[0] += int(np.count_nonzero(unknown[rows]))
+            cell[1] += int(rows.sum())
+
+    def unknown_by_view(self) -> List[Dict[str, object]]:
+        """The three heads' frames with a true OFF or ON per (true view, published view),
+        most UNKNOWNs first: ``{"true_view", "published_view", "frames", "unknown",
+        "share", "share_of_unknown"}`` (empty when no views were given)."""
+        total = sum(u for u, _ in self._by_view.values())
+        rows = [{"true_view": tv, "published_view": pv, "frames": n, "unknown": u,
+                 "share": _ratio(u, n), "share_of_unknown": _ratio(u, total)}
+                for (tv, pv), (u, n) in self._by_view.items()]
+        return sorted(rows, key=lambda r: (-r["unknown"], -r["frames"], r["true_view"],
+                                           r["published_view"]))
 
     def calibration(self) -> Dict[str, Dict[str, object]]:
         """Light -> :func:`reliability_report`, for the heads whose probabilities were given."""
@@ -706,6 +738,19 @@ def light_outcomes_markdown(unknown: Mapping[str, Mapping[str, object]],
             ece = " " + ("–" if c is None else f"{c['ece']:.3f}") + " |"
         lines.append(f"| {name} | {u['frames']} | {u['unknown']} | "
                      f"{percent_cell(u['share'])} |{ece}")  # type: ignore[arg-type]
+    return "\n".join(lines) + "\n"
+
+
+def unknown_by_view_markdown(rows: Sequence[Mapping[str, object]]) -> str:
+    """:meth:`LightOutcomes.unknown_by_view` as a table (empty string without rows)."""
+    if not rows:
+        return ""
+    lines = ["| true view -> published view | lamp-frames with true OFF/ON | published UNKNOWN "
+             "| share | share of all UNKNOWNs |", "|---|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r['true_view']} -> {r['published_view']} | {r['frames']} | "
+                     f"{r['unknown']} | {percent_cell(r['share'])} | "  # type: ignore[arg-type]
+                     f"{percent_cell(r['share_of_unknown'])} |")  # type: ignore[arg-type]
     return "\n".join(lines) + "\n"
 
 

@@ -25,8 +25,9 @@ reported per track and summed, with their ratio (``metrics.SwitchCounter``), and
 a per-track table over the heads, worst first (``metrics.flicker_table``).
 
 Light outcomes (``metrics.LightOutcomes``, after the warm-up, no grace window): per light
-head the share of frames with a true OFF or ON published as UNKNOWN, and, where the
-published probabilities are given, their reliability (bins and ECE).
+head the share of frames with a true OFF or ON published as UNKNOWN (with the breakdowns,
+also per pair of true and published view), and, where the published probabilities are
+given, their reliability (bins and ECE).
 """
 
 from __future__ import annotations
@@ -104,12 +105,15 @@ def grace_mask(track: TrackSequence, task_index: int, settings: EvalSettings) ->
     return keep
 
 
-def _groups(track: TrackSequence, rows: np.ndarray) -> Dict[str, Any]:
-    view = track.labels[rows, _VIEW]
+def view_names(view: np.ndarray) -> np.ndarray:
+    """View class indices as names (``"unknown"`` for the UNKNOWN label or none)."""
     names = np.array(CLASS_NAMES["view"] + ("unknown",), dtype=object)
-    view_names = names[np.where((view >= 0) & (view < len(CLASS_NAMES["view"])), view, -1)]
+    return names[np.where((view >= 0) & (view < len(CLASS_NAMES["view"])), view, -1)]
+
+
+def _groups(track: TrackSequence, rows: np.ndarray) -> Dict[str, Any]:
     return {"lighting": track.lighting or "unknown",
-            "view": view_names,
+            "view": view_names(track.labels[rows, _VIEW]),
             "box_size": box_size_band(track.box_size[rows]),
             "occlusion": occlusion_band(track.occlusion[rows])}
 
@@ -164,13 +168,14 @@ class TrackScorer:
         counts["scored"] += int(scored.sum())
         rows = np.flatnonzero(scored)
         groups = _groups(track, rows) if breakdowns else {}
+        views = (groups["view"], view_names(pred[rows, _VIEW])) if breakdowns else None
         for i, task in enumerate(TASKS):
             y, p = track.labels[rows, i], pred[rows, i]
             self.strict.add(task, y, p, groups)
             self.switches[task].add(track.track_id, y, p)
             if task in LIGHT_TASKS:
                 self.lights.add(task, y, p, None if probs is None or task not in probs
-                                else np.asarray(probs[task])[rows])
+                                else np.asarray(probs[task])[rows], views)
             keep = grace_mask(track, i, self.settings)[rows]
             counts["grace_excluded"][task] += int((~keep).sum())
             self.graced.add(task, y[keep], p[keep],
@@ -179,17 +184,18 @@ class TrackScorer:
 
     def result(self) -> Dict[str, Any]:
         """``{"settings", "counts", "no_grace": report, "grace": report, "switches",
-        "flicker", "unknown_share", "calibration"}``.
+        "flicker", "unknown_share", "unknown_by_view", "calibration"}``.
 
         The reports come from :meth:`MetricAccumulator.report`, the switches (task ->
         report) from :meth:`SwitchCounter.report`, ``flicker`` from
-        :func:`~.metrics.flicker_table`, ``unknown_share`` and ``calibration`` (light ->
-        reliability report, the heads given probabilities only) from
-        :class:`~.metrics.LightOutcomes`.
+        :func:`~.metrics.flicker_table`, ``unknown_share``, ``unknown_by_view`` and
+        ``calibration`` (light -> reliability report, the heads given probabilities only)
+        from :class:`~.metrics.LightOutcomes`.
         """
         switches = {t: c.report() for t, c in self.switches.items()}
         return {"settings": asdict(self.settings), "counts": self.counts,
                 "no_grace": self.strict.report(), "grace": self.graced.report(),
                 "switches": switches, "flicker": flicker_table(switches),
                 "unknown_share": self.lights.unknown_share(),
+                "unknown_by_view": self.lights.unknown_by_view(),
                 "calibration": self.lights.calibration()}

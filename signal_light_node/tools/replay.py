@@ -668,8 +668,9 @@ def score_summary(summary: ReplaySummary, settings: Any = None) -> Optional[Dict
 
     Returns:
         ``{"settings", "counts", "no_grace", "grace", "switches", "flicker",
-        "unknown_share", "calibration"}`` shaped like ``evaluate_tracks``'
-        result (reports from ``metrics.MetricAccumulator.report``, without breakdowns),
+        "unknown_share", "unknown_by_view", "calibration"}`` shaped like
+        ``evaluate_tracks``' result (reports from ``metrics.MetricAccumulator.report``,
+        without breakdowns, so ``unknown_by_view`` is empty),
         where a track is one segment of a track's state, or None when no judged box had
         ground truth.
     """
