@@ -295,6 +295,8 @@ RENDERER_SHARES = {
                 "(synth.lamps.tail_bar)",
     "wide_truck_lamps": "truck and bus rear views whose side clusters are drawn as wide as "
                         "real combination lamps (synth.lamps.widen_clusters)",
+    "night_streak": "dusk and night scenes whose camera smears over-exposed light along its "
+                    "row (synth.camera.CameraParams.streak)",
 }
 
 

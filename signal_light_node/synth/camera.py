@@ -1,5 +1,5 @@
-"""Camera effects applied to the finished scene: exposure, haze, vignetting, blur, motion
-blur, sensor noise and JPEG artefacts.
+"""Camera effects applied to the finished scene: exposure, haze, vignetting, a horizontal
+glare streak of over-exposed light, blur, motion blur, sensor noise and JPEG artefacts.
 
 All per-frame work is on ``uint8`` images with OpenCV calls (saturating adds, LUTs, small
 kernels); the expensive parts (noise fields, haze/vignette images) are made once.
@@ -32,6 +32,9 @@ class CameraParams:
         haze: Strength of haze near the horizon (0..1).
         haze_colour: BGR colour of the haze.
         shake: Camera shake amplitude in pixels.
+        streak: Gain of the horizontal glare streak that over-exposed light smears along
+            its row (a windscreen's or a lens's; 0 = none).
+        streak_len: Length of that streak as a share of the image width.
     """
 
     noise: float = 2.0
@@ -47,6 +50,20 @@ class CameraParams:
     haze: float = 0.0
     haze_colour: tuple = (200, 200, 200)
     shake: float = 0.0
+    streak: float = 0.0
+    streak_len: float = 0.0
+
+
+#: Range of :attr:`CameraParams.streak`, and of ``streak_len`` (share of the width).
+STREAK_GAIN = (2.0, 8.0)
+STREAK_LEN = (1 / 30, 1 / 8)
+#: Level (after the tone curve) above which a pixel counts as over-exposed for the streak.
+_STREAK_FLOOR = 200
+
+
+def sample_streak(rng: np.random.Generator) -> "tuple[float, float]":
+    """A glare streak's gain and length (share of the width)."""
+    return float(rng.uniform(*STREAK_GAIN)), float(rng.uniform(*STREAK_LEN))
 
 
 #: Tone-curve exponent and exposure ranges per style family (``synth.lamps.STYLE_FAMILIES``).
@@ -154,6 +171,8 @@ class Camera:
             self._lut = np.clip(255.0 * (x * gain) ** p.gamma, 0, 255).astype(np.uint8)
             self._last_lut_key = key
         img = cv2.LUT(img, self._lut)
+        if p.streak > 0 and p.streak_len > 0:
+            img = self._streak(img)
         if p.motion_blur > 0 and frame_rng.random() < p.motion_prob:
             n = int(frame_rng.uniform(2, p.motion_blur + 1))
             if n >= 2:
@@ -175,3 +194,11 @@ class Camera:
             if ok:
                 img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
         return img
+
+    def _streak(self, img: np.ndarray) -> np.ndarray:
+        """Smear what is over-exposed along its row: a box blur of the part above
+        ``_STREAK_FLOOR``, added back with the streak's gain (saturating, in uint8)."""
+        hot = cv2.subtract(img, (_STREAK_FLOOR,) * 3 + (0,))
+        length = max(3, int(round(self.p.streak_len * self.width)) | 1)
+        smear = cv2.blur(hot, (length, 1), borderType=cv2.BORDER_CONSTANT)
+        return cv2.add(img, cv2.convertScaleAbs(smear, alpha=self.p.streak))

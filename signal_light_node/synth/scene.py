@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.synth.camera import Camera, sample_camera
+from signal_light_node.synth.camera import Camera, CameraParams, sample_camera, sample_streak
 from signal_light_node.synth.environment import (GLOW_SCALE, LIGHTINGS, Environment, Lighting, Occluder, StreetGeometry,
                                                  blur_glow, sample_lighting)
 from signal_light_node.synth.lamps import STYLE_FAMILIES, TRAIN_FAMILIES
@@ -41,7 +41,8 @@ LOG = logging.getLogger(__name__)
 
 _MARGIN = 12
 _SCENE_KEYS = {"vehicles", "occluders", "poles", "distractors", "weather", "effects", "shake", "respawn", "horizon", "focal",
-               "family", "oblique", "tail_glare", "rear_bar", "wide_truck_lamps", "truth_rule"}
+               "family", "oblique", "tail_glare", "rear_bar", "wide_truck_lamps", "night_streak",
+               "truth_rule"}
 _VEHICLE_KEYS = {"view", "kind", "lamp_design", "tech", "chmsl", "intent", "brake", "colour", "lights_on", "center_x",
                  "width_px", "speed", "blink_hz", "duty", "phase", "shear", "roll", "specular", "yaw"}
 
@@ -82,6 +83,8 @@ class SceneRenderer:
             of rear views given a full-width tail bar joining their side clusters, tail
             level only; default 0), ``wide_truck_lamps`` (share of truck and bus rear
             views whose side clusters are drawn as wide as real combination lamps;
+            default 0), ``night_streak`` (share of dusk and night scenes whose camera
+            smears over-exposed light along its row, ``synth.camera.CameraParams.streak``;
             default 0), ``truth_rule`` (how large the seen lamps of a light must be for
             it to be labelled, ``synth.truth.TRUTH_RULES``; default "lamp"). Vehicle keys:
             ``view`` (View), ``kind``, ``lamp_design``, ``tech`` ("led"/"bulb"), ``chmsl``,
@@ -140,6 +143,7 @@ class SceneRenderer:
         self.tail_glare = _share(overrides, "tail_glare")
         self.rear_bar = _share(overrides, "rear_bar")
         self.wide_truck_lamps = _share(overrides, "wide_truck_lamps")
+        self.night_streak = _share(overrides, "night_streak")
         self.truth_rule = checked_rule(str(overrides.get("truth_rule", "lamp")))
 
     # ------------------------------------------------------------------ setup
@@ -169,6 +173,7 @@ class SceneRenderer:
         cam_params = sample_camera(rng, self._light.noise, self.lighting, weather, self.family)
         if not o.get("shake", True):
             cam_params.shake = 0.0
+        self._draw_streak(cam_params)
         self._camera = Camera(cam_params, W, H, hy, self.seed * 7 + 3, enabled=bool(o.get("effects", True)))
         LOG.debug("scene seed=%d %dx%d fps=%.1f lighting=%s weather=%s focal=%.0f horizon=%.0f vehicles=%d",
                   self.seed, W, H, self.fps, self.lighting, weather, f, hy, self.n_vehicles)
@@ -178,6 +183,15 @@ class SceneRenderer:
         for i in range(self.n_vehicles):
             self._traffic.vehicles.append(self._traffic.spawn(vo[i] if i < len(vo) else {}, entering=False))
         self._painter = VehiclePainter(W, H, self._geo, self._light, self.lighting, self._wet)
+
+    def _draw_streak(self, cam_params: CameraParams) -> None:
+        """With probability ``night_streak``, a dusk or night scene's camera draws a glare
+        streak (a stream of its own, so that every other draw stays as it was)."""
+        if self.night_streak <= 0 or self.lighting == "day":
+            return
+        rng = np.random.default_rng([self.seed, 0x57EA])
+        if rng.random() < self.night_streak:
+            cam_params.streak, cam_params.streak_len = sample_streak(rng)
 
     # ------------------------------------------------------------------ rendering
     def frames(self, n_frames: int) -> Iterator[RenderedFrame]:
