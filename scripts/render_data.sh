@@ -7,8 +7,10 @@
 # turned (synth.traffic.OBLIQUE_YAW_DEG), TAIL_GLARE (default 0) the share of their lit
 # dusk and night vehicles with clipped tail lamps (synth.traffic.Vehicle.glare), REAR_BAR
 # (default 0) the share of their rear views with a full-width tail bar (synth.lamps.tail_bar),
-# WIDE_TRUCK_LAMPS (default 0) that of their truck and bus rear views with wider clusters; the
-# evaluation splits never have any of them, so that they stay comparable across data versions.
+# WIDE_TRUCK_LAMPS (default 0) that of their truck and bus rear views with wider clusters,
+# NIGHT_STREAK (default 0) that of their dusk and night scenes whose camera smears clipped
+# light along its row (synth.camera.CameraParams.streak); the evaluation splits never have
+# any of them, so that they stay comparable across data versions.
 # TRUTH_RULE (default lamp; synth.truth.TRUTH_RULES) labels every split, pools and evaluation
 # splits alike: data of another rule is another data version, and a model trained on it is
 # scored against models of the old one on this DATA's evaluation splits.
@@ -36,6 +38,7 @@ OBLIQUE=${OBLIQUE:-0}
 TAIL_GLARE=${TAIL_GLARE:-0}
 REAR_BAR=${REAR_BAR:-0}
 WIDE_TRUCK_LAMPS=${WIDE_TRUCK_LAMPS:-0}
+NIGHT_STREAK=${NIGHT_STREAK:-0}
 TRUTH_RULE=${TRUTH_RULE:-lamp}
 POOL_NAME=${POOL_NAME:-pool}
 
@@ -47,7 +50,8 @@ for seed in $POOL_SEEDS; do
     python -m signal_light_node.data.split "$pool" --seed "$seed" \
       --sequences "$POOL_TRACKS" --seq-len "$POOL_FRAMES" --full-tracks --overwrite \
       --oblique "$OBLIQUE" --tail-glare "$TAIL_GLARE" --rear-bar "$REAR_BAR" \
-      --wide-truck-lamps "$WIDE_TRUCK_LAMPS" --truth-rule "$TRUTH_RULE" \
+      --wide-truck-lamps "$WIDE_TRUCK_LAMPS" --night-streak "$NIGHT_STREAK" \
+      --truth-rule "$TRUTH_RULE" \
       > "$pool.log" 2>&1 &
     pids+=($!)
   fi
