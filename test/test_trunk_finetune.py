@@ -12,7 +12,7 @@ from signal_light_node.data.split import write_split
 from signal_light_node.errors import ConfigError
 from signal_light_node.evaluation.metrics import roc_auc
 from signal_light_node.labels import TASKS, LightStatus, View
-from signal_light_node.model.config import trunk_config
+from signal_light_node.model.config import ModelConfig, trunk_config
 from signal_light_node.model.registry import build_model
 from signal_light_node.training import frame_pool, trunk_finetune, trunk_recipe
 from signal_light_node.training.frame_pool import FramePool, sample_batch
@@ -191,6 +191,25 @@ def test_a_trunk_of_another_shape_is_refused(split, tmp_path):
     with pytest.raises(ConfigError, match="not a per-frame"):
         torch.save({"x": 1}, tmp_path / "bad.pt")
         load_trunk_weights(other, tmp_path / "bad.pt")
+
+
+def test_a_model_files_trunk_loads_as_a_per_frame_one(tmp_path):
+    """A run can start from the shipped file's trunk on a machine without the per-frame
+    file: the trunk it loads is the shipped one, fingerprint and all."""
+    from signal_light_node.model import DEFAULT_WEIGHTS
+    from signal_light_node.training.feature_cache import trunk_fingerprint
+
+    shipped = torch.load(DEFAULT_WEIGHTS, map_location="cpu", weights_only=False)
+    model = build_model(ModelConfig.from_dict(shipped["config"]))
+    before = trunk_fingerprint(model)
+    load_trunk_weights(model, DEFAULT_WEIGHTS)
+    assert trunk_fingerprint(model) == shipped["meta"]["trunk_fingerprint"] != before
+    weight = "blocks.10.project.0.weight"
+    assert torch.equal(model.trunk.state_dict()[weight], shipped["state_dict"]["trunk." + weight])
+    torch.save({"format_version": 1, "config": shipped["config"], "state_dict": {}},
+               tmp_path / "headless.pt")
+    with pytest.raises(ConfigError, match="nor a model file with a trunk"):
+        load_trunk_weights(model, tmp_path / "headless.pt")
 
 
 def test_every_flag_the_recipe_script_passes_to_the_stage_exists():

@@ -224,16 +224,36 @@ class FineTune:
                     "step": self.progress["step"], **meta}, path)
 
 
+def _trunk_of_model_file(saved: Dict[str, Any]) -> Optional[Dict[str, Any]]:
+    """A model checkpoint's trunk as a per-frame checkpoint would hold it, or None when
+    ``saved`` is not a model checkpoint with a trunk (``model.checkpoint``)."""
+    state = saved.get("state_dict") if "format_version" in saved else None
+    if not isinstance(state, dict):
+        return None
+    trunk = {k[len("trunk."):]: v for k, v in state.items() if k.startswith("trunk.")}
+    if not trunk:
+        return None
+    meta = saved.get("meta") or {}
+    return {"trunk": trunk, "config": saved.get("config") or {},
+            "step": (meta.get("trunk_weights") or {}).get("step"), "train_from": None,
+            "validation": None, "from_model": meta.get("trunk_fingerprint")}
+
+
 def load_trunk_weights(model: nn.Module, path: "str | Path") -> Dict[str, Any]:
-    """Put a per-frame checkpoint's trunk into ``model`` (a trunk network of the same
-    config); returns what the checkpoint says of itself (step, validation).
+    """Put a trunk into ``model`` (a trunk network of the same config): a per-frame
+    checkpoint's, or a whole model file's (a shipped ``default.pt``, whose trunk is frozen
+    as trained, so that a run can start from it on a machine without the per-frame file);
+    returns what the file says of itself (step, validation).
 
     Raises:
-        ConfigError: The file is not a per-frame checkpoint or its trunk does not fit.
+        ConfigError: The file is neither, or its trunk does not fit.
     """
     saved = torch.load(path, map_location="cpu", weights_only=False)
+    if isinstance(saved, dict) and "trunk" not in saved:
+        saved = _trunk_of_model_file(saved) or saved
     if not isinstance(saved, dict) or "trunk" not in saved:
-        raise ConfigError(f"{path} is not a per-frame trunk checkpoint (trunk_finetune)")
+        raise ConfigError(f"{path} is not a per-frame trunk checkpoint (trunk_finetune) nor "
+                          f"a model file with a trunk")
     for key in ("input_size", "trunk_stride"):
         if saved["config"].get(key) != getattr(model.config, key):
             raise ConfigError(f"{path}: trunk {key} {saved['config'].get(key)} differs from "

@@ -216,7 +216,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--resume", action="store_true")
     parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     parser.add_argument("--trunk-weights", type=Path, default=None,
-                        help="start from this per-frame stage's trunk (trunk_finetune's best.pt)")
+                        help="start from this per-frame stage's trunk (trunk_finetune's "
+                             "best.pt) or a model file's (the shipped default.pt)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     torch.set_num_threads(args.threads)
