@@ -70,7 +70,7 @@ SEED=${SEED:-1}
 SEEDS=${SEEDS:-$SEED}   # one temporal run per seed; two or more are joined
 POOL_SEEDS=${POOL_SEEDS:-"31 32 33"}
 # The other data settings (POOL_TRACKS, VAL_*, TEST_*, FAMILY_SEED, CAL_*, OBLIQUE, TAIL_GLARE,
-# TRUTH_RULE for every split of DATA): scripts/render_data.sh. GLARE_POOL_SEEDS (default none) adds pools of those seeds drawn
+# NIGHT_STREAK for every pool, TRUTH_RULE for every split of DATA): scripts/render_data.sh. GLARE_POOL_SEEDS (default none) adds pools of those seeds drawn
 # with clipped night tail lamps on GLARE_SHARE (default 0.5) of the lit dusk and night
 # vehicles, DATA/glare_pool_SEED, to both stages (docs/model.md, "What a seed moves, and
 # more tracks": POOL_SEEDS="31 32 33 34 35 36" GLARE_POOL_SEEDS="31 32 33").
@@ -98,7 +98,8 @@ THREADS=${THREADS:-2}
 EVAL=${EVAL:-1}
 # The per-frame stage (training/trunk_finetune.py): FRAME_STEPS > 0 fine-tunes the trunk's
 # blocks from TRAIN_FROM on (-1: all, the stem too) before the temporal part; TRUNK_WEIGHTS
-# names a finished one instead (its best.pt).
+# names a finished one instead (its best.pt), or a model file whose trunk to take (the
+# shipped signal_light_node/weights/default.pt: its trunk is runs/frames/A2_best.pt's).
 FRAME_STEPS=${FRAME_STEPS:-0}
 TRAIN_FROM=${TRAIN_FROM:--1}
 FRAME_TRACKS=${FRAME_TRACKS:-32}
