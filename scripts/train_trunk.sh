@@ -18,7 +18,9 @@
 # (FRAME_STEPS=2000 TRAIN_FROM=-1 instead of TRUNK_WEIGHTS trains that per-frame trunk too).
 # Since 2026-11-27 (tenth session) the recipe's pools 34-36 are truck pools instead
 # (POOL_SEEDS="31 32 33" REAR_POOL_SEEDS="34 35 36" REAR_BAR=0; docs/model.md, "Rear lamps
-# the renderer drew too seldom"); no file shipped from it yet.
+# the renderer drew too seldom"), and since the eleventh session its data is labelled with
+# TRUTH_RULE=function (docs/model.md, "Lamps the truth called too small to judge"); no file
+# shipped from it yet.
 #
 # What it does (docs/model.md, "The trunk recipe"):
 #   1. renders the data in parallel worker processes, once (reused when present): POOL_SEEDS
