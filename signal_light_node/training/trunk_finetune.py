@@ -236,7 +236,7 @@ def _trunk_of_model_file(saved: Dict[str, Any]) -> Optional[Dict[str, Any]]:
     meta = saved.get("meta") or {}
     return {"trunk": trunk, "config": saved.get("config") or {},
             "step": (meta.get("trunk_weights") or {}).get("step"), "train_from": None,
-            "validation": None, "from_model": meta.get("trunk_fingerprint")}
+            "validation": None}
 
 
 def load_trunk_weights(model: nn.Module, path: "str | Path") -> Dict[str, Any]:
