@@ -75,14 +75,14 @@ def figures(metrics: Dict[str, Any]) -> Dict[str, Optional[float]]:
 
 
 def evaluate(name: str, data: List[str], checkpoint: Path, out: Path,
-             extra: Sequence[str]) -> Dict[str, Optional[float]]:
-    """Run ``signal-light evaluate`` on one set (a split or bags) and read its figures."""
+             extra: Sequence[str]) -> Dict[str, Any]:
+    """Run ``signal-light evaluate`` on one set (a split or bags); its metrics.json."""
     target = out / name
     cmd = ["signal-light", "evaluate", "--checkpoint", str(checkpoint), "--out", str(target),
            "--no-progress", *extra, *data]
     print("$", " ".join(cmd), flush=True)
     subprocess.run(cmd, check=True, cwd=REPO, stdout=subprocess.DEVNULL)
-    return figures(json.loads((target / "metrics.json").read_text()))
+    return json.loads((target / "metrics.json").read_text())
 
 
 def hard_negatives(checkpoint: Path, out: Path) -> Dict[str, Dict[str, float]]:
@@ -135,12 +135,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         bags = [str(b) for b in args.independent_renders]
         sets += (("independent_renders", f"independent renders ({len(bags)} scenes)",
                   ["--bags", *bags]),)
-    rows = {name: evaluate(folder, data, args.checkpoint, args.out, extra)
-            for folder, name, data in sets}
+    metrics = {name: evaluate(folder, data, args.checkpoint, args.out, extra)
+               for folder, name, data in sets}
+    rows = {name: figures(m) for name, m in metrics.items()}
+    by_view = {name: m.get("unknown_by_view", []) for name, m in metrics.items()}
     args.out.mkdir(parents=True, exist_ok=True)
     table = markdown(rows)
-    by_view = {name: json.loads((args.out / folder / "metrics.json").read_text())
-               .get("unknown_by_view", []) for folder, name, _ in sets}
     for name in [n for n in by_view if n.startswith("independent")]:
         table += (f"\nWhere the UNKNOWNs come from, {name} (brake, left and right where the "
                   f"truth is OFF or ON):\n\n{unknown_by_view_markdown(by_view[name])}")
