@@ -297,6 +297,8 @@ RENDERER_SHARES = {
                         "real combination lamps (synth.lamps.widen_clusters)",
     "night_streak": "dusk and night scenes whose camera smears over-exposed light along its "
                     "row (synth.camera.CameraParams.streak)",
+    "night_clip": "night scenes whose camera exposes for a lit street and turns clipped light "
+                  "white (synth.camera.CameraParams.white_clip)",
 }
 
 

@@ -35,6 +35,9 @@ class CameraParams:
         streak: Gain of the horizontal glare streak that over-exposed light smears along
             its row (a windscreen's or a lens's; 0 = none).
         streak_len: Length of that streak as a share of the image width.
+        white_clip: How far light over ``_WHITE_FLOOR`` (after the tone curve) turns white,
+            0..1 (0 = not at all): a saturated lamp clips in every channel at once, so its
+            core shows white and only its fringe keeps the lamp's colour.
     """
 
     noise: float = 2.0
@@ -52,6 +55,7 @@ class CameraParams:
     shake: float = 0.0
     streak: float = 0.0
     streak_len: float = 0.0
+    white_clip: float = 0.0
 
 
 #: Range of :attr:`CameraParams.streak`, and of ``streak_len`` (share of the width).
@@ -59,11 +63,23 @@ STREAK_GAIN = (2.0, 8.0)
 STREAK_LEN = (1 / 30, 1 / 8)
 #: Level (after the tone curve) above which a pixel counts as over-exposed for the streak.
 _STREAK_FLOOR = 200
+#: Range of the exposure factor of a night camera that exposes for a lit street (its lamps
+#: saturate), and of its :attr:`CameraParams.white_clip`.
+NIGHT_GAIN = (1.8, 3.2)
+WHITE_CLIP = (0.4, 0.9)
+#: Brightest channel (after the tone curve) from which light starts to turn white; at 255
+#: it has moved ``white_clip`` of the way.
+_WHITE_FLOOR = 230
 
 
 def sample_streak(rng: np.random.Generator) -> "tuple[float, float]":
     """A glare streak's gain and length (share of the width)."""
     return float(rng.uniform(*STREAK_GAIN)), float(rng.uniform(*STREAK_LEN))
+
+
+def sample_night_clip(rng: np.random.Generator) -> "tuple[float, float]":
+    """A bright night camera's exposure factor and :attr:`CameraParams.white_clip`."""
+    return float(rng.uniform(*NIGHT_GAIN)), float(rng.uniform(*WHITE_CLIP))
 
 
 #: Tone-curve exponent and exposure ranges per style family (``synth.lamps.STYLE_FAMILIES``).
@@ -171,6 +187,8 @@ class Camera:
             self._lut = np.clip(255.0 * (x * gain) ** p.gamma, 0, 255).astype(np.uint8)
             self._last_lut_key = key
         img = cv2.LUT(img, self._lut)
+        if p.white_clip > 0:
+            img = self._whiten(img)
         if p.streak > 0 and p.streak_len > 0:
             img = self._streak(img)
         if p.motion_blur > 0 and frame_rng.random() < p.motion_prob:
@@ -194,6 +212,20 @@ class Camera:
             if ok:
                 img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
         return img
+
+    def _whiten(self, img: np.ndarray) -> np.ndarray:
+        """Move each pixel whose brightest channel is over ``_WHITE_FLOOR`` towards white, by
+        ``white_clip`` times how far over it is (only those pixels are touched)."""
+        top = img.max(axis=2)
+        ys, xs = np.nonzero(top > _WHITE_FLOOR)
+        if not len(ys):
+            return img
+        share = (top[ys, xs].astype(np.float32) - _WHITE_FLOOR) * (
+            self.p.white_clip / (255.0 - _WHITE_FLOOR))
+        px = img[ys, xs].astype(np.float32)
+        out = img.copy()
+        out[ys, xs] = np.round(px + share[:, None] * (255.0 - px)).astype(np.uint8)
+        return out
 
     def _streak(self, img: np.ndarray) -> np.ndarray:
         """Smear what is over-exposed along its row: a box blur of the part above

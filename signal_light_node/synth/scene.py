@@ -26,7 +26,8 @@ import cv2
 import numpy as np
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.synth.camera import Camera, CameraParams, sample_camera, sample_streak
+from signal_light_node.synth.camera import (Camera, CameraParams, sample_camera,
+                                            sample_night_clip, sample_streak)
 from signal_light_node.synth.environment import (GLOW_SCALE, LIGHTINGS, Environment, Lighting, Occluder, StreetGeometry,
                                                  blur_glow, sample_lighting)
 from signal_light_node.synth.lamps import STYLE_FAMILIES, TRAIN_FAMILIES
@@ -42,7 +43,7 @@ LOG = logging.getLogger(__name__)
 _MARGIN = 12
 _SCENE_KEYS = {"vehicles", "occluders", "poles", "distractors", "weather", "effects", "shake", "respawn", "horizon", "focal",
                "family", "oblique", "tail_glare", "rear_bar", "wide_truck_lamps", "night_streak",
-               "truth_rule"}
+               "night_clip", "truth_rule"}
 _VEHICLE_KEYS = {"view", "kind", "lamp_design", "tech", "chmsl", "intent", "brake", "colour", "lights_on", "center_x",
                  "width_px", "speed", "blink_hz", "duty", "phase", "shear", "roll", "specular", "yaw"}
 
@@ -85,7 +86,9 @@ class SceneRenderer:
             views whose side clusters are drawn as wide as real combination lamps;
             default 0), ``night_streak`` (share of dusk and night scenes whose camera
             smears over-exposed light along its row, ``synth.camera.CameraParams.streak``;
-            default 0), ``truth_rule`` (how large the seen lamps of a light must be for
+            default 0), ``night_clip`` (share of night scenes whose camera exposes for a
+            lit street, 1.8-3.2 times brighter, and turns clipped light white,
+            ``synth.camera.CameraParams.white_clip``; default 0), ``truth_rule`` (how large the seen lamps of a light must be for
             it to be labelled, ``synth.truth.TRUTH_RULES``; default "lamp"). Vehicle keys:
             ``view`` (View), ``kind``, ``lamp_design``, ``tech`` ("led"/"bulb"), ``chmsl``,
             ``intent`` (Intent held for the whole sequence), ``brake`` (bool held),
@@ -144,6 +147,7 @@ class SceneRenderer:
         self.rear_bar = _share(overrides, "rear_bar")
         self.wide_truck_lamps = _share(overrides, "wide_truck_lamps")
         self.night_streak = _share(overrides, "night_streak")
+        self.night_clip = _share(overrides, "night_clip")
         self.truth_rule = checked_rule(str(overrides.get("truth_rule", "lamp")))
 
     # ------------------------------------------------------------------ setup
@@ -174,6 +178,7 @@ class SceneRenderer:
         if not o.get("shake", True):
             cam_params.shake = 0.0
         self._draw_streak(cam_params)
+        self._draw_night_clip(cam_params)
         self._camera = Camera(cam_params, W, H, hy, self.seed * 7 + 3, enabled=bool(o.get("effects", True)))
         LOG.debug("scene seed=%d %dx%d fps=%.1f lighting=%s weather=%s focal=%.0f horizon=%.0f vehicles=%d",
                   self.seed, W, H, self.fps, self.lighting, weather, f, hy, self.n_vehicles)
@@ -192,6 +197,16 @@ class SceneRenderer:
         rng = np.random.default_rng([self.seed, 0x57EA])
         if rng.random() < self.night_streak:
             cam_params.streak, cam_params.streak_len = sample_streak(rng)
+
+    def _draw_night_clip(self, cam_params: CameraParams) -> None:
+        """With probability ``night_clip``, a night scene's camera exposes for a lit street
+        (its lamps saturate) and turns clipped light white (a stream of its own)."""
+        if self.night_clip <= 0 or self.lighting != "night":
+            return
+        rng = np.random.default_rng([self.seed, 0xC11F])
+        if rng.random() < self.night_clip:
+            gain, cam_params.white_clip = sample_night_clip(rng)
+            cam_params.exposure *= gain
 
     # ------------------------------------------------------------------ rendering
     def frames(self, n_frames: int) -> Iterator[RenderedFrame]:
