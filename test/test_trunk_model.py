@@ -64,6 +64,10 @@ def test_trunk_config_is_validated():
         trunk_config(lamp_detail=2)  # frequency evidence reads whole lamp-map halves
     with pytest.raises(ConfigError, match="lit_hidden"):
         trunk_config(lit_hidden=-1)
+    with pytest.raises(ConfigError, match="lamp_area"):
+        ModelConfig(lamp_area=True)  # the CNN has no lamp maps
+    with pytest.raises(ConfigError, match="lamp_area must be true or false"):
+        trunk_config(lamp_area="yes")
 
 
 @pytest.mark.parametrize("changes", [{}, {"relative_evidence": False},
@@ -75,7 +79,9 @@ def test_trunk_config_is_validated():
                                      {"frequency_evidence": False, "lamp_detail": 2,
                                       "cell_periods": True},
                                      {"frequency_evidence": False, "lamp_detail": 2,
-                                      "cell_periods": True, "cell_pooled": True}])
+                                      "cell_periods": True, "cell_pooled": True},
+                                     {"frequency_evidence": False, "lamp_detail": 2,
+                                      "lamp_area": True}])
 def test_stepping_frame_by_frame_equals_the_sequence(changes):
     model = _model(**changes)
     crops = torch.rand(3, 6, 3, 64, 64, generator=torch.Generator().manual_seed(1))
@@ -236,6 +242,32 @@ def test_lamp_maps_see_a_red_lamp_on_its_side():
     assert float(maps[0, 2, 2, 0]) > 0.6 and float(maps[0, 2, :, 2:].max()) < 1e-6
 
 
+def test_lamp_area_counts_the_bright_and_the_lit_red_pixels_of_each_cell():
+    crop = torch.full((1, 3, 64, 64), 0.3)
+    crop[0, :, 0:8, 0:4] = 1.0  # a white (clipped) half of the top-left cell: bright only
+    crop[0, 2, 40:48, 8:16] = 0.8  # a whole cell of lit red (0.8: bright too)
+    crop[0, 2, 56:64, 56:64] = 0.7  # red, under the bright level
+    maps = lamps.lamp_maps(crop, 8, area=True)
+    assert maps.shape == (1, lamps.lamp_channels(True), 8, 8)
+    assert torch.equal(maps[:, :lamps.LAMP_CHANNELS], lamps.lamp_maps(crop, 8))
+    bright, red = maps[0, lamps.LAMP_CHANNELS], maps[0, lamps.LAMP_CHANNELS + 1]
+    assert float(bright[0, 0]) == 0.5 and float(red[0, 0]) == 0.0
+    assert float(bright[5, 1]) == 1.0 and float(red[5, 1]) == 1.0
+    assert float(bright[7, 7]) == 0.0 and float(red[7, 7]) == 1.0
+    assert float(bright.sum() + red.sum()) == 0.5 + 2.0 + 1.0
+    model = _model(frequency_evidence=False, lamp_detail=2, lamp_area=True)
+    assert model.frame_features(crop)[1].shape == (1, 32, 4, 4)
+
+
+def test_lamp_area_caches_apart_from_the_plain_lamp_maps():
+    from signal_light_node.training.feature_cache import trunk_fingerprint
+
+    plain = _model(frequency_evidence=False, lamp_detail=2)
+    area = _model(frequency_evidence=False, lamp_detail=2, lamp_area=True)
+    area.trunk.load_state_dict(plain.trunk.state_dict())
+    assert trunk_fingerprint(area) != trunk_fingerprint(plain)
+
+
 def test_checkpoint_round_trip_needs_no_wheel(tmp_path, monkeypatch):
     model = _model()
     path = save_checkpoint(tmp_path / "m.pt", model, model.config)
@@ -255,7 +287,9 @@ def test_checkpoint_round_trip_needs_no_wheel(tmp_path, monkeypatch):
 @pytest.mark.parametrize("changes", [{}, {"frequency_evidence": False, "lamp_detail": 2,
                                           "lit_hidden": 16, "blink_levels": False},
                                      {"frequency_evidence": False, "lamp_detail": 2,
-                                      "cell_periods": True, "cell_pooled": True}])
+                                      "cell_periods": True, "cell_pooled": True},
+                                     {"frequency_evidence": False, "lamp_detail": 2,
+                                      "lamp_area": True}])
 def test_onnx_export_steps_like_torch(tmp_path, changes):
     from signal_light_node.model.onnx_export import export_onnx
 

@@ -102,6 +102,11 @@ class ModelConfig:
         lamp_detail: The lamp maps are computed on a grid this many times finer than the
             trunk's and stacked into channels per trunk cell (space to depth), so a small
             lamp keeps its own cell; 1 keeps one lamp-map cell per trunk cell.
+        lamp_area: With the trunk encoder, two more lamp-map channels per cell: the share of
+            bright pixels and of lit red ones (``model.lamp_evidence.lamp_maps``). A lamp's
+            lit area, unlike its peak colour, tells a night brake from a tail lamp on
+            cameras that clip it white as on those that keep it red (docs/model.md, "Night
+            brakes: the model at chance where pixel statistics are not").
         lit_map_head: Give the CNN a training-only 1x1 convolution on the backbone's
             features that draws where the vehicle's brake, left and right lamps are lit
             (``lit_maps`` of the training tracks, ``synth.lit_maps``): it teaches the
@@ -151,6 +156,7 @@ class ModelConfig:
     lamp_detail: int = 1
     cell_periods: bool = False
     cell_pooled: bool = False
+    lamp_area: bool = False
     lit_map_head: bool = False
     members: int = 1
     temperatures: Mapping[str, float] = field(default_factory=dict, hash=False)
@@ -173,7 +179,7 @@ class ModelConfig:
         # bool("false") is True: refuse anything but a real boolean (CLI values are JSON).
         for name in ("use_attention", "temporal_input", "relative_evidence", "frequency_evidence",
                      "lit_head", "lit_periods", "blink_levels", "cell_periods",
-                     "cell_pooled", "lit_map_head"):
+                     "cell_pooled", "lamp_area", "lit_map_head"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"model config {name} must be true or false, got "
                                   f"{getattr(self, name)!r}")
@@ -232,6 +238,9 @@ class ModelConfig:
         if self.members > 1 and self.encoder == "cnn":
             raise ConfigError("model config members > 1 needs the trunk encoder "
                               "(members share its per-frame trunk)")
+        if self.lamp_area and self.encoder == "cnn":
+            raise ConfigError("model config lamp_area adds lamp-map channels: it needs the "
+                              "trunk encoder (the CNN has no lamp maps)")
         if self.lamp_detail > 1 and self.frequency_evidence:
             raise ConfigError("model config frequency_evidence reads whole lamp-map halves: "
                               "it needs lamp_detail 1")

@@ -9,7 +9,10 @@ with the per-track memory passed in and returned (it lives in the model's state)
 
 * :func:`lamp_maps`: per cell of a ``grid x grid`` map of the crop, the mean and the peak
   brightness and the peak red and warm (red or amber) excess of its pixels, each also
-  relative to the crop's mean brightness (the vehicle body's level).
+  relative to the crop's mean brightness (the vehicle body's level); with ``area``, also
+  the share of its pixels that are bright and that are lit red (a lamp's lit area: at
+  night a brake outshines its tail lamps by the area it clips, where the peak colour of a
+  clipped lamp is white on one camera and red on another).
 * :func:`relative_step`: a map against the track's previous frame and its running mean.
 * :func:`resonator_step`: a bank of damped complex resonators per signal (the left and
   right halves of the lamp maps), one per blink period in frames; their amplitude is the
@@ -35,8 +38,14 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-#: Channels of :func:`lamp_maps`.
+#: Channels of :func:`lamp_maps`, and what ``area`` adds.
 LAMP_CHANNELS = 6
+AREA_CHANNELS = 2
+#: A bright pixel: its largest channel at least this (in [0, 1]).
+AREA_BRIGHT = 0.78
+#: A lit red pixel: red at least the first, and over the larger of green and blue by at
+#: least the second.
+AREA_RED = (0.59, 0.16)
 #: Resonator periods in frames.
 PERIODS: Tuple[float, ...] = (4.5, 6.5, 9.0, 13.0, 19.0, 27.0, 38.0)
 #: Signals fed to the resonators: the left and right halves of lamp-map channels 1-3.
@@ -45,12 +54,19 @@ SIGNAL_CHANNELS = (1, 2, 3)
 MEMORY_PERIODS = 2.0
 
 
-def lamp_maps(crops: Tensor, grid: int) -> Tensor:
-    """Lamp evidence ``[N, 6, grid, grid]`` of ``[N, 3, S, S]`` BGR crops in [0, 1].
+def lamp_channels(area: bool) -> int:
+    """Channels of :func:`lamp_maps` with or without ``area``."""
+    return LAMP_CHANNELS + (AREA_CHANNELS if area else 0)
+
+
+def lamp_maps(crops: Tensor, grid: int, area: bool = False) -> Tensor:
+    """Lamp evidence ``[N, lamp_channels(area), grid, grid]`` of ``[N, 3, S, S]`` BGR crops
+    in [0, 1].
 
     Channels: mean brightness, peak brightness, peak red excess (red over the larger of
     green and blue), peak warm excess (red over blue: red and amber lamps), and the peak
-    brightness and peak red excess minus the crop's mean brightness.
+    brightness and peak red excess minus the crop's mean brightness; with ``area``, the
+    share of bright pixels (:data:`AREA_BRIGHT`) and of lit red ones (:data:`AREA_RED`).
     """
     b, g, r = crops[:, 0:1], crops[:, 1:2], crops[:, 2:3]
     value = torch.maximum(torch.maximum(b, g), r)
@@ -62,7 +78,12 @@ def lamp_maps(crops: Tensor, grid: int) -> Tensor:
     peaks = F.max_pool2d(torch.cat((value, red, warm), 1), cell)
     mean = F.avg_pool2d(value, cell)
     body = value.mean(dim=(2, 3), keepdim=True)
-    return torch.cat((mean, peaks, peaks[:, 0:1] - body, peaks[:, 1:2] - body), 1)
+    maps = [mean, peaks, peaks[:, 0:1] - body, peaks[:, 1:2] - body]
+    if area:
+        lit = torch.cat(((value >= AREA_BRIGHT).to(crops.dtype),
+                         ((r >= AREA_RED[0]) & (red >= AREA_RED[1])).to(crops.dtype)), 1)
+        maps.append(F.avg_pool2d(lit, cell))
+    return torch.cat(maps, 1)
 
 
 def space_to_depth(maps: Tensor, factor: int) -> Tensor:

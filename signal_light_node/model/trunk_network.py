@@ -6,8 +6,9 @@ One step for ``N`` tracks::
       per frame (no state; cacheable for a frozen trunk):
       -> normalise (ImageNet statistics) -> EfficientNet-Lite0 trunk (``model.trunk``)
          features f [N,C,G,G] (C 112, G = S/16; or C 40, G = S/8)
-      -> lamp maps m [N,6*d*d,G,G] of the raw crop on a grid d = ``lamp_detail`` times finer
-         (``model.lamp_evidence.lamp_maps``, stacked per trunk cell)
+      -> lamp maps m [N,K*d*d,G,G] of the raw crop on a grid d = ``lamp_detail`` times finer
+         (``model.lamp_evidence.lamp_maps``, stacked per trunk cell; K = 6, or 8 with
+         ``lamp_area``: the lit area too)
       per track (state):
       -> z = 1x1 projection of f
       -> with ``relative_evidence``: z and m against the track's previous frame and
@@ -93,14 +94,15 @@ class TrunkFront(nn.Module):
         check_crops(crops, ndim, self.input_size)
 
     def frame_features(self, crops: Tensor) -> Tuple[Tensor, Tensor]:
-        """Per-frame ``(trunk features [N,C,G,G], lamp maps [N,6*d*d,G,G])`` of crops in [0, 1]
-        (``d`` the config's ``lamp_detail``).
+        """Per-frame ``(trunk features [N,C,G,G], lamp maps [N,K*d*d,G,G])`` of crops in [0, 1]
+        (``d`` the config's ``lamp_detail``, ``K`` :func:`lamp_evidence.lamp_channels`).
 
         They hold no track state, so a frozen trunk's can be computed once and cached.
         """
         x = crops.float()
         detail = self.config.lamp_detail
-        maps = lamps.space_to_depth(lamps.lamp_maps(x, self.grid * detail), detail)
+        maps = lamps.space_to_depth(
+            lamps.lamp_maps(x, self.grid * detail, self.config.lamp_area), detail)
         return self.trunk_features(x), maps
 
     def trunk_features(self, crops: Tensor) -> Tensor:
@@ -206,7 +208,7 @@ class TrunkLightNet(TrunkFront):
         width = config.feature_channels
         self.project = nn.Conv2d(self.trunk_channels, width, 1, bias=False)
         # Lamp maps on a grid lamp_detail times finer, stacked per trunk cell.
-        self.lamp_channels = lamps.LAMP_CHANNELS * config.lamp_detail ** 2
+        self.lamp_channels = lamps.lamp_channels(config.lamp_area) * config.lamp_detail ** 2
         c_in = width + self.lamp_channels
         if config.relative_evidence:
             c_in += 2 * width + 2 * self.lamp_channels

@@ -49,6 +49,8 @@ def trunk_fingerprint(model: torch.nn.Module) -> str:
     per_frame = [cfg.input_size, cfg.trunk_stride, list(cfg.mean), list(cfg.std)]
     if cfg.lamp_detail != 1:  # the lamp maps' grid; left out at 1 so older caches stay valid
         per_frame.append(cfg.lamp_detail)
+    if cfg.lamp_area:  # two more lamp-map channels; left out when off, likewise
+        per_frame.append("lamp_area")
     digest.update(json.dumps(per_frame).encode())
     for name, value in sorted(model.trunk.state_dict().items()):
         digest.update(name.encode())
