@@ -19,8 +19,9 @@
 # Since 2026-11-27 (tenth session) the recipe's pools 34-36 are truck pools instead
 # (POOL_SEEDS="31 32 33" REAR_POOL_SEEDS="34 35 36" REAR_BAR=0; docs/model.md, "Rear lamps
 # the renderer drew too seldom"), and since the eleventh session its data is labelled with
-# TRUTH_RULE=function (docs/model.md, "Lamps the truth called too small to judge"); no file
-# shipped from it yet.
+# TRUTH_RULE=function (docs/model.md, "Lamps the truth called too small to judge"), and
+# since the twelfth its pools carry a night glare streak (NIGHT_STREAK=0.5; docs/model.md,
+# "Night rear views taken for front views"); no file shipped from it yet.
 #
 # What it does (docs/model.md, "The trunk recipe"):
 #   1. renders the data in parallel worker processes, once (reused when present): POOL_SEEDS
