@@ -231,7 +231,7 @@ def cell_blink_step(fine_maps: Tensor, resonators: Tensor, memory: Tensor, seen:
     """One frame of periodic energy per cell of the fine lamp grid.
 
     Args:
-        fine_maps: ``[N, 6, F, F]`` lamp maps (:func:`lamp_maps`) on the fine grid.
+        fine_maps: ``[N, K, F, F]`` lamp maps (:func:`lamp_maps`, K channels) on the fine grid.
         resonators: ``[N, 2, S, P]`` real and imaginary parts per cell signal and period
             (``S = 2 F F``, :data:`CELL_CHANNELS`).
         memory: ``[N, 3, S]`` each signal's previous value, slow level and broadband change.
