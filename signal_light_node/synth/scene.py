@@ -88,8 +88,9 @@ class SceneRenderer:
             smears over-exposed light along its row, ``synth.camera.CameraParams.streak``;
             default 0), ``night_clip`` (share of night scenes whose camera exposes for a
             lit street, 1.8-3.2 times brighter, and turns clipped light white,
-            ``synth.camera.CameraParams.white_clip``; default 0), ``truth_rule`` (how large the seen lamps of a light must be for
-            it to be labelled, ``synth.truth.TRUTH_RULES``; default "lamp"). Vehicle keys:
+            ``synth.camera.CameraParams.white_clip``; default 0), ``truth_rule`` (how
+            large the seen lamps of a light must be for it to be labelled,
+            ``synth.truth.TRUTH_RULES``; default "lamp"). Vehicle keys:
             ``view`` (View), ``kind``, ``lamp_design``, ``tech`` ("led"/"bulb"), ``chmsl``,
             ``intent`` (Intent held for the whole sequence), ``brake`` (bool held),
             ``colour`` (BGR), ``lights_on``, ``center_x`` (pixels), ``width_px`` (box width),
@@ -189,22 +190,28 @@ class SceneRenderer:
             self._traffic.vehicles.append(self._traffic.spawn(vo[i] if i < len(vo) else {}, entering=False))
         self._painter = VehiclePainter(W, H, self._geo, self._light, self.lighting, self._wet)
 
+    def _camera_draw(self, share: float, tag: int, lightings: "tuple[str, ...]"
+                     ) -> Optional[np.random.Generator]:
+        """The stream of a camera option's own draws when this scene (lit as one of
+        ``lightings``) draws the option, with probability ``share``; else None. A stream of
+        its own per option, so that every other draw of the scene stays as it was."""
+        if share <= 0 or self.lighting not in lightings:
+            return None
+        rng = np.random.default_rng([self.seed, tag])
+        return rng if rng.random() < share else None
+
     def _draw_streak(self, cam_params: CameraParams) -> None:
         """With probability ``night_streak``, a dusk or night scene's camera draws a glare
-        streak (a stream of its own, so that every other draw stays as it was)."""
-        if self.night_streak <= 0 or self.lighting == "day":
-            return
-        rng = np.random.default_rng([self.seed, 0x57EA])
-        if rng.random() < self.night_streak:
+        streak."""
+        rng = self._camera_draw(self.night_streak, 0x57EA, ("dusk", "night"))
+        if rng is not None:
             cam_params.streak, cam_params.streak_len = sample_streak(rng)
 
     def _draw_night_clip(self, cam_params: CameraParams) -> None:
         """With probability ``night_clip``, a night scene's camera exposes for a lit street
-        (its lamps saturate) and turns clipped light white (a stream of its own)."""
-        if self.night_clip <= 0 or self.lighting != "night":
-            return
-        rng = np.random.default_rng([self.seed, 0xC11F])
-        if rng.random() < self.night_clip:
+        (its lamps saturate) and turns clipped light white."""
+        rng = self._camera_draw(self.night_clip, 0xC11F, ("night",))
+        if rng is not None:
             gain, cam_params.white_clip = sample_night_clip(rng)
             cam_params.exposure *= gain
 
