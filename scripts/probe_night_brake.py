@@ -37,7 +37,7 @@ from signal_light_node.evaluation.tracks import TrackSequence
 from signal_light_node.labels import TASKS, LightStatus, View
 from signal_light_node.model.checkpoint import load_checkpoint
 from signal_light_node.model.config import CropConfig
-from signal_light_node.training.sources import load_bag_tracks, split_tracks
+from signal_light_node.training.sources import load_bag_tracks, tracks_from
 
 _BRAKE, _VIEW = TASKS.index("brake"), TASKS.index("view")
 _ON, _OFF = int(LightStatus.ON), int(LightStatus.OFF)
@@ -45,15 +45,14 @@ STATS = ("clipped share", "bright share", "red share", "mean redness", "top redn
 
 
 def night_tracks(spec: str, crop: CropConfig) -> List[TrackSequence]:
-    """A glob of bags (all their tracks: the second generator's night bags) or a split
-    directory (its night scenes only)."""
-    path = Path(spec)
-    if path.is_dir() and (path / "manifest.json").is_file():
-        return [t for t in split_tracks(path, crop) if t.lighting == "night"]
-    bags = sorted(glob.glob(spec))
-    if not bags:
-        raise SystemExit(f"error: {spec} is neither a split nor a glob of bags")
-    return [t for bag in bags for t in load_bag_tracks(Path(bag), crop, lighting="night")]
+    """The night tracks of a split directory or of a glob of bags (bags do not say their
+    lighting: the second generator's night bags are taken as night)."""
+    paths = [Path(p) for p in sorted(glob.glob(spec))]
+    if not paths:
+        raise SystemExit(f"error: {spec} names no split or bag")
+    tracks = tracks_from(paths, crop, "probed split",
+                         lambda bag: load_bag_tracks(bag, crop, lighting="night"))
+    return [t for t in tracks if t.lighting == "night"]
 
 
 def crop_stats(crop: np.ndarray) -> np.ndarray:
