@@ -43,7 +43,7 @@ LOG = logging.getLogger(__name__)
 _MARGIN = 12
 _SCENE_KEYS = {"vehicles", "occluders", "poles", "distractors", "weather", "effects", "shake", "respawn", "horizon", "focal",
                "family", "oblique", "tail_glare", "rear_bar", "wide_truck_lamps", "night_streak",
-               "night_clip", "truth_rule"}
+               "night_clip", "glare_tail_hot", "truth_rule"}
 _VEHICLE_KEYS = {"view", "kind", "lamp_design", "tech", "chmsl", "intent", "brake", "colour", "lights_on", "center_x",
                  "width_px", "speed", "blink_hz", "duty", "phase", "shear", "roll", "specular", "yaw"}
 
@@ -88,7 +88,10 @@ class SceneRenderer:
             smears over-exposed light along its row, ``synth.camera.CameraParams.streak``;
             default 0), ``night_clip`` (share of night scenes whose camera exposes for a
             lit street, 1.8-3.2 times brighter, and turns clipped light white,
-            ``synth.camera.CameraParams.white_clip``; default 0), ``truth_rule`` (how
+            ``synth.camera.CameraParams.white_clip``; default 0), ``glare_tail_hot``
+            (share of the ``tail_glare`` vehicles whose tail lamps' core and glow are drawn
+            at their brake's colour, ``synth.traffic.Vehicle.tail_hot``; default 0),
+            ``truth_rule`` (how
             large the seen lamps of a light must be for it to be labelled,
             ``synth.truth.TRUTH_RULES``; default "lamp"). Vehicle keys:
             ``view`` (View), ``kind``, ``lamp_design``, ``tech`` ("led"/"bulb"), ``chmsl``,
@@ -149,6 +152,7 @@ class SceneRenderer:
         self.wide_truck_lamps = _share(overrides, "wide_truck_lamps")
         self.night_streak = _share(overrides, "night_streak")
         self.night_clip = _share(overrides, "night_clip")
+        self.glare_tail_hot = _share(overrides, "glare_tail_hot")
         self.truth_rule = checked_rule(str(overrides.get("truth_rule", "lamp")))
 
     # ------------------------------------------------------------------ setup
@@ -184,7 +188,8 @@ class SceneRenderer:
         LOG.debug("scene seed=%d %dx%d fps=%.1f lighting=%s weather=%s focal=%.0f horizon=%.0f vehicles=%d",
                   self.seed, W, H, self.fps, self.lighting, weather, f, hy, self.n_vehicles)
         self._traffic = Traffic(self.seed, rng, W, self._geo, self._light, self.lighting, self.family,
-                                self.oblique, self.tail_glare, self.rear_bar, self.wide_truck_lamps)
+                                self.oblique, self.tail_glare, self.rear_bar, self.wide_truck_lamps,
+                                self.glare_tail_hot)
         vo = o.get("vehicles") or []
         for i in range(self.n_vehicles):
             self._traffic.vehicles.append(self._traffic.spawn(vo[i] if i < len(vo) else {}, entering=False))

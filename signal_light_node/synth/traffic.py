@@ -90,6 +90,10 @@ class Vehicle:
     #: the vehicle's tail lamps are drawn clipped too, as a camera at night shows them,
     #: and only the larger glow, the hotter core and the centre lamp tell a brake.
     glare: float = 1.0
+    #: With ``glare`` over 1: the steady tail lamps' core and glow drawn at the brake's
+    #: colour and strength, so that only the glow's extent, the growth over the track's own
+    #: level and the centre lamp tell a brake (``Traffic.glare_tail_hot``).
+    tail_hot: bool = False
 
 
 class Traffic:
@@ -109,11 +113,13 @@ class Traffic:
         rear_bar: Share of rear views given a full-width tail bar (``lamps.tail_bar``).
         wide_truck_lamps: Share of truck and bus rear views whose side clusters are drawn
             ``WIDE_TRUCK_FACTOR`` times wider (``lamps.widen_clusters``).
+        glare_tail_hot: Share of the glaring vehicles whose tail lamps' core and glow are
+            drawn at their brake's colour (``Vehicle.tail_hot``).
     """
 
     def __init__(self, seed: int, rng: np.random.Generator, width: int, geo: StreetGeometry, light: Lighting, lighting: str,
                  family: int, oblique: float = 0.0, tail_glare: float = 0.0, rear_bar: float = 0.0,
-                 wide_truck_lamps: float = 0.0) -> None:
+                 wide_truck_lamps: float = 0.0, glare_tail_hot: float = 0.0) -> None:
         self.seed = seed
         self.width = width
         self._rng = rng
@@ -125,6 +131,7 @@ class Traffic:
         self.tail_glare = tail_glare
         self.rear_bar = rear_bar
         self.wide_truck_lamps = wide_truck_lamps
+        self.glare_tail_hot = glare_tail_hot
         self._next_id = int(rng.integers(1, 50))
         self.vehicles: List[Vehicle] = []
 
@@ -287,7 +294,8 @@ class Traffic:
     def _glare(self, v: Vehicle) -> None:
         """With probability ``tail_glare``, a lit vehicle of a dusk or night scene gets
         clipped tail lamps and a brake and flashes brighter still (a stream of its own, as
-        ``_yaw``'s)."""
+        ``_yaw``'s); with probability ``glare_tail_hot`` its tail lamps are drawn at the
+        brake's colour (another stream of its own)."""
         if self.tail_glare <= 0 or self.lighting == "day" or not v.lights_on:
             return
         grng = self._picked(v, 500, self.tail_glare)
@@ -295,6 +303,8 @@ class Traffic:
             return
         v.style = replace(v.style, tail_level=float(grng.uniform(*GLARE_TAIL_LEVEL)))
         v.glare = float(grng.uniform(*GLARE_LEVEL))
+        if self.glare_tail_hot > 0:
+            v.tail_hot = self._picked(v, 800, self.glare_tail_hot) is not None
 
     def _wide_truck_lamps(self, v: Vehicle) -> None:
         """With probability ``wide_truck_lamps``, a truck or bus seen from behind gets side

@@ -243,10 +243,14 @@ class VehiclePainter:
         for li, (lamp, polys, levs, frac) in enumerate(zip(v.lamps, v.lamp_ranges_poly, levels, fracs)):
             # Unlit lens, then the lit colour blended in by the level.
             lens = v.lens_cols[li]
+            hot_tail = v.tail_hot and lamp.role in ("tail", "turn_tail")
             for (a, b), lev in zip(polys, levs):
-                k = min(1.0, lev * gain)
                 # Over the lens's clipping (a glaring vehicle's brake and flashes) the light
                 # still grows: a hotter core and a larger glow. Levels up to 1 as before.
+                extent = math.sqrt(lev) if lev > 1.0 else 1.0
+                if hot_tail and 0.0 < lev <= 1.0:
+                    lev = v.glare  # a steady tail at the brake's colour; its glow keeps its extent
+                k = min(1.0, lev * gain)
                 over = math.sqrt(lev) if lev > 1.0 else 1.0
                 col = (lens[0] + (lamp.emit[0] - lens[0]) * k, lens[1] + (lamp.emit[1] - lens[1]) * k,
                        lens[2] + (lamp.emit[2] - lens[2]) * k)
@@ -264,7 +268,7 @@ class VehiclePainter:
                             hot = min(0.95, hot * over)
                         cc = tuple(e + (255 - e) * hot for e in lamp.emit)
                         cv2.fillPoly(d.canvas, [np.round(core * _ONE).astype(np.int32)], cc, cv2.LINE_AA, _SHIFT)
-                    add_glow(layer, c[0] + rx0, c[1] + ry0, size * 0.5 * over, lamp.emit,
+                    add_glow(layer, c[0] + rx0, c[1] + ry0, size * 0.5 * extent, lamp.emit,
                              0.5 * k * over * lt.glow * frac * lamp.glow)
                     if self._wet:
                         # Reflection on the wet road, mirrored about the vehicle's ground line.
