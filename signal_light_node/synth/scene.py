@@ -91,9 +91,8 @@ class SceneRenderer:
             ``synth.camera.CameraParams.white_clip``; default 0), ``glare_tail_hot``
             (share of the ``tail_glare`` vehicles whose tail lamps' core and glow are drawn
             at their brake's colour, ``synth.traffic.Vehicle.tail_hot``; default 0),
-            ``truth_rule`` (how
-            large the seen lamps of a light must be for it to be labelled,
-            ``synth.truth.TRUTH_RULES``; default "lamp"). Vehicle keys:
+            ``truth_rule`` (how large the seen lamps of a light must be for it to be
+            labelled, ``synth.truth.TRUTH_RULES``; default "lamp"). Vehicle keys:
             ``view`` (View), ``kind``, ``lamp_design``, ``tech`` ("led"/"bulb"), ``chmsl``,
             ``intent`` (Intent held for the whole sequence), ``brake`` (bool held),
             ``colour`` (BGR), ``lights_on``, ``center_x`` (pixels), ``width_px`` (box width),
