@@ -11,7 +11,9 @@
 # NIGHT_STREAK (default 0) that of their dusk and night scenes whose camera smears clipped
 # light along its row (synth.camera.CameraParams.streak), NIGHT_CLIP (default 0) that of
 # their night scenes whose camera exposes for a lit street and clips its lamps white
-# (synth.camera.CameraParams.white_clip), GLARE_TAIL_HOT (default 0) that of their
+# (synth.camera.CameraParams.white_clip), NIGHT_BLOOM (default 0) that of their dusk and
+# night scenes whose camera spreads clipped light into a round halo
+# (synth.camera.CameraParams.bloom), GLARE_TAIL_HOT (default 0) that of their
 # TAIL_GLARE vehicles whose tail lamps' core and glow are drawn at their brake's colour
 # (synth.traffic.Vehicle.tail_hot); the evaluation splits never have any of them, so
 # that they stay comparable across data versions.
@@ -44,6 +46,7 @@ REAR_BAR=${REAR_BAR:-0}
 WIDE_TRUCK_LAMPS=${WIDE_TRUCK_LAMPS:-0}
 NIGHT_STREAK=${NIGHT_STREAK:-0}
 NIGHT_CLIP=${NIGHT_CLIP:-0}
+NIGHT_BLOOM=${NIGHT_BLOOM:-0}
 GLARE_TAIL_HOT=${GLARE_TAIL_HOT:-0}
 TRUTH_RULE=${TRUTH_RULE:-lamp}
 POOL_NAME=${POOL_NAME:-pool}
@@ -57,7 +60,7 @@ for seed in $POOL_SEEDS; do
       --sequences "$POOL_TRACKS" --seq-len "$POOL_FRAMES" --full-tracks --overwrite \
       --oblique "$OBLIQUE" --tail-glare "$TAIL_GLARE" --rear-bar "$REAR_BAR" \
       --wide-truck-lamps "$WIDE_TRUCK_LAMPS" --night-streak "$NIGHT_STREAK" \
-      --night-clip "$NIGHT_CLIP" --glare-tail-hot "$GLARE_TAIL_HOT" \
+      --night-clip "$NIGHT_CLIP" --night-bloom "$NIGHT_BLOOM" --glare-tail-hot "$GLARE_TAIL_HOT" \
       --truth-rule "$TRUTH_RULE" \
       > "$pool.log" 2>&1 &
     pids+=($!)

@@ -299,6 +299,8 @@ RENDERER_SHARES = {
                     "row (synth.camera.CameraParams.streak)",
     "night_clip": "night scenes whose camera exposes for a lit street and turns clipped light "
                   "white (synth.camera.CameraParams.white_clip)",
+    "night_bloom": "dusk and night scenes whose camera spreads over-exposed light into a round "
+                   "halo (synth.camera.CameraParams.bloom)",
     "glare_tail_hot": "tail_glare vehicles whose tail lamps' core and glow are drawn at their "
                       "brake's colour (synth.traffic.Vehicle.tail_hot)",
 }

@@ -1,5 +1,5 @@
 """Camera effects applied to the finished scene: exposure, haze, vignetting, clipped light
-turned white, a horizontal glare streak of over-exposed light, blur, motion blur, sensor
+turned white, a round bloom and a horizontal glare streak of over-exposed light, blur, motion blur, sensor
 noise and JPEG artefacts.
 
 All per-frame work is on ``uint8`` images with OpenCV calls (saturating adds, LUTs, small
@@ -33,6 +33,10 @@ class CameraParams:
         haze: Strength of haze near the horizon (0..1).
         haze_colour: BGR colour of the haze.
         shake: Camera shake amplitude in pixels.
+        bloom: Gain of the round bloom that over-exposed light spreads around itself (a
+            lens's and a sensor's veiling glare; 0 = none): the more of a lamp is clipped,
+            the wider and brighter its halo.
+        bloom_sigma: Width (Gaussian sigma) of that bloom as a share of the image width.
         streak: Gain of the horizontal glare streak that over-exposed light smears along
             its row (a windscreen's or a lens's; 0 = none).
         streak_len: Length of that streak as a share of the image width.
@@ -54,6 +58,8 @@ class CameraParams:
     haze: float = 0.0
     haze_colour: tuple = (200, 200, 200)
     shake: float = 0.0
+    bloom: float = 0.0
+    bloom_sigma: float = 0.0
     streak: float = 0.0
     streak_len: float = 0.0
     white_clip: float = 0.0
@@ -62,8 +68,12 @@ class CameraParams:
 #: Range of :attr:`CameraParams.streak`, and of ``streak_len`` (share of the width).
 STREAK_GAIN = (2.0, 8.0)
 STREAK_LEN = (1 / 30, 1 / 8)
-#: Level (after the tone curve) above which a pixel counts as over-exposed for the streak.
+#: Level (after the tone curve) above which a pixel counts as over-exposed for the streak
+#: and the bloom.
 _STREAK_FLOOR = 200
+#: Range of :attr:`CameraParams.bloom`, and of ``bloom_sigma`` (share of the width).
+BLOOM_GAIN = (10.0, 60.0)
+BLOOM_SIGMA = (1 / 100, 1 / 30)
 #: Range of the exposure factor of a night camera that exposes for a lit street (its lamps
 #: saturate), and of its :attr:`CameraParams.white_clip`.
 NIGHT_GAIN = (1.8, 3.2)
@@ -76,6 +86,11 @@ _WHITE_FLOOR = 230
 def sample_streak(rng: np.random.Generator) -> "tuple[float, float]":
     """A glare streak's gain and length (share of the width)."""
     return float(rng.uniform(*STREAK_GAIN)), float(rng.uniform(*STREAK_LEN))
+
+
+def sample_bloom(rng: np.random.Generator) -> "tuple[float, float]":
+    """A bloom's gain and width (Gaussian sigma, share of the width)."""
+    return float(rng.uniform(*BLOOM_GAIN)), float(rng.uniform(*BLOOM_SIGMA))
 
 
 def sample_night_clip(rng: np.random.Generator) -> "tuple[float, float]":
@@ -190,6 +205,8 @@ class Camera:
         img = cv2.LUT(img, self._lut)
         if p.white_clip > 0:
             img = self._whiten(img)
+        if p.bloom > 0 and p.bloom_sigma > 0:
+            img = self._bloom(img)
         if p.streak > 0 and p.streak_len > 0:
             img = self._streak(img)
         if p.motion_blur > 0 and frame_rng.random() < p.motion_prob:
@@ -227,6 +244,14 @@ class Camera:
         out = img.copy()
         out[ys, xs] = np.round(px + share[:, None] * (255.0 - px)).astype(np.uint8)
         return out
+
+    def _bloom(self, img: np.ndarray) -> np.ndarray:
+        """Spread what is over-exposed around itself: a Gaussian blur of the part above
+        ``_STREAK_FLOOR``, added back with the bloom's gain (saturating, in uint8)."""
+        hot = cv2.subtract(img, (_STREAK_FLOOR,) * 3 + (0,))
+        sigma = self.p.bloom_sigma * self.width
+        halo = cv2.GaussianBlur(hot, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
+        return cv2.add(img, cv2.convertScaleAbs(halo, alpha=self.p.bloom))
 
     def _streak(self, img: np.ndarray) -> np.ndarray:
         """Smear what is over-exposed along its row: a box blur of the part above

@@ -27,7 +27,8 @@ import numpy as np
 
 from signal_light_node.errors import ConfigError
 from signal_light_node.synth.camera import (Camera, CameraParams, sample_camera,
-                                            sample_night_clip, sample_streak)
+                                            sample_bloom, sample_night_clip,
+                                            sample_streak)
 from signal_light_node.synth.environment import (GLOW_SCALE, LIGHTINGS, Environment, Lighting, Occluder, StreetGeometry,
                                                  blur_glow, sample_lighting)
 from signal_light_node.synth.lamps import STYLE_FAMILIES, TRAIN_FAMILIES
@@ -43,7 +44,7 @@ LOG = logging.getLogger(__name__)
 _MARGIN = 12
 _SCENE_KEYS = {"vehicles", "occluders", "poles", "distractors", "weather", "effects", "shake", "respawn", "horizon", "focal",
                "family", "oblique", "tail_glare", "rear_bar", "wide_truck_lamps", "night_streak",
-               "night_clip", "glare_tail_hot", "truth_rule"}
+               "night_clip", "night_bloom", "glare_tail_hot", "truth_rule"}
 _VEHICLE_KEYS = {"view", "kind", "lamp_design", "tech", "chmsl", "intent", "brake", "colour", "lights_on", "center_x",
                  "width_px", "speed", "blink_hz", "duty", "phase", "shear", "roll", "specular", "yaw"}
 
@@ -88,7 +89,9 @@ class SceneRenderer:
             smears over-exposed light along its row, ``synth.camera.CameraParams.streak``;
             default 0), ``night_clip`` (share of night scenes whose camera exposes for a
             lit street, 1.8-3.2 times brighter, and turns clipped light white,
-            ``synth.camera.CameraParams.white_clip``; default 0), ``glare_tail_hot``
+            ``synth.camera.CameraParams.white_clip``; default 0), ``night_bloom`` (share
+            of dusk and night scenes whose camera spreads over-exposed light into a round
+            halo, ``synth.camera.CameraParams.bloom``; default 0), ``glare_tail_hot``
             (share of the ``tail_glare`` vehicles whose tail lamps' core and glow are drawn
             at their brake's colour, ``synth.traffic.Vehicle.tail_hot``; default 0),
             ``truth_rule`` (how large the seen lamps of a light must be for it to be
@@ -151,6 +154,7 @@ class SceneRenderer:
         self.wide_truck_lamps = _share(overrides, "wide_truck_lamps")
         self.night_streak = _share(overrides, "night_streak")
         self.night_clip = _share(overrides, "night_clip")
+        self.night_bloom = _share(overrides, "night_bloom")
         self.glare_tail_hot = _share(overrides, "glare_tail_hot")
         self.truth_rule = checked_rule(str(overrides.get("truth_rule", "lamp")))
 
@@ -183,6 +187,7 @@ class SceneRenderer:
             cam_params.shake = 0.0
         self._draw_streak(cam_params)
         self._draw_night_clip(cam_params)
+        self._draw_bloom(cam_params)
         self._camera = Camera(cam_params, W, H, hy, self.seed * 7 + 3, enabled=bool(o.get("effects", True)))
         LOG.debug("scene seed=%d %dx%d fps=%.1f lighting=%s weather=%s focal=%.0f horizon=%.0f vehicles=%d",
                   self.seed, W, H, self.fps, self.lighting, weather, f, hy, self.n_vehicles)
@@ -210,6 +215,13 @@ class SceneRenderer:
         rng = self._camera_draw(self.night_streak, 0x57EA, ("dusk", "night"))
         if rng is not None:
             cam_params.streak, cam_params.streak_len = sample_streak(rng)
+
+    def _draw_bloom(self, cam_params: CameraParams) -> None:
+        """With probability ``night_bloom``, a dusk or night scene's camera spreads
+        over-exposed light into a round halo."""
+        rng = self._camera_draw(self.night_bloom, 0xB100, ("dusk", "night"))
+        if rng is not None:
+            cam_params.bloom, cam_params.bloom_sigma = sample_bloom(rng)
 
     def _draw_night_clip(self, cam_params: CameraParams) -> None:
         """With probability ``night_clip``, a night scene's camera exposes for a lit street
