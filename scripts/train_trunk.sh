@@ -73,7 +73,8 @@ SEED=${SEED:-1}
 SEEDS=${SEEDS:-$SEED}   # one temporal run per seed; two or more are joined
 POOL_SEEDS=${POOL_SEEDS:-"31 32 33"}
 # The other data settings (POOL_TRACKS, VAL_*, TEST_*, FAMILY_SEED, CAL_*, OBLIQUE, TAIL_GLARE,
-# NIGHT_STREAK and NIGHT_CLIP for every pool, TRUTH_RULE for every split of DATA): scripts/render_data.sh. GLARE_POOL_SEEDS (default none) adds pools of those seeds drawn
+# NIGHT_STREAK, NIGHT_CLIP and NIGHT_BLOOM for every pool, TRUTH_RULE for every split of DATA):
+# scripts/render_data.sh. GLARE_POOL_SEEDS (default none) adds pools of those seeds drawn
 # with clipped night tail lamps on GLARE_SHARE (default 0.5) of the lit dusk and night
 # vehicles, DATA/glare_pool_SEED, to both stages (docs/model.md, "What a seed moves, and
 # more tracks": POOL_SEEDS="31 32 33 34 35 36" GLARE_POOL_SEEDS="31 32 33").
