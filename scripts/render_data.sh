@@ -15,7 +15,9 @@
 # night scenes whose camera spreads clipped light into a round halo
 # (synth.camera.CameraParams.bloom), GLARE_TAIL_HOT (default 0) that of their
 # TAIL_GLARE vehicles whose tail lamps' core and glow are drawn at their brake's colour
-# (synth.traffic.Vehicle.tail_hot); the evaluation splits never have any of them, so
+# (synth.traffic.Vehicle.tail_hot), GLARE_TAIL_BRIGHT (default 0) that of their TAIL_GLARE
+# vehicles whose tail lamps shine as brightly as another vehicle's brake, their brake
+# brighter still (synth.traffic.BRIGHT_TAIL_LEVEL); the evaluation splits never have any of them, so
 # that they stay comparable across data versions.
 # TRUTH_RULE (default lamp; synth.truth.TRUTH_RULES) labels every split, pools and evaluation
 # splits alike: data of another rule is another data version, and a model trained on it is
@@ -48,6 +50,7 @@ NIGHT_STREAK=${NIGHT_STREAK:-0}
 NIGHT_CLIP=${NIGHT_CLIP:-0}
 NIGHT_BLOOM=${NIGHT_BLOOM:-0}
 GLARE_TAIL_HOT=${GLARE_TAIL_HOT:-0}
+GLARE_TAIL_BRIGHT=${GLARE_TAIL_BRIGHT:-0}
 TRUTH_RULE=${TRUTH_RULE:-lamp}
 POOL_NAME=${POOL_NAME:-pool}
 
@@ -61,6 +64,7 @@ for seed in $POOL_SEEDS; do
       --oblique "$OBLIQUE" --tail-glare "$TAIL_GLARE" --rear-bar "$REAR_BAR" \
       --wide-truck-lamps "$WIDE_TRUCK_LAMPS" --night-streak "$NIGHT_STREAK" \
       --night-clip "$NIGHT_CLIP" --night-bloom "$NIGHT_BLOOM" --glare-tail-hot "$GLARE_TAIL_HOT" \
+      --glare-tail-bright "$GLARE_TAIL_BRIGHT" \
       --truth-rule "$TRUTH_RULE" \
       > "$pool.log" 2>&1 &
     pids+=($!)

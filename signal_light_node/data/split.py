@@ -303,6 +303,9 @@ RENDERER_SHARES = {
                    "halo (synth.camera.CameraParams.bloom)",
     "glare_tail_hot": "tail_glare vehicles whose tail lamps' core and glow are drawn at their "
                       "brake's colour (synth.traffic.Vehicle.tail_hot)",
+    "glare_tail_bright": "tail_glare vehicles whose tail lamps shine over the clip as brightly "
+                         "as another vehicle's brake, their brake brighter still "
+                         "(synth.traffic.BRIGHT_TAIL_LEVEL)",
 }
 
 

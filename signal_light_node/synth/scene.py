@@ -44,7 +44,8 @@ LOG = logging.getLogger(__name__)
 _MARGIN = 12
 _SCENE_KEYS = {"vehicles", "occluders", "poles", "distractors", "weather", "effects", "shake", "respawn", "horizon", "focal",
                "family", "oblique", "tail_glare", "rear_bar", "wide_truck_lamps", "night_streak",
-               "night_clip", "night_bloom", "glare_tail_hot", "truth_rule"}
+               "night_clip", "night_bloom", "glare_tail_hot",
+               "glare_tail_bright", "truth_rule"}
 _VEHICLE_KEYS = {"view", "kind", "lamp_design", "tech", "chmsl", "intent", "brake", "colour", "lights_on", "center_x",
                  "width_px", "speed", "blink_hz", "duty", "phase", "shear", "roll", "specular", "yaw"}
 
@@ -94,6 +95,9 @@ class SceneRenderer:
             halo, ``synth.camera.CameraParams.bloom``; default 0), ``glare_tail_hot``
             (share of the ``tail_glare`` vehicles whose tail lamps' core and glow are drawn
             at their brake's colour, ``synth.traffic.Vehicle.tail_hot``; default 0),
+            ``glare_tail_bright`` (share of the ``tail_glare`` vehicles whose tail lamps
+            shine over the clip as brightly as another vehicle's brake, their own brake
+            brighter still, ``synth.traffic.BRIGHT_TAIL_LEVEL``; default 0),
             ``truth_rule`` (how large the seen lamps of a light must be for it to be
             labelled, ``synth.truth.TRUTH_RULES``; default "lamp"). Vehicle keys:
             ``view`` (View), ``kind``, ``lamp_design``, ``tech`` ("led"/"bulb"), ``chmsl``,
@@ -156,6 +160,7 @@ class SceneRenderer:
         self.night_clip = _share(overrides, "night_clip")
         self.night_bloom = _share(overrides, "night_bloom")
         self.glare_tail_hot = _share(overrides, "glare_tail_hot")
+        self.glare_tail_bright = _share(overrides, "glare_tail_bright")
         self.truth_rule = checked_rule(str(overrides.get("truth_rule", "lamp")))
 
     # ------------------------------------------------------------------ setup
@@ -193,7 +198,7 @@ class SceneRenderer:
                   self.seed, W, H, self.fps, self.lighting, weather, f, hy, self.n_vehicles)
         self._traffic = Traffic(self.seed, rng, W, self._geo, self._light, self.lighting, self.family,
                                 self.oblique, self.tail_glare, self.rear_bar, self.wide_truck_lamps,
-                                self.glare_tail_hot)
+                                self.glare_tail_hot, self.glare_tail_bright)
         vo = o.get("vehicles") or []
         for i in range(self.n_vehicles):
             self._traffic.vehicles.append(self._traffic.spawn(vo[i] if i < len(vo) else {}, entering=False))

@@ -36,6 +36,10 @@ OBLIQUE_YAW_DEG = (10.0, 40.0)
 #: gain) and the level of their brake and flashes over it.
 GLARE_TAIL_LEVEL = (0.7, 1.0)
 GLARE_LEVEL = (2.0, 4.0)
+#: With ``glare_tail_bright``: the chosen glaring vehicles' steady tail level (over the
+#: clip, as bright as another vehicle's brake can be), and their brake's as a multiple of it.
+BRIGHT_TAIL_LEVEL = (1.5, 6.0)
+BRIGHT_BRAKE_RATIO = (1.5, 3.0)
 #: How much wider ``wide_truck_lamps`` draws a truck's or bus's rear clusters: ``rear_lamps``
 #: makes them 7-13 % of the width, split in two on some designs, so that on a tall body many
 #: fall under the truth's size rule (``truth.LAMP_MIN_BOX_SHARE``); real combination lamps
@@ -115,11 +119,16 @@ class Traffic:
             ``WIDE_TRUCK_FACTOR`` times wider (``lamps.widen_clusters``).
         glare_tail_hot: Share of the glaring vehicles whose tail lamps' core and glow are
             drawn at their brake's colour (``Vehicle.tail_hot``).
+        glare_tail_bright: Share of the glaring vehicles whose steady tail lamps shine over
+            the clip (``BRIGHT_TAIL_LEVEL``) and whose brake is ``BRIGHT_BRAKE_RATIO`` times
+            that: across vehicles no lamp size or glow tells a brake, only the vehicle's
+            own step and its centre lamp.
     """
 
     def __init__(self, seed: int, rng: np.random.Generator, width: int, geo: StreetGeometry, light: Lighting, lighting: str,
                  family: int, oblique: float = 0.0, tail_glare: float = 0.0, rear_bar: float = 0.0,
-                 wide_truck_lamps: float = 0.0, glare_tail_hot: float = 0.0) -> None:
+                 wide_truck_lamps: float = 0.0, glare_tail_hot: float = 0.0,
+                 glare_tail_bright: float = 0.0) -> None:
         self.seed = seed
         self.width = width
         self._rng = rng
@@ -132,6 +141,7 @@ class Traffic:
         self.rear_bar = rear_bar
         self.wide_truck_lamps = wide_truck_lamps
         self.glare_tail_hot = glare_tail_hot
+        self.glare_tail_bright = glare_tail_bright
         self._next_id = int(rng.integers(1, 50))
         self.vehicles: List[Vehicle] = []
 
@@ -295,7 +305,8 @@ class Traffic:
         """With probability ``tail_glare``, a lit vehicle of a dusk or night scene gets
         clipped tail lamps and a brake and flashes brighter still (a stream of its own, as
         ``_yaw``'s); with probability ``glare_tail_hot`` its tail lamps are drawn at the
-        brake's colour (another stream of its own)."""
+        brake's colour, with probability ``glare_tail_bright`` they shine over the clip and
+        the brake further still (each another stream of its own)."""
         if self.tail_glare <= 0 or self.lighting == "day" or not v.lights_on:
             return
         grng = self._picked(v, 500, self.tail_glare)
@@ -305,6 +316,11 @@ class Traffic:
         v.glare = float(grng.uniform(*GLARE_LEVEL))
         if self.glare_tail_hot > 0:
             v.tail_hot = self._picked(v, 800, self.glare_tail_hot) is not None
+        brng = self._picked(v, 900, self.glare_tail_bright) if self.glare_tail_bright > 0 else None
+        if brng is not None:
+            tail = float(brng.uniform(*BRIGHT_TAIL_LEVEL))
+            v.style = replace(v.style, tail_level=tail)
+            v.glare = tail * float(brng.uniform(*BRIGHT_BRAKE_RATIO))
 
     def _wide_truck_lamps(self, v: Vehicle) -> None:
         """With probability ``wide_truck_lamps``, a truck or bus seen from behind gets side
