@@ -84,6 +84,10 @@ GLARE_SHARE=${GLARE_SHARE:-0.5}
 # lamps' core and glow are drawn at their brake's colour (docs/model.md, "Lit area, not
 # peak colour"); the other pools have no glaring vehicles.
 GLARE_TAIL_HOT=${GLARE_TAIL_HOT:-0}
+# GLARE_TAIL_BRIGHT (default 0): the share of those pools' glaring vehicles whose steady tail
+# lamps shine as brightly as another vehicle's brake, their brake 1.5-3 times that
+# (docs/model.md, "glare_tail_bright").
+GLARE_TAIL_BRIGHT=${GLARE_TAIL_BRIGHT:-0}
 # REAR_POOL_SEEDS (default none) adds pools of those seeds, DATA/rear_pool_SEED, whose rear
 # views carry a full-width tail bar on REAR_BAR (default 0.5) of them and whose trucks and
 # buses seen from behind have clusters as wide as real combination lamps on WIDE_TRUCK_LAMPS
@@ -127,15 +131,17 @@ echo "== 1/5 data in $DATA: pools (seeds $POOL_SEEDS), validation, test, family 
 pool_dirs=()
 for seed in $POOL_SEEDS; do pool_dirs+=("$DATA/pool_$seed"); done
 DATA=$DATA POOL_SEEDS=$POOL_SEEDS POOL_NAME=pool CAL_TRACKS=${CAL_TRACKS:-120} \
-  GLARE_TAIL_HOT=0 bash scripts/render_data.sh
+  GLARE_TAIL_HOT=0 GLARE_TAIL_BRIGHT=0 bash scripts/render_data.sh
 if [[ -n "$GLARE_POOL_SEEDS" ]]; then
   DATA=$DATA POOL_SEEDS=$GLARE_POOL_SEEDS POOL_NAME=glare_pool TAIL_GLARE=$GLARE_SHARE \
-    GLARE_TAIL_HOT=$GLARE_TAIL_HOT CAL_TRACKS=${CAL_TRACKS:-120} bash scripts/render_data.sh
+    GLARE_TAIL_HOT=$GLARE_TAIL_HOT GLARE_TAIL_BRIGHT=$GLARE_TAIL_BRIGHT CAL_TRACKS=${CAL_TRACKS:-120} \
+    bash scripts/render_data.sh
   for seed in $GLARE_POOL_SEEDS; do pool_dirs+=("$DATA/glare_pool_$seed"); done
 fi
 if [[ -n "$REAR_POOL_SEEDS" ]]; then
   DATA=$DATA POOL_SEEDS=$REAR_POOL_SEEDS POOL_NAME=rear_pool REAR_BAR=$REAR_BAR \
-    WIDE_TRUCK_LAMPS=$WIDE_TRUCK_LAMPS GLARE_TAIL_HOT=0 CAL_TRACKS=${CAL_TRACKS:-120} \
+    WIDE_TRUCK_LAMPS=$WIDE_TRUCK_LAMPS GLARE_TAIL_HOT=0 GLARE_TAIL_BRIGHT=0 \
+    CAL_TRACKS=${CAL_TRACKS:-120} \
     bash scripts/render_data.sh
   for seed in $REAR_POOL_SEEDS; do pool_dirs+=("$DATA/rear_pool_$seed"); done
 fi
