@@ -9,22 +9,14 @@ import numpy as np
 import pytest
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.labels import Intent, LightStatus, View
+from signal_light_node.labels import LightStatus
 from signal_light_node.synth import SceneRenderer
 
-from scene_helpers import first_frame_vehicles
-
-CLEAN = dict(distractors=False, effects=False, poles=0, weather="clear", respawn=False, shake=False)
+from scene_helpers import first_frame_vehicles, parked_rear_car
 
 
 def _parked(brake: bool, glare: float, hot: float, lighting: str = "night"):
-    """One parked, lit car without a centre lamp seen from behind: its frame and vehicle."""
-    spec = dict(view=View.BEHIND, kind="car", lamp_design="amber", tech="led", intent=Intent.OFF,
-                brake=brake, lights_on=True, chmsl=False, width_px=140.0, center_x=320.0,
-                speed=0.0, shear=0.0, roll=0.0, specular=False)
-    renderer = SceneRenderer(seed=8, fps=10.0, lighting=lighting, vehicles=[spec], horizon=0.42,
-                             tail_glare=glare, glare_tail_hot=hot, **CLEAN)
-    return next(iter(renderer.frames(1))), renderer._traffic.vehicles[0]
+    return parked_rear_car(brake, lighting, tail_glare=glare, glare_tail_hot=hot)
 
 
 def _box(frame, margin: int = 0) -> np.ndarray:

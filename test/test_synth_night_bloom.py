@@ -13,7 +13,7 @@ from signal_light_node.errors import ConfigError
 from signal_light_node.synth import SceneRenderer
 from signal_light_node.synth.camera import BLOOM_GAIN, BLOOM_SIGMA, Camera, CameraParams
 
-from scene_helpers import split_overrides
+from scene_helpers import first_frame_renderer, split_overrides, traffic_key
 
 QUIET = CameraParams(noise=0.0)  # no noise, blur, JPEG or haze: only the tone curve
 BLOOM = replace(QUIET, bloom=20.0, bloom_sigma=1 / 40)
@@ -50,9 +50,7 @@ def test_light_under_the_floor_does_not_bloom():
 
 
 def _renderer(lighting: str, share: float) -> SceneRenderer:
-    renderer = SceneRenderer(seed=12, lighting=lighting, n_vehicles=4, night_bloom=share)
-    next(iter(renderer.frames(1)))
-    return renderer
+    return first_frame_renderer(lighting, night_bloom=share)
 
 
 @pytest.mark.parametrize("lighting", ["dusk", "night"])
@@ -62,8 +60,7 @@ def test_a_dusk_or_night_camera_blooms_and_nothing_else_changes(lighting):
     assert p0.bloom == 0.0 and BLOOM_GAIN[0] <= p1.bloom <= BLOOM_GAIN[1]
     assert BLOOM_SIGMA[0] <= p1.bloom_sigma <= BLOOM_SIGMA[1]
     assert asdict(replace(p1, bloom=0.0, bloom_sigma=0.0)) == asdict(p0)
-    boxes = lambda r: [(v.track_id, v.kind, v.view, v.X, v.Z) for v in r._traffic.vehicles]  # noqa: E731
-    assert boxes(before) == boxes(after)
+    assert traffic_key(before) == traffic_key(after)
 
 
 def test_a_day_camera_does_not_bloom_and_the_share_is_checked(tmp_path, monkeypatch):

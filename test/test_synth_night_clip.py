@@ -13,7 +13,7 @@ from signal_light_node.errors import ConfigError
 from signal_light_node.synth import SceneRenderer
 from signal_light_node.synth.camera import NIGHT_GAIN, WHITE_CLIP, Camera, CameraParams
 
-from scene_helpers import split_overrides
+from scene_helpers import first_frame_renderer, split_overrides, traffic_key
 
 QUIET = CameraParams(noise=0.0)  # no noise, blur, JPEG or haze: only the tone curve
 
@@ -38,9 +38,7 @@ def test_clipped_light_turns_white_and_the_rest_keeps_its_colour():
 
 
 def _renderer(lighting: str, share: float) -> SceneRenderer:
-    renderer = SceneRenderer(seed=12, lighting=lighting, n_vehicles=4, night_clip=share)
-    next(iter(renderer.frames(1)))
-    return renderer
+    return first_frame_renderer(lighting, night_clip=share)
 
 
 def test_a_night_scene_exposes_brighter_and_clips_white_and_nothing_else_changes():
@@ -49,8 +47,7 @@ def test_a_night_scene_exposes_brighter_and_clips_white_and_nothing_else_changes
     assert p0.white_clip == 0.0 and WHITE_CLIP[0] <= p1.white_clip <= WHITE_CLIP[1]
     assert NIGHT_GAIN[0] <= p1.exposure / p0.exposure <= NIGHT_GAIN[1]
     assert asdict(replace(p1, white_clip=0.0, exposure=p0.exposure)) == asdict(p0)
-    boxes = lambda r: [(v.track_id, v.kind, v.view, v.X, v.Z) for v in r._traffic.vehicles]  # noqa: E731
-    assert boxes(before) == boxes(after)
+    assert traffic_key(before) == traffic_key(after)
 
 
 @pytest.mark.parametrize("lighting", ["day", "dusk"])

@@ -13,7 +13,7 @@ from signal_light_node.errors import ConfigError
 from signal_light_node.synth import SceneRenderer
 from signal_light_node.synth.camera import STREAK_GAIN, STREAK_LEN, Camera, CameraParams
 
-from scene_helpers import split_overrides
+from scene_helpers import first_frame_renderer, split_overrides, traffic_key
 
 QUIET = CameraParams(noise=0.0)  # no noise, blur, JPEG or haze: only the tone curve
 
@@ -49,9 +49,7 @@ def test_the_streak_smears_clipped_light_along_its_row_only():
 
 
 def _renderer(lighting: str, share: float) -> SceneRenderer:
-    renderer = SceneRenderer(seed=12, lighting=lighting, n_vehicles=4, night_streak=share)
-    next(iter(renderer.frames(1)))
-    return renderer
+    return first_frame_renderer(lighting, night_streak=share)
 
 
 @pytest.mark.parametrize("lighting", ["dusk", "night"])
@@ -62,8 +60,7 @@ def test_a_night_scene_draws_its_streak_and_nothing_else_changes(lighting):
     assert STREAK_GAIN[0] <= p1.streak <= STREAK_GAIN[1]
     assert STREAK_LEN[0] <= p1.streak_len <= STREAK_LEN[1]
     assert asdict(replace(p1, streak=0.0, streak_len=0.0)) == asdict(p0)
-    boxes = lambda r: [(v.track_id, v.kind, v.view, v.X, v.Z) for v in r._traffic.vehicles]  # noqa: E731
-    assert boxes(before) == boxes(after)
+    assert traffic_key(before) == traffic_key(after)
 
 
 def test_day_scenes_never_streak_and_the_share_is_checked(tmp_path, monkeypatch):
