@@ -35,6 +35,15 @@ def traffic_key(renderer: SceneRenderer) -> List[Any]:
     return [(v.track_id, v.kind, v.view, v.X, v.Z) for v in renderer._traffic.vehicles]
 
 
+def camera_option_params(lighting: str, option: str) -> Tuple[Any, Any]:
+    """The camera parameters of one scene lit as ``lighting``, drawn without and with the
+    camera ``option`` at share 1; asserts that the option moved no vehicle."""
+    before = first_frame_renderer(lighting, **{option: 0.0})
+    after = first_frame_renderer(lighting, **{option: 1.0})
+    assert traffic_key(before) == traffic_key(after)
+    return before._camera.p, after._camera.p
+
+
 def parked_rear_car(brake: bool, lighting: str = "night", **overrides: Any) -> Tuple[Any, Any]:
     """One parked, lit car without a centre lamp seen from behind at the image centre (so
     that only its tail lamps show a brake), in a clean scene: its first frame and vehicle."""
