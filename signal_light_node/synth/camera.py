@@ -1,6 +1,6 @@
 """Camera effects applied to the finished scene: exposure, haze, vignetting, clipped light
-turned white, a round bloom and a horizontal glare streak of over-exposed light, blur, motion blur, sensor
-noise and JPEG artefacts.
+turned white, a round bloom and a horizontal glare streak of over-exposed light, blur,
+motion blur, sensor noise and JPEG artefacts.
 
 All per-frame work is on ``uint8`` images with OpenCV calls (saturating adds, LUTs, small
 kernels); the expensive parts (noise fields, haze/vignette images) are made once.
