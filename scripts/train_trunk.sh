@@ -81,12 +81,12 @@ POOL_SEEDS=${POOL_SEEDS:-"31 32 33"}
 GLARE_POOL_SEEDS=${GLARE_POOL_SEEDS:-}
 GLARE_SHARE=${GLARE_SHARE:-0.5}
 # GLARE_TAIL_HOT (default 0): the share of those pools' glaring vehicles whose steady tail
-# lamps' core and glow are drawn at their brake's colour (docs/model.md, "Lit area, not
-# peak colour"); the other pools have no glaring vehicles.
+# lamps' core and glow are drawn at their brake's colour (docs/model.md, "Glaring tail
+# lamps at their brake's colour"); the other pools have no glaring vehicles.
 GLARE_TAIL_HOT=${GLARE_TAIL_HOT:-0}
 # GLARE_TAIL_BRIGHT (default 0): the share of those pools' glaring vehicles whose steady tail
 # lamps shine as brightly as another vehicle's brake, their brake 1.5-3 times that
-# (docs/model.md, "glare_tail_bright").
+# (docs/model.md, "Glaring tail lamps at their brake's colour", `glare_tail_bright`).
 GLARE_TAIL_BRIGHT=${GLARE_TAIL_BRIGHT:-0}
 # REAR_POOL_SEEDS (default none) adds pools of those seeds, DATA/rear_pool_SEED, whose rear
 # views carry a full-width tail bar on REAR_BAR (default 0.5) of them and whose trucks and
