@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -245,18 +246,22 @@ class Camera:
         out[ys, xs] = np.round(px + share[:, None] * (255.0 - px)).astype(np.uint8)
         return out
 
-    def _bloom(self, img: np.ndarray) -> np.ndarray:
-        """Spread what is over-exposed around itself: a Gaussian blur of the part above
-        ``_STREAK_FLOOR``, added back with the bloom's gain (saturating, in uint8)."""
+    @staticmethod
+    def _spread_hot(img: np.ndarray, spread: Callable[[np.ndarray], np.ndarray],
+                    gain: float) -> np.ndarray:
+        """The part of ``img`` above ``_STREAK_FLOOR``, spread by ``spread`` and added back
+        with ``gain`` (saturating, in uint8): what over-exposed light does to its surround."""
         hot = cv2.subtract(img, (_STREAK_FLOOR,) * 3 + (0,))
+        return cv2.add(img, cv2.convertScaleAbs(spread(hot), alpha=gain))
+
+    def _bloom(self, img: np.ndarray) -> np.ndarray:
+        """Spread what is over-exposed around itself, a Gaussian of ``bloom_sigma``."""
         sigma = self.p.bloom_sigma * self.width
-        halo = cv2.GaussianBlur(hot, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
-        return cv2.add(img, cv2.convertScaleAbs(halo, alpha=self.p.bloom))
+        return self._spread_hot(img, lambda hot: cv2.GaussianBlur(
+            hot, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT), self.p.bloom)
 
     def _streak(self, img: np.ndarray) -> np.ndarray:
-        """Smear what is over-exposed along its row: a box blur of the part above
-        ``_STREAK_FLOOR``, added back with the streak's gain (saturating, in uint8)."""
-        hot = cv2.subtract(img, (_STREAK_FLOOR,) * 3 + (0,))
+        """Smear what is over-exposed along its row, a box of ``streak_len``."""
         length = max(3, int(round(self.p.streak_len * self.width)) | 1)
-        smear = cv2.blur(hot, (length, 1), borderType=cv2.BORDER_CONSTANT)
-        return cv2.add(img, cv2.convertScaleAbs(smear, alpha=self.p.streak))
+        return self._spread_hot(img, lambda hot: cv2.blur(
+            hot, (length, 1), borderType=cv2.BORDER_CONSTANT), self.p.streak)
