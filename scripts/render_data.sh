@@ -17,8 +17,8 @@
 # TAIL_GLARE vehicles whose tail lamps' core and glow are drawn at their brake's colour
 # (synth.traffic.Vehicle.tail_hot), GLARE_TAIL_BRIGHT (default 0) that of their TAIL_GLARE
 # vehicles whose tail lamps shine as brightly as another vehicle's brake, their brake
-# brighter still (synth.traffic.BRIGHT_TAIL_LEVEL); the evaluation splits never have any of them, so
-# that they stay comparable across data versions.
+# brighter still (synth.traffic.BRIGHT_TAIL_LEVEL); the evaluation splits never have any
+# of them, so that they stay comparable across data versions.
 # TRUTH_RULE (default lamp; synth.truth.TRUTH_RULES) labels every split, pools and evaluation
 # splits alike: data of another rule is another data version, and a model trained on it is
 # scored against models of the old one on this DATA's evaluation splits.
@@ -63,8 +63,8 @@ for seed in $POOL_SEEDS; do
       --sequences "$POOL_TRACKS" --seq-len "$POOL_FRAMES" --full-tracks --overwrite \
       --oblique "$OBLIQUE" --tail-glare "$TAIL_GLARE" --rear-bar "$REAR_BAR" \
       --wide-truck-lamps "$WIDE_TRUCK_LAMPS" --night-streak "$NIGHT_STREAK" \
-      --night-clip "$NIGHT_CLIP" --night-bloom "$NIGHT_BLOOM" --glare-tail-hot "$GLARE_TAIL_HOT" \
-      --glare-tail-bright "$GLARE_TAIL_BRIGHT" \
+      --night-clip "$NIGHT_CLIP" --night-bloom "$NIGHT_BLOOM" \
+      --glare-tail-hot "$GLARE_TAIL_HOT" --glare-tail-bright "$GLARE_TAIL_BRIGHT" \
       --truth-rule "$TRUTH_RULE" \
       > "$pool.log" 2>&1 &
     pids+=($!)

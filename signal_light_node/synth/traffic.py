@@ -314,9 +314,8 @@ class Traffic:
             return
         v.style = replace(v.style, tail_level=float(grng.uniform(*GLARE_TAIL_LEVEL)))
         v.glare = float(grng.uniform(*GLARE_LEVEL))
-        if self.glare_tail_hot > 0:
-            v.tail_hot = self._picked(v, 800, self.glare_tail_hot) is not None
-        brng = self._picked(v, 900, self.glare_tail_bright) if self.glare_tail_bright > 0 else None
+        v.tail_hot = self._picked(v, 800, self.glare_tail_hot) is not None
+        brng = self._picked(v, 900, self.glare_tail_bright)
         if brng is not None:
             tail = float(brng.uniform(*BRIGHT_TAIL_LEVEL))
             v.style = replace(v.style, tail_level=tail)

@@ -94,6 +94,11 @@ def _visible_side(v: Vehicle) -> Optional[Tuple[Tuple[float, float], Tuple[float
     return None
 
 
+def _over_clip(level: float) -> float:
+    """How much a lamp's core and glow grow at ``level`` over the lens's clipping (1 up to it)."""
+    return math.sqrt(level) if level > 1.0 else 1.0
+
+
 class VehiclePainter:
     """Draws the vehicles of one scene.
 
@@ -247,11 +252,11 @@ class VehiclePainter:
             for (a, b), lev in zip(polys, levs):
                 # Over the lens's clipping (a glaring vehicle's brake and flashes) the light
                 # still grows: a hotter core and a larger glow. Levels up to 1 as before.
-                extent = math.sqrt(lev) if lev > 1.0 else 1.0
+                extent = _over_clip(lev)
                 if hot_tail and 0.0 < lev <= 1.0:
                     lev = v.glare  # a steady tail at the brake's colour; its glow keeps its extent
                 k = min(1.0, lev * gain)
-                over = math.sqrt(lev) if lev > 1.0 else 1.0
+                over = _over_clip(lev)
                 col = (lens[0] + (lamp.emit[0] - lens[0]) * k, lens[1] + (lamp.emit[1] - lens[1]) * k,
                        lens[2] + (lamp.emit[2] - lens[2]) * k)
                 cv2.fillPoly(d.canvas, [IP[a:b]], col, cv2.LINE_AA, _SHIFT)
