@@ -16,6 +16,10 @@ from signal_light_node.model.trunk import EfficientLiteTrunk, load_imagenet_weig
 from signal_light_node.model.trunk_network import TrunkLightNet
 
 
+#: The recipe's model with the lit area followed against the track's floor.
+FLOOR = {"frequency_evidence": False, "lamp_detail": 2, "lamp_area": True, "track_floor": True}
+
+
 def _model(**changes) -> TrunkLightNet:
     torch.manual_seed(0)
     return build_model(trunk_config(**changes)).eval()
@@ -68,6 +72,10 @@ def test_trunk_config_is_validated():
         ModelConfig(lamp_area=True)  # the CNN has no lamp maps
     with pytest.raises(ConfigError, match="lamp_area must be true or false"):
         trunk_config(lamp_area="yes")
+    with pytest.raises(ConfigError, match="track_floor .* needs lamp_area"):
+        trunk_config(frequency_evidence=False, lamp_detail=2, track_floor=True)
+    with pytest.raises(ConfigError, match="floor_rate must be in"):
+        trunk_config(floor_rate=0.0)
 
 
 @pytest.mark.parametrize("changes", [{}, {"relative_evidence": False},
@@ -81,7 +89,8 @@ def test_trunk_config_is_validated():
                                      {"frequency_evidence": False, "lamp_detail": 2,
                                       "cell_periods": True, "cell_pooled": True},
                                      {"frequency_evidence": False, "lamp_detail": 2,
-                                      "lamp_area": True}])
+                                      "lamp_area": True},
+                                     FLOOR])
 def test_stepping_frame_by_frame_equals_the_sequence(changes):
     model = _model(**changes)
     crops = torch.rand(3, 6, 3, 64, 64, generator=torch.Generator().manual_seed(1))
@@ -259,6 +268,48 @@ def test_lamp_area_counts_the_bright_and_the_lit_red_pixels_of_each_cell():
     assert model.frame_features(crop)[1].shape == (1, 32, 4, 4)
 
 
+def _lamp_crop(lit: float) -> torch.Tensor:
+    """A dark crop with a red lamp on each side, ``lit`` of its rows lit (0..1)."""
+    crop = torch.full((1, 3, 64, 64), 0.1)
+    rows = int(round(16 * lit))
+    for x in (8, 48):
+        crop[0, 2, 24:24 + rows, x:x + 8] = 0.9
+    return crop
+
+
+def test_track_floor_sees_a_rise_over_the_vehicles_own_lamps_not_their_size():
+    """The same lit area reads as a rise on a vehicle whose lamps were smaller, and as
+    none on one that has shown it all along; the floor climbs back only slowly."""
+    grid, rate = 8, 0.02
+    shares = [lamps.area_shares(lamps.lamp_maps(_lamp_crop(lit), grid, area=True))
+              for lit in (0.25, 1.0)]
+    small, large = shares
+    assert float(large[0, 1]) > 3 * float(small[0, 1])  # the crop's lit-red share
+    n = lamps.FLOOR_REGIONS * lamps.AREA_CHANNELS
+
+    def run(frames):
+        floor = ceiling = torch.zeros(1, n)
+        seen = torch.zeros(1, 1)
+        for s in frames:
+            vector, floor, ceiling = lamps.floor_step(s, floor, ceiling, seen, rate)
+            seen = torch.ones(1, 1)
+        return vector
+
+    rise = slice(n, 2 * n)
+    steady, stepped = run([large] * 30), run([small] * 30 + [large] * 30)
+    assert torch.equal(steady[:, :n], stepped[:, :n])  # the same frame ...
+    assert float(steady[:, rise].abs().max()) == 0.0
+    grown = float(large[0, 1] - small[0, 1])
+    # ... but 30 frames after the step, the rise is still most of it.
+    assert float(stepped[0, n + 1]) == pytest.approx(grown * (1 - rate) ** 30, rel=1e-4)
+    # A drop reads at once as a fall under the ceiling.
+    assert float(run([large] * 30 + [small])[0, 2 * n + 1]) == pytest.approx(
+        grown * (1 - rate), rel=1e-4)
+    model, plain = _model(**FLOOR), _model(**dict(FLOOR, track_floor=False))
+    assert model.n_vector == plain.n_vector + lamps.floor_features()
+    assert len(model.initial_state(2)) == len(plain.initial_state(2)) + 1
+
+
 def test_lamp_area_caches_apart_from_the_plain_lamp_maps():
     from signal_light_node.training.feature_cache import trunk_fingerprint
 
@@ -289,7 +340,7 @@ def test_checkpoint_round_trip_needs_no_wheel(tmp_path, monkeypatch):
                                      {"frequency_evidence": False, "lamp_detail": 2,
                                       "cell_periods": True, "cell_pooled": True},
                                      {"frequency_evidence": False, "lamp_detail": 2,
-                                      "lamp_area": True}])
+                                      "lamp_area": True}, FLOOR])
 def test_onnx_export_steps_like_torch(tmp_path, changes):
     from signal_light_node.model.onnx_export import export_onnx
 

@@ -107,6 +107,14 @@ class ModelConfig:
             lit area, unlike its peak colour, tells a night brake from a tail lamp on
             cameras that clip it white as on those that keep it red (docs/model.md, "Night
             brakes: the model at chance where pixel statistics are not").
+        track_floor: With ``lamp_area``, the track vector also gets the lit area of the
+            whole crop and its halves against the track's own floor and ceiling
+            (``model.lamp_evidence.floor_step``): how far the lamps have risen over the
+            vehicle's own tail-lamp level, the night brake that carried across renderers
+            where lamp size did not (docs/model.md, "A brake is a step over the vehicle's
+            own lamps").
+        floor_rate: With ``track_floor``, the weight of a frame in the floor's slow rise
+            and the ceiling's slow fall.
         lit_map_head: Give the CNN a training-only 1x1 convolution on the backbone's
             features that draws where the vehicle's brake, left and right lamps are lit
             (``lit_maps`` of the training tracks, ``synth.lit_maps``): it teaches the
@@ -157,6 +165,8 @@ class ModelConfig:
     cell_periods: bool = False
     cell_pooled: bool = False
     lamp_area: bool = False
+    track_floor: bool = False
+    floor_rate: float = 0.02
     lit_map_head: bool = False
     members: int = 1
     temperatures: Mapping[str, float] = field(default_factory=dict, hash=False)
@@ -179,13 +189,15 @@ class ModelConfig:
         # bool("false") is True: refuse anything but a real boolean (CLI values are JSON).
         for name in ("use_attention", "temporal_input", "relative_evidence", "frequency_evidence",
                      "lit_head", "lit_periods", "blink_levels", "cell_periods",
-                     "cell_pooled", "lamp_area", "lit_map_head"):
+                     "cell_pooled", "lamp_area", "track_floor", "lit_map_head"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"model config {name} must be true or false, got "
                                   f"{getattr(self, name)!r}")
-        set_("mean_rate", float(self.mean_rate))
-        if not 0.0 < self.mean_rate <= 1.0:
-            raise ConfigError(f"model config mean_rate must be in (0, 1], got {self.mean_rate}")
+        for name in ("mean_rate", "floor_rate"):
+            set_(name, float(getattr(self, name)))
+            if not 0.0 < getattr(self, name) <= 1.0:
+                raise ConfigError(f"model config {name} must be in (0, 1], got "
+                                  f"{getattr(self, name)}")
         if isinstance(self.align_radius, bool) or not isinstance(self.align_radius, int) \
                 or not 0 <= self.align_radius <= self.input_size // 4:
             raise ConfigError(f"model config align_radius must be an integer in 0..input_size/4, "
@@ -241,6 +253,9 @@ class ModelConfig:
         if self.lamp_area and self.encoder == "cnn":
             raise ConfigError("model config lamp_area adds lamp-map channels: it needs the "
                               "trunk encoder (the CNN has no lamp maps)")
+        if self.track_floor and not self.lamp_area:
+            raise ConfigError("model config track_floor follows the lit area: it needs "
+                              "lamp_area")
         if self.lamp_detail > 1 and self.frequency_evidence:
             raise ConfigError("model config frequency_evidence reads whole lamp-map halves: "
                               "it needs lamp_detail 1")

@@ -19,6 +19,10 @@ with the per-track memory passed in and returned (it lives in the model's state)
   periodic energy near that period over the last few periods, and the phase agreement of
   the left and right resonators tells a hazard (in phase) from noise. A steady lamp,
   however bright, drives none of them after its onset.
+* :func:`floor_step`: the lit area of the whole crop and of its halves against the
+  track's own floor and ceiling (a minimum that rises slowly and a maximum that falls
+  slowly): at night a brake is a step in lit area over the vehicle's own tail-lamp
+  level, which no single frame's lamp size tells across vehicles.
 * :func:`cell_blink_step`: the same resonators on every cell of the fine lamp grid (peak
   brightness and peak warm excess), each amplitude also over the cell's own broadband
   change (box jitter and passing light change a cell too, but not at one period). The
@@ -196,6 +200,50 @@ def resonator_features(n_signals: int, n_periods: int) -> int:
     """Length of :func:`resonator_step`'s features for ``n_signals`` (= 2K) signals."""
     return (n_signals + n_signals // 2) * n_periods
 
+
+#: Regions whose lit area :func:`floor_step` follows: the whole crop, its left and right half.
+FLOOR_REGIONS = 3
+
+
+def floor_features() -> int:
+    """Length of :func:`floor_step`'s vector: per region and area channel the share, its
+    rise over the floor and its fall under the ceiling."""
+    return 3 * FLOOR_REGIONS * AREA_CHANNELS
+
+
+def area_shares(fine_maps: Tensor) -> Tensor:
+    """``[N, R * A]``: the bright and lit-red shares (:func:`lamp_maps` with ``area``) of the
+    whole crop, its left half and its right half, from ``[N, C, F, F]`` fine lamp maps."""
+    area = fine_maps[:, LAMP_CHANNELS:LAMP_CHANNELS + AREA_CHANNELS]
+    half = area.shape[3] // 2
+    regions = (area, area[..., :half], area[..., half:])
+    return torch.cat([r.mean(dim=(2, 3)) for r in regions], 1)
+
+
+def floor_step(shares: Tensor, floor: Tensor, ceiling: Tensor, seen: Tensor, rate: float
+               ) -> Tuple[Tensor, Tensor, Tensor]:
+    """One frame of lit area against the track's own range.
+
+    The floor follows a fall at once and a rise at ``rate`` per frame, the ceiling the
+    reverse: a brake held for a few seconds stays a rise over the tail-lamp level, while a
+    vehicle that turns or nears moves both within a few seconds.
+
+    Args:
+        shares: ``[N, S]`` this frame's shares (:func:`area_shares`).
+        floor: ``[N, S]`` the track's floor.
+        ceiling: ``[N, S]`` the track's ceiling.
+        seen: ``[N, 1]`` 1 where the track has a previous frame (a new track starts both
+            at its first shares).
+        rate: Weight of a frame in the slow direction.
+
+    Returns:
+        ``[N, 3S]`` vector (shares, shares - floor, ceiling - shares), new floor and ceiling.
+    """
+    floor = floor * seen + shares * (1.0 - seen)
+    ceiling = ceiling * seen + shares * (1.0 - seen)
+    floor = torch.minimum(shares, floor + (shares - floor) * rate)
+    ceiling = torch.maximum(shares, ceiling + (shares - ceiling) * rate)
+    return torch.cat((shares, shares - floor, ceiling - shares), 1), floor, ceiling
 
 #: Lamp-map channels whose fine cells drive :func:`cell_blink_step`: peak brightness and
 #: peak warm excess.

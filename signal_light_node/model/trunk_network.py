@@ -19,6 +19,8 @@ One step for ``N`` tracks::
          far; each lamp's P(lit) drives its own resonators and a decaying peak
       -> with ``cell_periods``: resonators on every fine lamp-map cell; the largest
          amplitudes per image half join the track vector, a per-cell map the evidence
+      -> with ``track_floor``: the lit area of the crop and its halves against the
+         track's own floor and ceiling joins the track vector
       -> 1x1 fusion + ReLU -> ConvLSTM layers (explicit (h, c) per layer)
       -> heads: 1x1 conv pooled to a grid (keeps left/right) + global max of h + the
          frequency features -> dense layer with dropout -> one linear layer per task.
@@ -27,7 +29,7 @@ The state is a tuple of pairs like :class:`~signal_light_node.model.network.Ligh
 so the state bank, the backends and the ONNX export carry it unchanged: the ConvLSTM
 ``(h, c)`` pairs, then ``(previous z, running mean of z)``, ``(previous and mean lamp
 maps, seen)``, ``(resonators, signal level)``, the lit lamps' and the cells'
-``(resonators, memory)`` as the options ask for.
+``(resonators, memory)`` and the lit area's ``(floor, ceiling)`` as the options ask for.
 """
 
 from __future__ import annotations
@@ -228,7 +230,8 @@ class TrunkLightNet(TrunkFront):
         self.n_vector = (self.n_freq if config.frequency_evidence else 0) + \
             (len(LIT_TASKS) * len(lamps.PERIODS) + self.level_lamps
              + sum(self.lit_sizes[:self.level_lamps]) if config.lit_periods else 0) + \
-            (n_cell_vector if config.cell_periods else 0)
+            (n_cell_vector if config.cell_periods else 0) + \
+            (lamps.floor_features() if config.track_floor else 0)
         self.freq: Optional[nn.Sequential] = None
         if self.n_vector:
             self.freq = nn.Sequential(nn.Linear(self.n_vector, FREQ_CHANNELS), nn.ReLU(inplace=True))
@@ -274,6 +277,9 @@ class TrunkLightNet(TrunkFront):
         if self.config.cell_periods:
             s = self.n_cell_signals
             shapes.append(((2 * s * len(lamps.PERIODS), 1, 1), (3 * s, 1, 1)))
+        if self.config.track_floor:
+            shares = (lamps.FLOOR_REGIONS * lamps.AREA_CHANNELS, 1, 1)
+            shapes.append((shares, shares))
         return shapes
 
     def initial_state(self, n: int) -> State:
@@ -335,6 +341,10 @@ class TrunkLightNet(TrunkFront):
             vector.append(cell_vector)
             new_history.append(cell_history)
             evidence = torch.cat((evidence, cell_map), 1)
+        if cfg.track_floor:
+            floor_vector, floor_history = self._floor(maps, rest.pop(0), seen.reshape(n, 1))
+            vector.append(floor_vector)
+            new_history.append(floor_history)
         return evidence, (torch.cat(vector, 1) if vector else None), lit_logits, tuple(new_history)
 
     def _lit_periods(self, lit_logits: Tensor, history: Tuple[Tensor, Tensor], seen: Tensor
@@ -369,6 +379,17 @@ class TrunkLightNet(TrunkFront):
             pooled=self.config.cell_pooled)
         return vector, lamps.space_to_depth(cell_map, detail), \
             (resonators.reshape(n, -1, 1, 1), memory.reshape(n, -1, 1, 1))
+
+    def _floor(self, maps: Tensor, history: Tuple[Tensor, Tensor], seen: Tensor
+               ) -> Tuple[Tensor, Tuple[Tensor, Tensor]]:
+        """The track vector's lit-area part against the track's floor and ceiling, and
+        the new history."""
+        n = maps.shape[0]
+        shares = lamps.area_shares(lamps.depth_to_space(maps, self.config.lamp_detail))
+        floor, ceiling = (h.reshape(n, -1) for h in history)
+        vector, floor, ceiling = lamps.floor_step(shares, floor, ceiling, seen,
+                                                  self.config.floor_rate)
+        return vector, (floor.reshape(n, -1, 1, 1), ceiling.reshape(n, -1, 1, 1))
 
     def _fuse(self, evidence: Tensor, vector: Optional[Tensor]) -> Tensor:
         """The ConvLSTM input of ``[M, E, G, G]`` evidence and the ``[M, V]`` track vector."""
