@@ -21,7 +21,9 @@
 # the renderer drew too seldom"), and since the eleventh session its data is labelled with
 # TRUTH_RULE=function (docs/model.md, "Lamps the truth called too small to judge"), and
 # since the twelfth its pools carry a night glare streak (NIGHT_STREAK=0.5; docs/model.md,
-# "Night rear views taken for front views"); no file shipped from it yet.
+# "Night rear views taken for front views"), and since the fourteenth half its glare pools'
+# glaring vehicles have tail lamps as bright as other vehicles' brakes (GLARE_TAIL_BRIGHT=0.5;
+# docs/model.md, "glare_tail_bright"); no file shipped from it yet.
 #
 # What it does (docs/model.md, "The trunk recipe"):
 #   1. renders the data in parallel worker processes, once (reused when present): POOL_SEEDS
