@@ -338,3 +338,45 @@ def test_per_frame_validation_judges_each_frame_from_a_zero_state():
     assert per_frame["accuracy"] == alone["accuracy"]
     # Carrying the state through the sequence is a different judgement.
     assert stateful["loss"] != pytest.approx(alone["loss"], rel=1e-5)
+
+
+def _judge_gradients(model, batch, judge_bias: float, head_bias: float):
+    """Gradients of the brake head's and the brake judge's weights with the two biases set."""
+    from signal_light_node.training.trunk_recipe import step_loss
+
+    with torch.no_grad():
+        model.brake_expert.bias.fill_(judge_bias)
+        model.heads["brake"].bias.fill_(head_bias)
+    model.zero_grad()
+    loss, parts = step_loss(model, batch, {})
+    loss.backward()
+    return (model.heads["brake"].weight.grad.clone(), model.brake_expert.weight.grad.clone(),
+            parts)
+
+
+def test_the_brake_judge_and_the_brake_head_learn_apart():
+    """Neither one's output reaches the other's gradient, so the head cannot learn to cancel
+    the judge (the recipe's step_loss; model.trunk_network, ``brake_expert``)."""
+    from signal_light_node.model.config import trunk_config
+    from signal_light_node.model.registry import build_model
+
+    torch.manual_seed(0)
+    model = build_model(trunk_config(frequency_evidence=False, lamp_detail=2, lamp_area=True,
+                                     track_floor=True, brake_expert=True)).train()
+    gen = torch.Generator().manual_seed(3)
+    b, t = 2, 5
+    batch = {"features": torch.randn(b, t, model.trunk_channels, 4, 4, generator=gen),
+             "maps": torch.rand(b, t, model.lamp_channels, 4, 4, generator=gen),
+             "fps": torch.tensor([10.0, 10.0]),
+             "labels": torch.randint(0, 3, (b, t, len(TASKS)), generator=gen),
+             "lit_labels": torch.randint(0, 2, (b, t, len(TASKS)), generator=gen),
+             "mask": torch.ones(b, t, dtype=torch.bool)}
+    model.lstm_dropout.p = 0.0
+    model.fc[2].p = 0.0  # no dropout: the runs must differ only in the biases
+    head_a, judge_a, parts = _judge_gradients(model, batch, 0.0, 0.0)
+    head_b, _, _ = _judge_gradients(model, batch, 4.0, 0.0)
+    _, judge_c, _ = _judge_gradients(model, batch, 0.0, 4.0)
+    assert "expert_brake" in parts and parts["expert_brake"] > 0
+    assert float(head_a.abs().sum()) > 0 and float(judge_a.abs().sum()) > 0
+    assert torch.allclose(head_a, head_b)  # the judge's output is not in the head's loss
+    assert torch.allclose(judge_a, judge_c)  # nor the head's in the judge's

@@ -18,6 +18,8 @@ from signal_light_node.model.trunk_network import TrunkLightNet
 
 #: The recipe's model with the lit area followed against the track's floor.
 FLOOR = {"frequency_evidence": False, "lamp_detail": 2, "lamp_area": True, "track_floor": True}
+#: ... and its own brake judge on it.
+JUDGE = dict(FLOOR, brake_expert=True)
 
 
 def _model(**changes) -> TrunkLightNet:
@@ -76,6 +78,8 @@ def test_trunk_config_is_validated():
         trunk_config(frequency_evidence=False, lamp_detail=2, track_floor=True)
     with pytest.raises(ConfigError, match="floor_rate must be in"):
         trunk_config(floor_rate=0.0)
+    with pytest.raises(ConfigError, match="brake_expert .* needs track_floor"):
+        trunk_config(frequency_evidence=False, lamp_detail=2, lamp_area=True, brake_expert=True)
 
 
 @pytest.mark.parametrize("changes", [{}, {"relative_evidence": False},
@@ -90,7 +94,7 @@ def test_trunk_config_is_validated():
                                       "cell_periods": True, "cell_pooled": True},
                                      {"frequency_evidence": False, "lamp_detail": 2,
                                       "lamp_area": True},
-                                     FLOOR])
+                                     FLOOR, JUDGE])
 def test_stepping_frame_by_frame_equals_the_sequence(changes):
     model = _model(**changes)
     crops = torch.rand(3, 6, 3, 64, 64, generator=torch.Generator().manual_seed(1))
@@ -310,6 +314,25 @@ def test_track_floor_sees_a_rise_over_the_vehicles_own_lamps_not_their_size():
     assert len(model.initial_state(2)) == len(plain.initial_state(2)) + 1
 
 
+def test_the_brake_judge_moves_only_brake_on_against_off():
+    from signal_light_node.labels import LightStatus
+
+    model = _model(**JUDGE)
+    with torch.no_grad():
+        model.brake_expert.bias.fill_(3.0)  # the judge says ON
+    crops = torch.rand(2, 4, 3, 64, 64, generator=torch.Generator().manual_seed(2))
+    with torch.no_grad():
+        seq, _ = model.forward_sequence(crops)
+        plain, _ = _model(**FLOOR).forward_sequence(crops)
+    delta = seq["brake"] - seq["main_brake"]
+    judge = seq["expert_brake"][..., 0]
+    assert torch.allclose(delta[..., int(LightStatus.ON)], 0.5 * judge, atol=1e-6)
+    assert torch.allclose(delta[..., int(LightStatus.OFF)], -0.5 * judge, atol=1e-6)
+    assert float(delta[..., int(LightStatus.UNKNOWN)].abs().max()) == 0.0
+    assert float(judge.min()) > 2.0  # the bias reaches the logit
+    assert set(seq) - set(plain) == {"main_brake", "expert_brake"}
+
+
 def test_lamp_area_caches_apart_from_the_plain_lamp_maps():
     from signal_light_node.training.feature_cache import trunk_fingerprint
 
@@ -340,7 +363,7 @@ def test_checkpoint_round_trip_needs_no_wheel(tmp_path, monkeypatch):
                                      {"frequency_evidence": False, "lamp_detail": 2,
                                       "cell_periods": True, "cell_pooled": True},
                                      {"frequency_evidence": False, "lamp_detail": 2,
-                                      "lamp_area": True}, FLOOR])
+                                      "lamp_area": True}, FLOOR, JUDGE])
 def test_onnx_export_steps_like_torch(tmp_path, changes):
     from signal_light_node.model.onnx_export import export_onnx
 

@@ -113,6 +113,13 @@ class ModelConfig:
             vehicle's own tail-lamp level, the night brake that carried across renderers
             where lamp size did not (docs/model.md, "A brake is a step over the vehicle's
             own lamps").
+        brake_expert: With ``track_floor``, a linear brake judge of its own on the lit area
+            against the track's floor and ceiling, weighed by the scene's brightness
+            (``model.lamp_evidence.expert_inputs``): its logit is added to the brake
+            head's ON-against-OFF logits. The recipe trains it with a loss of its own and
+            the brake head on its own logits, so the head cannot learn to cancel it: at
+            night the lit area carried across renderers where the heads did not
+            (docs/model.md, "A brake judge of its own").
         floor_rate: With ``track_floor``, the weight of a frame in the floor's slow rise
             and the ceiling's slow fall.
         lit_map_head: Give the CNN a training-only 1x1 convolution on the backbone's
@@ -166,6 +173,7 @@ class ModelConfig:
     cell_pooled: bool = False
     lamp_area: bool = False
     track_floor: bool = False
+    brake_expert: bool = False
     floor_rate: float = 0.02
     lit_map_head: bool = False
     members: int = 1
@@ -189,7 +197,8 @@ class ModelConfig:
         # bool("false") is True: refuse anything but a real boolean (CLI values are JSON).
         for name in ("use_attention", "temporal_input", "relative_evidence", "frequency_evidence",
                      "lit_head", "lit_periods", "blink_levels", "cell_periods",
-                     "cell_pooled", "lamp_area", "track_floor", "lit_map_head"):
+                     "cell_pooled", "lamp_area", "track_floor", "brake_expert",
+                     "lit_map_head"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"model config {name} must be true or false, got "
                                   f"{getattr(self, name)!r}")
@@ -256,6 +265,9 @@ class ModelConfig:
         if self.track_floor and not self.lamp_area:
             raise ConfigError("model config track_floor follows the lit area: it needs "
                               "lamp_area")
+        if self.brake_expert and not self.track_floor:
+            raise ConfigError("model config brake_expert judges the lit area against the "
+                              "track's floor: it needs track_floor")
         if self.lamp_detail > 1 and self.frequency_evidence:
             raise ConfigError("model config frequency_evidence reads whole lamp-map halves: "
                               "it needs lamp_detail 1")

@@ -245,6 +245,20 @@ def floor_step(shares: Tensor, floor: Tensor, ceiling: Tensor, seen: Tensor, rat
     ceiling = torch.maximum(shares, ceiling + (shares - ceiling) * rate)
     return torch.cat((shares, shares - floor, ceiling - shares), 1), floor, ceiling
 
+
+def expert_features() -> int:
+    """Length of :func:`expert_inputs`."""
+    return 2 * floor_features() + 1
+
+
+def expert_inputs(floor_vector: Tensor, fine_maps: Tensor) -> Tensor:
+    """``[N, 2V + 1]``: :func:`floor_step`'s vector, the same times the crop's mean
+    brightness, and that brightness (from the mean-brightness channel of ``[N, C, F, F]``
+    fine lamp maps): a linear judge of it can weigh the lit area by how dark the scene is,
+    since by day a red body or the sun moves the shares as much as a brake does."""
+    body = fine_maps[:, 0].mean(dim=(1, 2))[:, None]
+    return torch.cat((floor_vector, floor_vector * body, body), 1)
+
 #: Lamp-map channels whose fine cells drive :func:`cell_blink_step`: peak brightness and
 #: peak warm excess.
 CELL_CHANNELS = (1, 3)

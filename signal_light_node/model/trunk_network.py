@@ -21,6 +21,7 @@ One step for ``N`` tracks::
          amplitudes per image half join the track vector, a per-cell map the evidence
       -> with ``track_floor``: the lit area of the crop and its halves against the
          track's own floor and ceiling joins the track vector
+         (with ``brake_expert``, a linear judge of it adds its logit to the brake's)
       -> 1x1 fusion + ReLU -> ConvLSTM layers (explicit (h, c) per layer)
       -> heads: 1x1 conv pooled to a grid (keeps left/right) + global max of h + the
          frequency features -> dense layer with dropout -> one linear layer per task.
@@ -41,7 +42,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.labels import TASKS
+from signal_light_node.labels import TASKS, LightStatus
 from signal_light_node.model import lamp_evidence as lamps
 from signal_light_node.model.interface import State, state_batch_size
 from signal_light_node.model.network import (apply_temperatures, check_crops, convlstm_stack,
@@ -256,6 +257,9 @@ class TrunkLightNet(TrunkFront):
             self.lit_head = nn.Linear(lit_in, n_lit) if not config.lit_hidden else \
                 nn.Sequential(nn.Linear(lit_in, config.lit_hidden), nn.ReLU(inplace=True),
                               nn.Linear(config.lit_hidden, n_lit))
+        self.brake_expert: Optional[nn.Linear] = None
+        if config.brake_expert:
+            self.brake_expert = nn.Linear(lamps.expert_features(), 1)
 
     def output_layers(self, task: str) -> List[nn.Module]:
         """The layers whose logits are ``task``'s (one: its head)."""
@@ -406,14 +410,32 @@ class TrunkLightNet(TrunkFront):
             x = self.lstm_dropout(h)
         return x, tuple(new_state)
 
-    def _heads(self, hidden: Tensor, freq: Optional[Tensor]) -> Dict[str, Tensor]:
+    def _expert(self, vector: Optional[Tensor], maps: Tensor) -> Optional[Tensor]:
+        """``[M, 1]`` the brake judge's ON-against-OFF logit from the track vectors (the
+        floor part is their last) and lamp maps of ``M`` frames; None without one."""
+        if self.brake_expert is None or vector is None:
+            return None
+        floor = vector[:, vector.shape[1] - lamps.floor_features():]
+        fine = lamps.depth_to_space(maps, self.config.lamp_detail)
+        return self.brake_expert(lamps.expert_inputs(floor, fine))
+
+    def _heads(self, hidden: Tensor, freq: Optional[Tensor], expert: Optional[Tensor] = None
+               ) -> Dict[str, Tensor]:
+        """Logits per task; with the brake judge, ``brake`` is the head's plus its logit
+        (half to ON, less half to OFF) and ``main_brake`` the head's alone."""
         grid = F.adaptive_avg_pool2d(F.relu(self.head_conv(hidden)), self.config.head_grid)
         parts = [grid.flatten(1), hidden.amax(dim=(2, 3))]
         if freq is not None:
             parts.append(freq)
         z = self.fc(torch.cat(parts, 1))
-        return apply_temperatures({t: head(z) for t, head in self.heads.items()},
-                                  self.config.temperatures)
+        logits = {t: head(z) for t, head in self.heads.items()}
+        extra = {}
+        if expert is not None:
+            extra["main_brake"] = logits["brake"]
+            sign = [0.5 if k == int(LightStatus.ON) else -0.5 if k == int(LightStatus.OFF)
+                    else 0.0 for k in range(logits["brake"].shape[1])]
+            logits["brake"] = logits["brake"] + expert * expert.new_tensor(sign)
+        return dict(apply_temperatures(logits, self.config.temperatures), **extra)
 
     def step_features(self, features: Tensor, maps: Tensor, state: State
                       ) -> Tuple[Dict[str, Tensor], State]:
@@ -422,7 +444,9 @@ class TrunkLightNet(TrunkFront):
         evidence, vector, _, history = self._evidence(self.project(features), maps,
                                                       state[n_cells:])
         hidden, lstm_state = self._recur(self._fuse(evidence, vector), state[:n_cells])
-        return self._heads(hidden, vector), lstm_state + history
+        logits = self._heads(hidden, vector, self._expert(vector, maps))
+        logits.pop("main_brake", None)  # a training output; a step publishes the sum
+        return logits, lstm_state + history
 
     def sequence_features(self, features: Tensor, maps: Tensor, state: Optional[State] = None
                           ) -> Tuple[Dict[str, Tensor], State]:
@@ -454,7 +478,10 @@ class TrunkLightNet(TrunkFront):
         for x_i in x.unbind(1):
             h, lstm_state = self._recur(x_i, lstm_state)
             hidden.append(h)
-        logits = self._heads(torch.stack(hidden, 1).flatten(0, 1), freq_all)
+        expert = self._expert(freq_all, maps.flatten(0, 1))
+        logits = self._heads(torch.stack(hidden, 1).flatten(0, 1), freq_all, expert)
+        if expert is not None:
+            logits["expert_brake"] = expert
         if self.lit_head is not None:
             lit = torch.stack(lits, 1).flatten(0, 1) if lits[0] is not None else \
                 self.lit_head(x.flatten(0, 1).flatten(1))

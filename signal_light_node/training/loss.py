@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.labels import TASKS
+from signal_light_node.labels import TASKS, LightStatus
 
 #: Tasks whose label needs time to be seen (no loss during a window's warm-up).
 TEMPORAL_TASKS = ("intent", "left", "right")
@@ -64,6 +64,17 @@ def multitask_loss(logits: Mapping[str, torch.Tensor], labels: torch.Tensor, mas
         parts[task] = float(loss.detach())
         total = total + w * loss
     return total, parts
+
+
+def brake_judge_loss(logit: torch.Tensor, labels: torch.Tensor, mask: torch.Tensor
+                     ) -> torch.Tensor:
+    """Binary cross-entropy of the brake judge's ``[B, T, 1]`` logit against the brake
+    truth, over the frames whose truth is ON or OFF."""
+    y = labels[..., TASKS.index("brake")]
+    on, off = y == int(LightStatus.ON), y == int(LightStatus.OFF)
+    valid = (mask & (on | off)).to(logit.dtype)
+    bce = F.binary_cross_entropy_with_logits(logit[..., 0], on.to(logit.dtype), reduction="none")
+    return (bce * valid).sum() / valid.sum().clamp(min=1.0)
 
 
 def _valid_frames(y: torch.Tensor, mask: torch.Tensor,

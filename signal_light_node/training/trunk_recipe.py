@@ -45,7 +45,8 @@ from signal_light_node.model.trunk_network import LIT_TASKS
 from signal_light_node.evaluation.metrics import confusion_matrix, macro_f1, per_class_scores
 from signal_light_node.training.feature_cache import (FeatureCache, collate_windows, track_logits,
                                                       trunk_fingerprint, write_cache)
-from signal_light_node.training.loss import multitask_loss, share_weights, warmup_frames
+from signal_light_node.training.loss import (brake_judge_loss, multitask_loss, share_weights,
+                                             warmup_frames)
 from signal_light_node.training.trunk_finetune import load_trunk_weights
 
 LOG = logging.getLogger("trunk_recipe")
@@ -104,14 +105,26 @@ def _lr(step: int, steps: int, lr: float, warm: int = 50) -> float:
     return lr * 0.5 * (1.0 + math.cos(math.pi * min(1.0, (step - warm) / max(1, steps - warm))))
 
 
+#: Weight of the brake judge's loss (``ModelConfig.brake_expert``).
+EXPERT_WEIGHT = 0.5
+
+
 def step_loss(model: torch.nn.Module, batch: Dict[str, torch.Tensor],
               weights: Dict[str, torch.Tensor]) -> Tuple[torch.Tensor, Dict[str, float]]:
     """The loss of one batch of windows: the task heads (blinkers and intent past each
     window's warm-up) plus, with a lit head, each lamp's per-frame lit state."""
     logits, _ = model.sequence_features(batch["features"], batch["maps"])
     warm = warmup_frames(batch["fps"].tolist(), 2, 0.4).to(batch["labels"].device)
+    if "expert_brake" in logits:
+        # The brake judge learns on its own loss and the head on its own logits, so
+        # neither learns to cancel the other (docs/model.md, "A brake judge of its own").
+        expert_loss = brake_judge_loss(logits["expert_brake"], batch["labels"], batch["mask"])
+        logits = dict(logits, brake=logits["main_brake"])
     loss, parts = multitask_loss(logits, batch["labels"], batch["mask"], TASK_WEIGHTS, weights,
                                  warm)
+    if "expert_brake" in logits:
+        loss = loss + EXPERT_WEIGHT * expert_loss
+        parts["expert_brake"] = float(expert_loss.detach())
     if "lit_left" in logits:
         lit_logits = dict(logits, **{t: logits[f"lit_{t}"] for t in LIT_TASKS})
         lit_loss, lit_parts = multitask_loss(lit_logits, batch["lit_labels"], batch["mask"],
