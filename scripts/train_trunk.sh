@@ -23,7 +23,9 @@
 # since the twelfth its pools carry a night glare streak (NIGHT_STREAK=0.5; docs/model.md,
 # "Night rear views taken for front views"), and since the fourteenth half its glare pools'
 # glaring vehicles have tail lamps as bright as other vehicles' brakes (GLARE_TAIL_BRIGHT=0.5;
-# docs/model.md, "glare_tail_bright"); no file shipped from it yet.
+# docs/model.md, "glare_tail_bright"), and its model adds the lit area against the track's
+# own floor (MODEL = RECIPE_MODEL plus "lamp_area": true, "track_floor": true; docs/model.md,
+# "A brake is a step over the vehicle's own lamps"); no file shipped from it yet.
 #
 # What it does (docs/model.md, "The trunk recipe"):
 #   1. renders the data in parallel worker processes, once (reused when present): POOL_SEEDS
