@@ -259,6 +259,7 @@ def expert_inputs(floor_vector: Tensor, fine_maps: Tensor) -> Tensor:
     body = fine_maps[:, 0].mean(dim=(1, 2))[:, None]
     return torch.cat((floor_vector, floor_vector * body, body), 1)
 
+
 #: Lamp-map channels whose fine cells drive :func:`cell_blink_step`: peak brightness and
 #: peak warm excess.
 CELL_CHANNELS = (1, 3)

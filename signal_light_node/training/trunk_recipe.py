@@ -112,19 +112,21 @@ EXPERT_WEIGHT = 0.5
 def step_loss(model: torch.nn.Module, batch: Dict[str, torch.Tensor],
               weights: Dict[str, torch.Tensor]) -> Tuple[torch.Tensor, Dict[str, float]]:
     """The loss of one batch of windows: the task heads (blinkers and intent past each
-    window's warm-up) plus, with a lit head, each lamp's per-frame lit state."""
+    window's warm-up) plus, with a lit head, each lamp's per-frame lit state, and with a
+    brake judge, its own loss (the brake head then learns on its own logits)."""
     logits, _ = model.sequence_features(batch["features"], batch["maps"])
     warm = warmup_frames(batch["fps"].tolist(), 2, 0.4).to(batch["labels"].device)
-    if "expert_brake" in logits:
-        # The brake judge learns on its own loss and the head on its own logits, so
-        # neither learns to cancel the other (docs/model.md, "A brake judge of its own").
-        expert_loss = brake_judge_loss(logits["expert_brake"], batch["labels"], batch["mask"])
+    judge = logits.get("expert_brake")
+    if judge is not None:
+        # Apart, so that neither learns to cancel the other (docs/model.md, "A brake
+        # judge of its own").
         logits = dict(logits, brake=logits["main_brake"])
     loss, parts = multitask_loss(logits, batch["labels"], batch["mask"], TASK_WEIGHTS, weights,
                                  warm)
-    if "expert_brake" in logits:
-        loss = loss + EXPERT_WEIGHT * expert_loss
-        parts["expert_brake"] = float(expert_loss.detach())
+    if judge is not None:
+        judge_loss = brake_judge_loss(judge, batch["labels"], batch["mask"])
+        loss = loss + EXPERT_WEIGHT * judge_loss
+        parts["expert_brake"] = float(judge_loss.detach())
     if "lit_left" in logits:
         lit_logits = dict(logits, **{t: logits[f"lit_{t}"] for t in LIT_TASKS})
         lit_loss, lit_parts = multitask_loss(lit_logits, batch["lit_labels"], batch["mask"],
