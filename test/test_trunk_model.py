@@ -331,6 +331,13 @@ def test_the_brake_judge_moves_only_brake_on_against_off():
     assert float(delta[..., int(LightStatus.UNKNOWN)].abs().max()) == 0.0
     assert float(judge.min()) > 2.0  # the bias reaches the logit
     assert set(seq) - set(plain) == {"main_brake", "expert_brake"}
+    louder = _model(**dict(JUDGE, expert_gain=3.0))
+    louder.load_state_dict(model.state_dict())
+    with torch.no_grad():
+        seq3, _ = louder.forward_sequence(crops)
+    assert torch.allclose(seq3["brake"] - seq3["main_brake"], 3 * delta, atol=1e-5)
+    with pytest.raises(ConfigError, match="expert_gain must be >= 0"):
+        trunk_config(**dict(JUDGE, expert_gain=-1.0))
 
 
 def test_lamp_area_caches_apart_from_the_plain_lamp_maps():

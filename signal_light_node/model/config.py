@@ -120,6 +120,9 @@ class ModelConfig:
             the brake head on its own logits, so the head cannot learn to cancel it: at
             night the lit area carried across renderers where the heads did not
             (docs/model.md, "A brake judge of its own").
+        expert_gain: With ``brake_expert``, what the judge's logit is multiplied by in the
+            sum (>= 0; a file's gain is set after training, docs/model.md, "The judge
+            weighed by spread").
         floor_rate: With ``track_floor``, the weight of a frame in the floor's slow rise
             and the ceiling's slow fall.
         lit_map_head: Give the CNN a training-only 1x1 convolution on the backbone's
@@ -174,6 +177,7 @@ class ModelConfig:
     lamp_area: bool = False
     track_floor: bool = False
     brake_expert: bool = False
+    expert_gain: float = 1.0
     floor_rate: float = 0.02
     lit_map_head: bool = False
     members: int = 1
@@ -207,6 +211,9 @@ class ModelConfig:
             if not 0.0 < getattr(self, name) <= 1.0:
                 raise ConfigError(f"model config {name} must be in (0, 1], got "
                                   f"{getattr(self, name)}")
+        set_("expert_gain", float(self.expert_gain))
+        if not self.expert_gain >= 0.0:
+            raise ConfigError(f"model config expert_gain must be >= 0, got {self.expert_gain}")
         if isinstance(self.align_radius, bool) or not isinstance(self.align_radius, int) \
                 or not 0 <= self.align_radius <= self.input_size // 4:
             raise ConfigError(f"model config align_radius must be an integer in 0..input_size/4, "

@@ -422,7 +422,8 @@ class TrunkLightNet(TrunkFront):
     def _heads(self, hidden: Tensor, freq: Optional[Tensor], expert: Optional[Tensor] = None
                ) -> Dict[str, Tensor]:
         """Logits per task; with the brake judge, ``brake`` is the head's plus its logit
-        (half to ON, less half to OFF) and ``main_brake`` the head's alone."""
+        times ``expert_gain`` (half to ON, less half to OFF) and ``main_brake`` the
+        head's alone."""
         grid = F.adaptive_avg_pool2d(F.relu(self.head_conv(hidden)), self.config.head_grid)
         parts = [grid.flatten(1), hidden.amax(dim=(2, 3))]
         if freq is not None:
@@ -434,7 +435,8 @@ class TrunkLightNet(TrunkFront):
             extra["main_brake"] = logits["brake"]
             sign = [0.5 if k == int(LightStatus.ON) else -0.5 if k == int(LightStatus.OFF)
                     else 0.0 for k in range(logits["brake"].shape[1])]
-            logits["brake"] = logits["brake"] + expert * expert.new_tensor(sign)
+            gain = self.config.expert_gain
+            logits["brake"] = logits["brake"] + expert * expert.new_tensor(sign) * gain
         return dict(apply_temperatures(logits, self.config.temperatures), **extra)
 
     def step_features(self, features: Tensor, maps: Tensor, state: State
