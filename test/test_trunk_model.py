@@ -338,6 +338,18 @@ def test_the_brake_judge_moves_only_brake_on_against_off():
     assert torch.allclose(seq3["brake"] - seq3["main_brake"], 3 * delta, atol=1e-5)
     with pytest.raises(ConfigError, match="expert_gain must be >= 0"):
         trunk_config(**dict(JUDGE, expert_gain=-1.0))
+    with pytest.raises(ConfigError, match="expert_dark must be in"):
+        trunk_config(**dict(JUDGE, expert_dark=2.0))
+
+
+def test_a_dark_gate_keeps_the_judge_out_of_bright_crops():
+    gated = _model(**dict(JUDGE, expert_dark=0.5))
+    with torch.no_grad():
+        gated.brake_expert.bias.fill_(3.0)
+        dark, _ = gated.forward_sequence(torch.full((1, 3, 3, 64, 64), 0.2))
+        bright, _ = gated.forward_sequence(torch.full((1, 3, 3, 64, 64), 0.8))
+    assert float((dark["brake"] - dark["main_brake"]).abs().max()) > 1.0
+    assert float((bright["brake"] - bright["main_brake"]).abs().max()) == 0.0
 
 
 def test_lamp_area_caches_apart_from_the_plain_lamp_maps():
@@ -370,7 +382,8 @@ def test_checkpoint_round_trip_needs_no_wheel(tmp_path, monkeypatch):
                                      {"frequency_evidence": False, "lamp_detail": 2,
                                       "cell_periods": True, "cell_pooled": True},
                                      {"frequency_evidence": False, "lamp_detail": 2,
-                                      "lamp_area": True}, FLOOR, JUDGE])
+                                      "lamp_area": True}, FLOOR,
+                                     dict(JUDGE, expert_dark=0.9)])
 def test_onnx_export_steps_like_torch(tmp_path, changes):
     from signal_light_node.model.onnx_export import export_onnx
 

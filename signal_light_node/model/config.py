@@ -123,6 +123,10 @@ class ModelConfig:
         expert_gain: With ``brake_expert``, what the judge's logit is multiplied by in the
             sum (>= 0; a file's gain is set after training, docs/model.md, "The judge
             weighed by spread").
+        expert_dark: With ``brake_expert`` and above 0, the judge's logit counts only in
+            frames whose crop is darker on average than this (brightness in [0, 1]; 0: in
+            every frame). By day the judge misjudges brakes the head tells well
+            (docs/model.md, "The judge kept to dark scenes").
         floor_rate: With ``track_floor``, the weight of a frame in the floor's slow rise
             and the ceiling's slow fall.
         lit_map_head: Give the CNN a training-only 1x1 convolution on the backbone's
@@ -178,6 +182,7 @@ class ModelConfig:
     track_floor: bool = False
     brake_expert: bool = False
     expert_gain: float = 1.0
+    expert_dark: float = 0.0
     floor_rate: float = 0.02
     lit_map_head: bool = False
     members: int = 1
@@ -214,6 +219,10 @@ class ModelConfig:
         set_("expert_gain", float(self.expert_gain))
         if not self.expert_gain >= 0.0:
             raise ConfigError(f"model config expert_gain must be >= 0, got {self.expert_gain}")
+        set_("expert_dark", float(self.expert_dark))
+        if not 0.0 <= self.expert_dark <= 1.0:
+            raise ConfigError(f"model config expert_dark must be in [0, 1], got "
+                              f"{self.expert_dark}")
         if isinstance(self.align_radius, bool) or not isinstance(self.align_radius, int) \
                 or not 0 <= self.align_radius <= self.input_size // 4:
             raise ConfigError(f"model config align_radius must be an integer in 0..input_size/4, "

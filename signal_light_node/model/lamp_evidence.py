@@ -256,8 +256,14 @@ def expert_inputs(floor_vector: Tensor, fine_maps: Tensor) -> Tensor:
     brightness, and that brightness (from the mean-brightness channel of ``[N, C, F, F]``
     fine lamp maps): a linear judge of it can weigh the lit area by how dark the scene is,
     since by day a red body or the sun moves the shares as much as a brake does."""
-    body = fine_maps[:, 0].mean(dim=(1, 2))[:, None]
+    body = crop_brightness(fine_maps)
     return torch.cat((floor_vector, floor_vector * body, body), 1)
+
+
+def crop_brightness(fine_maps: Tensor) -> Tensor:
+    """``[N, 1]`` the crop's mean brightness from the mean-brightness channel of
+    ``[N, C, F, F]`` lamp maps."""
+    return fine_maps[:, 0].mean(dim=(1, 2))[:, None]
 
 
 #: Lamp-map channels whose fine cells drive :func:`cell_blink_step`: peak brightness and

@@ -417,7 +417,11 @@ class TrunkLightNet(TrunkFront):
             return None
         floor = vector[:, vector.shape[1] - lamps.floor_features():]
         fine = lamps.depth_to_space(maps, self.config.lamp_detail)
-        return self.brake_expert(lamps.expert_inputs(floor, fine))
+        logit = self.brake_expert(lamps.expert_inputs(floor, fine))
+        if self.config.expert_dark > 0:
+            dark = lamps.crop_brightness(fine) < self.config.expert_dark
+            logit = logit * dark.to(logit.dtype)
+        return logit
 
     def _heads(self, hidden: Tensor, freq: Optional[Tensor], expert: Optional[Tensor] = None
                ) -> Dict[str, Tensor]:
