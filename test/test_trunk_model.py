@@ -78,6 +78,8 @@ def test_trunk_config_is_validated():
         trunk_config(frequency_evidence=False, lamp_detail=2, track_floor=True)
     with pytest.raises(ConfigError, match="floor_rate must be in"):
         trunk_config(floor_rate=0.0)
+    with pytest.raises(ConfigError, match="wrong type"):
+        trunk_config(expert_gain="loud")
     with pytest.raises(ConfigError, match="brake_expert .* needs track_floor"):
         trunk_config(frequency_evidence=False, lamp_detail=2, lamp_area=True, brake_expert=True)
 

@@ -201,6 +201,8 @@ class ModelConfig:
             set_("dropout", float(self.dropout))
             set_("lstm_dropout", float(self.lstm_dropout))
             set_("crop_margin", float(self.crop_margin))
+            for name in ("mean_rate", "floor_rate", "expert_gain", "expert_dark"):
+                set_(name, float(getattr(self, name)))
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"model config has a value of the wrong type: {exc}") from None
         # bool("false") is True: refuse anything but a real boolean (CLI values are JSON).
@@ -212,14 +214,11 @@ class ModelConfig:
                 raise ConfigError(f"model config {name} must be true or false, got "
                                   f"{getattr(self, name)!r}")
         for name in ("mean_rate", "floor_rate"):
-            set_(name, float(getattr(self, name)))
             if not 0.0 < getattr(self, name) <= 1.0:
                 raise ConfigError(f"model config {name} must be in (0, 1], got "
                                   f"{getattr(self, name)}")
-        set_("expert_gain", float(self.expert_gain))
         if not self.expert_gain >= 0.0:
             raise ConfigError(f"model config expert_gain must be >= 0, got {self.expert_gain}")
-        set_("expert_dark", float(self.expert_dark))
         if not 0.0 <= self.expert_dark <= 1.0:
             raise ConfigError(f"model config expert_dark must be in [0, 1], got "
                               f"{self.expert_dark}")

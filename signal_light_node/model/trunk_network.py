@@ -345,7 +345,7 @@ class TrunkLightNet(TrunkFront):
             vector.append(cell_vector)
             new_history.append(cell_history)
             evidence = torch.cat((evidence, cell_map), 1)
-        if cfg.track_floor:
+        if cfg.track_floor:  # last in the vector: _expert reads it from the end
             floor_vector, floor_history = self._floor(maps, rest.pop(0), seen.reshape(n, 1))
             vector.append(floor_vector)
             new_history.append(floor_history)
