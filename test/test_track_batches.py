@@ -72,6 +72,19 @@ def test_frame_batches_draw_single_labelled_frames():
     assert (labels[:, 0, 1] == frames % 3).all()  # each frame keeps its own label
 
 
+def test_lanes_rehearse_their_share_of_tracks():
+    labelled = [numbered_track(n, 2) for n in (1, 2)]
+    rehearsed = [numbered_track(n, 2) for n in (7, 8)]
+    for share in (0.25, 0.5):
+        batches = iter(LaneBatches(labelled, lanes=4, seq_len=2, seed=0, rehearse=rehearsed,
+                                   rehearse_share=share))
+        # each 2-frame track fills one batch, so every batch takes four new tracks
+        numbers = np.concatenate([next(batches)["crops"].numpy()[:, 0, 0, 0, 0]
+                                  for _ in range(300)])
+        assert set(numbers) == {1, 2, 7, 8}
+        assert abs(np.isin(numbers, (7, 8)).mean() - share) < 0.05
+
+
 def test_batchers_need_tracks_in_memory():
     track = numbered_track(1, 3)
     track.crops = None
@@ -141,6 +154,33 @@ def test_lane_warmup_counts_from_the_track_start(tmp_path, tiny_pool):
 def test_pool_cropped_for_another_model_is_refused(tmp_path, tiny_pool):
     with pytest.raises(ConfigError, match="pool .* was cropped with"):
         Trainer(pool_options(tmp_path / "c", tiny_pool, mode="lanes", model={}))
+
+
+@pytest.mark.parametrize("mode", ["windows", "lanes"])
+def test_rehearsed_tracks_only_train(tmp_path, tiny_pool, mode):
+    rehearse = tmp_path / "rehearse"
+    shutil.copytree(tiny_pool, rehearse)
+    trainer = Trainer(pool_options(tmp_path / "r", tiny_pool, mode=mode, rehearse=[rehearse],
+                                   rehearse_share=0.5))
+    # held-out and validation draws see the labelled pool's six tracks only ...
+    kept = trainer.train_tracks + trainer.val_tracks + trainer.holdout_tracks
+    assert len(kept) == 6 and trainer.val_tracks
+    # ... and the batches also come from the rehearsed pool's six
+    data = trainer.loader.dataset
+    rehearsed = data.rehearse if mode == "lanes" else data.parts[-1].tracks
+    assert len(rehearsed) == 6 and not {id(t) for t in rehearsed} & {id(t) for t in kept}
+    assert trainer.run()["steps"] == 4
+
+
+def test_rehearsal_is_checked(tmp_path, tiny_pool):
+    with pytest.raises(ConfigError, match="beside labelled tracks"):
+        TrainOptions(out=tmp_path, max_steps=1, rehearse=[tiny_pool]).validate()
+    with pytest.raises(ConfigError, match="windows or lanes"):
+        TrainOptions(out=tmp_path, max_steps=1, mode="frames", pools=[tiny_pool],
+                     rehearse=[tiny_pool]).validate()
+    with pytest.raises(ConfigError, match="rehearse-share must be in"):
+        TrainOptions(out=tmp_path, max_steps=1, pools=[tiny_pool], rehearse=[tiny_pool],
+                     rehearse_share=1.0).validate()
 
 
 def test_modes_are_checked(tmp_path, tiny_pool):

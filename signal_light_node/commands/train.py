@@ -111,6 +111,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    default=_default("pools"), metavar="SPLIT",
                    help="materialised synthetic split to train on as whole "
                    "tracks (python -m signal_light_node.data.split ... --full-tracks); repeatable")
+    g.add_argument("--rehearse", action="append", type=Path, default=_default("rehearse"),
+                   metavar="SPLIT",
+                   help="materialised split rehearsed beside the labelled tracks (training "
+                   "renders, so a fine-tune cannot learn a few tracks by heart); never held "
+                   "out or validated on; repeatable; --mode windows or lanes")
+    g.add_argument("--rehearse-share", type=float, default=_default("rehearse_share"),
+                   help="share of the track sequences (lanes' tracks) drawn from --rehearse")
     g.add_argument("--mode", choices=BATCH_MODES, default=_default("mode"),
                    help="windows: sequences from a zero state; frames: single frames from "
                    "anywhere (per-frame pre-training); lanes: --batch tracks side by side, "
@@ -229,7 +236,8 @@ def options_from_args(args: argparse.Namespace) -> TrainOptions:
         freeze_encoder=args.freeze_encoder, freeze_norms=args.freeze_norms,
         heads_only=args.heads_only, trunk_from=args.train_trunk_from,
         grown_init_scale=args.grown_init_scale, bags=list(args.bags),
-        ucm=list(args.ucm), pools=list(args.pools), mode=args.mode,
+        ucm=list(args.ucm), pools=list(args.pools), rehearse=list(args.rehearse),
+        rehearse_share=args.rehearse_share, mode=args.mode,
         frame_targets=args.frame_targets,
         lit_map_weight=args.lit_map_weight,
         synthetic_fraction=args.synthetic_fraction,

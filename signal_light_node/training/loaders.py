@@ -13,7 +13,7 @@ sequence is augmented on its own.
 
 from __future__ import annotations
 
-from typing import List
+from typing import List, Sequence
 
 import torch
 from torch.utils.data import DataLoader, IterableDataset
@@ -41,7 +41,8 @@ def worker_init(worker_id: int) -> None:
 
 
 def training_loader(opts: TrainOptions, crop: CropConfig, tracks: List[TrackSequence],
-                    synthetic: float, seed: int, rank: int) -> DataLoader:
+                    synthetic: float, seed: int, rank: int,
+                    rehearse: Sequence[TrackSequence] = ()) -> DataLoader:
     """The DataLoader of a run's training batches.
 
     Args:
@@ -51,13 +52,15 @@ def training_loader(opts: TrainOptions, crop: CropConfig, tracks: List[TrackSequ
         synthetic: Share of sequences from the synthetic stream (``run_data.synthetic_share``).
         seed: The data seed (``seeding.data_seed``).
         rank: Process rank.
+        rehearse: Tracks rehearsed beside ``tracks`` (``opts.rehearse``); they take
+            ``opts.rehearse_share`` of the sequences that come from tracks.
 
     Raises:
         ConfigError: Some sequences must come from tracks, and there are none.
     """
     augment = Augment(opts.mirror_prob, opts.jitter, opts.camera_response, opts.shape_warp)
     if opts.mode != "windows":
-        return _track_batch_loader(opts, tracks, augment, seed, rank)
+        return _track_batch_loader(opts, tracks, augment, seed, rank, rehearse)
     parts: List[IterableDataset] = []
     probs: List[float] = []
     if synthetic > 0:
@@ -68,17 +71,24 @@ def training_loader(opts: TrainOptions, crop: CropConfig, tracks: List[TrackSequ
             raise ConfigError("no training tracks: --bags / --ucm gave nothing to train on")
         # WindowDataset draws stratum-balanced windows itself.
         parts.append(WindowDataset(tracks, opts.seq_len, seed=seed, augment=augment, rank=rank))
-        probs.append(1.0 - synthetic)
+        share = opts.rehearse_share if rehearse else 0.0
+        probs.append((1.0 - synthetic) * (1.0 - share))
+        if rehearse:
+            parts.append(WindowDataset(rehearse, opts.seq_len, seed=seed + 1, augment=augment,
+                                       rank=rank))
+            probs.append((1.0 - synthetic) * share)
     return _window_loader(MixedStream(parts, probs, seed, rank), opts.batch, int(opts.workers))
 
 
 def _track_batch_loader(opts: TrainOptions, tracks: List[TrackSequence], augment: Augment,
-                        seed: int, rank: int) -> DataLoader:
+                        seed: int, rank: int, rehearse: Sequence[TrackSequence] = ()
+                        ) -> DataLoader:
     """Single frames or lanes of in-memory tracks, batched by the dataset itself."""
     if opts.mode == "frames":
         batches: IterableDataset = FrameBatches(tracks, opts.batch, seed, augment, rank)
     else:
-        batches = LaneBatches(tracks, opts.batch, opts.seq_len, seed, augment, rank)
+        batches = LaneBatches(tracks, opts.batch, opts.seq_len, seed, augment, rank,
+                              rehearse=rehearse, rehearse_share=opts.rehearse_share)
     return DataLoader(batches, batch_size=None, num_workers=0)
 
 

@@ -76,6 +76,7 @@ from signal_light_node.training.progress import (
 from signal_light_node.training.holdout import report_after_run, split_by_track_id
 from signal_light_node.training.run_data import (
     hold_out_tracks,
+    load_rehearsal,
     load_tracks,
     synthetic_share,
     validation_items,
@@ -169,8 +170,10 @@ class Trainer:
         self.val_items = (validation_items(opts, self.crop, held_out, self.synthetic_share)
                           if self.dist.main else [])
         self.val_tracks = held_out  # whole, for --select-by published
+        # Rehearsed tracks only train: the held-out and validation draws never see them.
         self.loader = training_loader(opts, self.crop, self.train_tracks, self.synthetic_share,
-                                      data_seed(opts.seed, self.start_step), self.dist.rank)
+                                      data_seed(opts.seed, self.start_step), self.dist.rank,
+                                      load_rehearsal(opts, self.crop))
 
     def _check_lit_maps(self) -> None:
         """``--lit-map-weight`` needs the model's lit-map head and maps on every track."""

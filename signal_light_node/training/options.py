@@ -94,6 +94,11 @@ class TrainOptions:
         bags: Labelled bags to train on.
         ucm: UC Merced rear-signal dataset roots to train on.
         pools: Materialised synthetic splits (``data.split``) to train on, as tracks.
+        rehearse: Materialised splits rehearsed beside the labelled tracks (the training
+            renders, so that a fine-tune on a few labelled tracks cannot learn them by
+            heart); never held out, never validated on. Modes "windows" and "lanes".
+        rehearse_share: Share of the sequences from tracks (lanes' tracks in "lanes") that
+            come from ``rehearse``.
         mode: How batches are cut: "windows" (``batch`` windows of ``seq_len`` frames,
             each from a zero state), "frames" (``batch`` single frames from anywhere in
             the tracks: per-frame pre-training) or "lanes" (``batch`` tracks played side
@@ -168,6 +173,8 @@ class TrainOptions:
     bags: List[Path] = field(default_factory=list)
     ucm: List[Path] = field(default_factory=list)
     pools: List[Path] = field(default_factory=list)
+    rehearse: List[Path] = field(default_factory=list)
+    rehearse_share: float = 0.5
     mode: str = "windows"
     frame_targets: str = "state"
     lit_map_weight: float = 0.0
@@ -259,6 +266,18 @@ class TrainOptions:
                               "(--bags, --ucm or --pool): it compares the model before and "
                               "after")
         self._check_selection()
+        self._check_rehearsal()
+
+    def _check_rehearsal(self) -> None:
+        if not self.rehearse:
+            return
+        if not (self.bags or self.ucm or self.pools):
+            raise ConfigError("--rehearse goes beside labelled tracks (--bags, --ucm or "
+                              "--pool); alone, give the splits as --pool")
+        if self.mode == "frames":
+            raise ConfigError("--rehearse is for --mode windows or lanes")
+        if not 0 < self.rehearse_share < 1:
+            raise ConfigError(f"--rehearse-share must be in (0, 1), got {self.rehearse_share}")
 
     def _check_selection(self) -> None:
         if self.select_by not in SELECT_BY:

@@ -43,6 +43,15 @@ def load_tracks(opts: TrainOptions, crop: CropConfig) -> List[TrackSequence]:
     return tracks
 
 
+def load_rehearsal(opts: TrainOptions, crop: CropConfig) -> List[TrackSequence]:
+    """Every track of ``opts.rehearse``: training data only, never held out or validated."""
+    tracks: List[TrackSequence] = []
+    for pool in opts.rehearse:
+        tracks += split_tracks(Path(pool), crop, role="rehearse",
+                               label_key=FRAME_TARGETS[opts.frame_targets])
+    return tracks
+
+
 def hold_out_tracks(tracks: List[TrackSequence], fraction: float
                     ) -> Tuple[List[TrackSequence], List[TrackSequence]]:
     """``(train, validation)``: every k-th track (k = 1/fraction) is held out; deterministic."""

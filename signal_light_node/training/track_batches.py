@@ -144,19 +144,29 @@ class LaneBatches(torch.utils.data.IterableDataset):
         seed: Seed of the track draws and the augmentation.
         augment: Mirroring / jitter applied to a whole track when a lane takes it.
         rank: Process rank under DDP.
+        rehearse: Tracks rehearsed beside ``tracks`` (the training renders beside a
+            user's labelled tracks, so a fine-tune cannot learn those by heart).
+        rehearse_share: Chance that a lane's next track is a rehearsed one.
     """
 
     def __init__(self, tracks: Sequence[TrackSequence], lanes: int, seq_len: int, seed: int = 0,
-                 augment: Optional[Augment] = None, rank: int = 0) -> None:
+                 augment: Optional[Augment] = None, rank: int = 0,
+                 rehearse: Sequence[TrackSequence] = (), rehearse_share: float = 0.0) -> None:
         super().__init__()
         if lanes < 1 or seq_len < 1:
             raise ConfigError(f"lanes and seq_len must be >= 1, got {lanes}, {seq_len}")
         self.tracks = _usable(tracks)
+        self.rehearse = _usable(rehearse) if rehearse else []
+        self.rehearse_share = float(rehearse_share) if self.rehearse else 0.0
         self.lanes, self.seq_len = int(lanes), int(seq_len)
         self.seed, self.rank, self.augment = int(seed), int(rank), augment
 
     def _take(self, rng: np.random.Generator) -> _Lane:
-        track = self.tracks[int(rng.integers(len(self.tracks)))]
+        source = self.tracks
+        # No draw without rehearsal: runs without it keep their exact track order.
+        if self.rehearse_share > 0 and rng.random() < self.rehearse_share:
+            source = self.rehearse
+        track = source[int(rng.integers(len(source)))]
         item = _item(track, 0, len(track))
         if self.augment is not None:
             item = self.augment(item, rng)
