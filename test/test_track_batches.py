@@ -173,6 +173,14 @@ def test_rehearsed_tracks_only_train(tmp_path, tiny_pool, mode):
 
 
 def test_rehearsal_is_checked(tmp_path, tiny_pool):
+    from signal_light_node.cli import build_parser
+    from signal_light_node.commands.train import options_from_args
+
+    args = build_parser(["train"]).parse_args(
+        ["train", "--out", str(tmp_path), "--pool", str(tiny_pool), "--rehearse", "r1",
+         "--rehearse", "r2", "--rehearse-share", "0.3"])
+    opts = options_from_args(args)
+    assert opts.rehearse == [Path("r1"), Path("r2")] and opts.rehearse_share == 0.3
     with pytest.raises(ConfigError, match="beside labelled tracks"):
         TrainOptions(out=tmp_path, max_steps=1, rehearse=[tiny_pool]).validate()
     with pytest.raises(ConfigError, match="windows or lanes"):
