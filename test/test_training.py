@@ -340,7 +340,7 @@ def test_per_frame_validation_judges_each_frame_from_a_zero_state():
     assert stateful["loss"] != pytest.approx(alone["loss"], rel=1e-5)
 
 
-def _judge_gradients(model, batch, judge_bias: float, head_bias: float):
+def _judge_gradients(model, batch, judge_bias: float, head_bias: float, judged: bool = False):
     """Gradients of the brake head's and the brake judge's weights with the two biases set."""
     from signal_light_node.training.trunk_recipe import step_loss
 
@@ -348,10 +348,11 @@ def _judge_gradients(model, batch, judge_bias: float, head_bias: float):
         model.brake_expert.bias.fill_(judge_bias)
         model.heads["brake"].bias.fill_(head_bias)
     model.zero_grad()
-    loss, parts = step_loss(model, batch, {})
+    loss, parts = step_loss(model, batch, {}, judged)
     loss.backward()
-    return (model.heads["brake"].weight.grad.clone(), model.brake_expert.weight.grad.clone(),
-            parts)
+    judge = model.brake_expert.weight.grad
+    return (model.heads["brake"].weight.grad.clone(),
+            None if judge is None else judge.clone(), parts)
 
 
 def test_the_brake_judge_and_the_brake_head_learn_apart():
@@ -380,3 +381,11 @@ def test_the_brake_judge_and_the_brake_head_learn_apart():
     assert float(head_a.abs().sum()) > 0 and float(judge_a.abs().sum()) > 0
     assert torch.allclose(head_a, head_b)  # the judge's output is not in the head's loss
     assert torch.allclose(judge_a, judge_c)  # nor the head's in the judge's
+    # Against a frozen judge the head learns on the published sum, the judge's share in it
+    from signal_light_node.training.trunk_recipe import judge_model
+
+    judge_model(model, 8.0)
+    head_d, judge_d, parts_d = _judge_gradients(model, batch, 0.0, 0.0, judged=True)
+    head_e, _, _ = _judge_gradients(model, batch, 4.0, 0.0, judged=True)
+    assert judge_d is None and "expert_brake" not in parts_d
+    assert not torch.allclose(head_d, head_e)

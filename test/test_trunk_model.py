@@ -445,6 +445,35 @@ def test_trunk_recipe_trains_resumes_and_calibrates(tmp_path):
     assert calibrated.meta["calibration"]["heads"]["brake"]["frames"] >= 0
 
 
+def test_trunk_recipe_tunes_a_member_against_its_frozen_judge(tmp_path):
+    from signal_light_node.data.split import write_split
+    from signal_light_node.training import trunk_recipe
+
+    split = tmp_path / "pool_1"
+    write_split(split, seed=7, n_sequences=3, seq_len=12, crop=trunk_config().crop_config(),
+                full_tracks=True, progress=False)
+    common = ["--pool", str(split), "--val", str(split), "--batch", "2", "--seq-len", "8",
+              "--val-every", "2", "--threads", "1", "--steps", "2"]
+    judged = json.dumps({"frequency_evidence": False, "lamp_detail": 2, "lamp_area": True,
+                         "track_floor": True, "brake_expert": True})
+    assert trunk_recipe.main(["--out", str(tmp_path / "member"), "--model", judged] + common) == 0
+    member = load_checkpoint(tmp_path / "member" / "last.pt")
+    assert trunk_recipe.main(["--out", str(tmp_path / "tuned"), "--tune-from",
+                              str(tmp_path / "member" / "last.pt"), "--judge-gain", "8",
+                              "--lr", "0.05"] + common) == 0
+    tuned = load_checkpoint(tmp_path / "tuned" / "last.pt")
+    assert tuned.config.expert_gain == 8.0 and tuned.meta["tuned_from"]["judge_gain"] == 8.0
+    before, after = member.model.state_dict(), tuned.model.state_dict()
+    judge = [k for k in before if k.startswith("brake_expert.")]
+    assert judge and all(torch.equal(before[k], after[k]) for k in judge)  # frozen ...
+    assert not torch.equal(before["heads.brake.weight"], after["heads.brake.weight"])  # ... not the head
+    with pytest.raises(SystemExit):  # the member's own config: no --model beside it
+        trunk_recipe.main(["--out", str(tmp_path / "x"), "--tune-from",
+                           str(tmp_path / "member" / "last.pt"), "--model", judged] + common)
+    with pytest.raises(ConfigError, match="brake judge"):
+        trunk_recipe.judge_model(_model(), 8.0)
+
+
 @pytest.mark.parametrize("blink_levels", [True, False])
 def test_without_blink_levels_a_steady_lit_blinker_leaves_the_track_vector_as_an_unlit_one(
         blink_levels):

@@ -38,7 +38,7 @@ import torch
 
 from signal_light_node.errors import ConfigError
 from signal_light_node.labels import TASKS
-from signal_light_node.model.checkpoint import save_checkpoint
+from signal_light_node.model.checkpoint import load_checkpoint, save_checkpoint
 from signal_light_node.model.config import ModelConfig, trunk_config
 from signal_light_node.model.registry import build_model
 from signal_light_node.model.trunk_network import LIT_TASKS
@@ -110,13 +110,16 @@ EXPERT_WEIGHT = 0.5
 
 
 def step_loss(model: torch.nn.Module, batch: Dict[str, torch.Tensor],
-              weights: Dict[str, torch.Tensor]) -> Tuple[torch.Tensor, Dict[str, float]]:
+              weights: Dict[str, torch.Tensor], judged: bool = False
+              ) -> Tuple[torch.Tensor, Dict[str, float]]:
     """The loss of one batch of windows: the task heads (blinkers and intent past each
     window's warm-up) plus, with a lit head, each lamp's per-frame lit state, and with a
-    brake judge, its own loss (the brake head then learns on its own logits)."""
+    brake judge, its own loss (the brake head then learns on its own logits). ``judged``
+    (a fine-tune against a frozen judge, :func:`judge_model`): the brake learns on the
+    published logits, the judge's included, and the judge has no loss."""
     logits, _ = model.sequence_features(batch["features"], batch["maps"])
     warm = warmup_frames(batch["fps"].tolist(), 2, 0.4).to(batch["labels"].device)
-    judge = logits.get("expert_brake")
+    judge = None if judged else logits.get("expert_brake")
     if judge is not None:
         # Apart, so that neither learns to cancel the other (docs/model.md, "A brake
         # judge of its own").
@@ -134,6 +137,23 @@ def step_loss(model: torch.nn.Module, batch: Dict[str, torch.Tensor],
         loss = loss + lit_loss
         parts.update({f"lit_{t}": v for t, v in lit_parts.items()})
     return loss, parts
+
+
+def judge_model(model: torch.nn.Module, gain: float) -> None:
+    """Set the brake judge's gain and freeze the judge, for a fine-tune of everything else
+    on the published brake logits (``step_loss(judged=True)``): the head learns where the
+    judge, fitted apart, is wrong on the training renders (docs/model.md, "The head taught
+    where the judge is wrong").
+
+    Raises:
+        ConfigError: The model has no brake judge, or the gain is negative.
+    """
+    if getattr(model, "brake_expert", None) is None:
+        raise ConfigError("--judge-gain needs a model with a brake judge (brake_expert)")
+    if not gain >= 0:
+        raise ConfigError(f"--judge-gain must be >= 0, got {gain}")
+    model.config = model.config.replace(expert_gain=float(gain))
+    model.brake_expert.requires_grad_(False)
 
 
 def _save(out: Path, model: torch.nn.Module, optim: torch.optim.Optimizer,
@@ -155,8 +175,9 @@ def _save(out: Path, model: torch.nn.Module, optim: torch.optim.Optimizer,
 def train(model: torch.nn.Module, train_caches: Sequence[FeatureCache], val: FeatureCache,
           out: Path, steps: int, batch: int, seq_len: int, lr: float, seed: int,
           val_every: int, resume: bool, meta: Dict[str, Any],
-          device: Optional[torch.device] = None) -> Dict[str, Any]:
-    """The training loop of the module doc; returns the best validation figures."""
+          device: Optional[torch.device] = None, judged: bool = False) -> Dict[str, Any]:
+    """The training loop of the module doc (``judged``: see :func:`step_loss`); returns the
+    best validation figures."""
     device = device or torch.device("cpu")
     rng = np.random.default_rng(seed)
     model.to(device).freeze_encoder()
@@ -177,7 +198,7 @@ def train(model: torch.nn.Module, train_caches: Sequence[FeatureCache], val: Fea
         for group in optim.param_groups:
             group["lr"] = _lr(progress["step"], steps, lr)
         b = {k: v.to(device) for k, v in _batch(train_caches, rng, batch, seq_len).items()}
-        loss, parts = step_loss(model, b, weights)
+        loss, parts = step_loss(model, b, weights, judged)
         optim.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, 5.0)
@@ -233,14 +254,28 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--trunk-weights", type=Path, default=None,
                         help="start from this per-frame stage's trunk (trunk_finetune's "
                              "best.pt) or a model file's (the shipped default.pt)")
+    parser.add_argument("--tune-from", type=Path, default=None,
+                        help="fine-tune this member's file (its config and weights) instead "
+                             "of building a fresh model (--model and --trunk-weights unused)")
+    parser.add_argument("--judge-gain", type=float, default=None,
+                        help="with a brake judge: its gain; the judge stays frozen and the "
+                             "brake learns on the published logits (see judge_model)")
     args = parser.parse_args(argv)
+    if args.tune_from is not None and (args.model != "{}" or args.trunk_weights is not None):
+        parser.error("--tune-from takes the member's own config and trunk: drop --model and "
+                     "--trunk-weights")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         parser.error("CUDA requested but not available")
-    model = build_fresh(json.loads(args.model), args.seed)
+    if args.tune_from is not None:
+        model = load_checkpoint(args.tune_from).model
+    else:
+        model = build_fresh(json.loads(args.model), args.seed)
+    if args.judge_gain is not None:
+        judge_model(model, args.judge_gain)
     frames = None
     if args.trunk_weights is not None:
         frames = load_trunk_weights(model, args.trunk_weights)
@@ -260,8 +295,11 @@ def main(argv: Optional[List[str]] = None) -> int:
             "trunk_weights": None if frames is None else {"path": str(args.trunk_weights),
                                                           "step": frames["step"],
                                                           "train_from": frames["train_from"]}}
+    if args.tune_from is not None:
+        meta["tuned_from"] = {"path": str(args.tune_from), "judge_gain": args.judge_gain}
     best = train(model, caches, val, args.out, args.steps, args.batch, args.seq_len, args.lr,
-                 args.seed, args.val_every, args.resume, meta, device)
+                 args.seed, args.val_every, args.resume, meta, device,
+                 judged=args.judge_gain is not None)
     (args.out / "summary.json").write_text(json.dumps(best, indent=1))
     LOG.info("best: %s", best)
     return 0
