@@ -105,6 +105,13 @@ RECIPE_MODEL='{"frequency_evidence": false, "lamp_detail": 2, "lit_hidden": 128,
 MODEL=${MODEL:-$RECIPE_MODEL}
 LOOKS=${LOOKS:-1}
 STEPS=${STEPS:-1500}
+# JUDGE_GAIN (default empty: no such stage), for a MODEL with "brake_expert": true: each
+# member then has its brake judge set to that gain and frozen, and everything else
+# fine-tuned JUDGE_STEPS steps at JUDGE_LR on the published brake logits (RUN/.../judged;
+# docs/model.md, "The head taught where the judge is wrong"); those are what is joined.
+JUDGE_GAIN=${JUDGE_GAIN:-}
+JUDGE_STEPS=${JUDGE_STEPS:-300}
+JUDGE_LR=${JUDGE_LR:-5e-4}
 BATCH=${BATCH:-32}
 SEQ_LEN=${SEQ_LEN:-96}
 LR=${LR:-2e-3}
@@ -176,17 +183,31 @@ members=()
 for seed in $SEEDS; do
   out=$RUN/trunk
   (( n_seeds > 1 )) && out=$RUN/trunk_s$seed
-  members+=(--member "$out/best.pt")
   if [[ -f "$out/summary.json" ]]; then
     echo "$out/summary.json exists: finished before; skipping"
-    continue
+  else
+    resume=()
+    [[ -f "$out/last.state.pt" ]] && resume=(--resume)
+    python -m signal_light_node.training.trunk_recipe --out "$out" --cache "$DATA/cache" \
+      "${pools[@]}" --val "$DATA/val_split" --model "$MODEL" --looks "$LOOKS" --steps "$STEPS" \
+      --batch "$BATCH" --seq-len "$SEQ_LEN" --lr "$LR" --seed "$seed" --val-every "$VAL_EVERY" \
+      --threads "$THREADS" --device "$DEVICE" "${trunk[@]}" "${resume[@]}"
   fi
-  resume=()
-  [[ -f "$out/last.state.pt" ]] && resume=(--resume)
-  python -m signal_light_node.training.trunk_recipe --out "$out" --cache "$DATA/cache" \
-    "${pools[@]}" --val "$DATA/val_split" --model "$MODEL" --looks "$LOOKS" --steps "$STEPS" \
-    --batch "$BATCH" --seq-len "$SEQ_LEN" --lr "$LR" --seed "$seed" --val-every "$VAL_EVERY" \
-    --threads "$THREADS" --device "$DEVICE" "${trunk[@]}" "${resume[@]}"
+  if [[ -n "$JUDGE_GAIN" ]]; then
+    judged=$out/judged
+    if [[ ! -f "$judged/summary.json" ]]; then
+      echo "== 2/5 member $seed: the brake judge at gain $JUDGE_GAIN, frozen; $JUDGE_STEPS steps on the published logits"
+      resume=()
+      [[ -f "$judged/last.state.pt" ]] && resume=(--resume)
+      python -m signal_light_node.training.trunk_recipe --out "$judged" --cache "$DATA/cache" \
+        "${pools[@]}" --val "$DATA/val_split" --tune-from "$out/best.pt" \
+        --judge-gain "$JUDGE_GAIN" --looks "$LOOKS" --steps "$JUDGE_STEPS" --batch "$BATCH" \
+        --seq-len "$SEQ_LEN" --lr "$JUDGE_LR" --seed 1 --val-every 100 --threads "$THREADS" \
+        --device "$DEVICE" "${resume[@]}"
+    fi
+    out=$judged
+  fi
+  members+=(--member "$out/best.pt")
 done
 model=$RUN/trunk
 if (( n_seeds > 1 )); then

@@ -445,6 +445,25 @@ def test_trunk_recipe_trains_resumes_and_calibrates(tmp_path):
     assert calibrated.meta["calibration"]["heads"]["brake"]["frames"] >= 0
 
 
+def test_every_flag_the_recipe_script_passes_to_the_temporal_stage_exists(capsys):
+    """scripts/train_trunk.sh calls trunk_recipe twice (a member, its judged fine-tune); a
+    renamed flag would only fail after hours of training."""
+    import re
+    from pathlib import Path
+    from signal_light_node.training import trunk_recipe
+
+    script = (Path(__file__).parents[1] / "scripts" / "train_trunk.sh").read_text()
+    calls = script.split("python -m signal_light_node.training.trunk_recipe")[1:]
+    passed = set()
+    for call in calls:
+        passed |= set(re.findall(r"(--[a-z][a-z-]*)", call[:call.index('"${resume[@]}"')]))
+    with pytest.raises(SystemExit):
+        trunk_recipe.main(["--help"])
+    known = set(re.findall(r"(--[a-z][a-z-]*)", capsys.readouterr().out))
+    assert len(calls) == 2 and {"--tune-from", "--judge-gain", "--model"} <= passed
+    assert passed <= known, passed - known
+
+
 def test_trunk_recipe_tunes_a_member_against_its_frozen_judge(tmp_path):
     from signal_light_node.data.split import write_split
     from signal_light_node.training import trunk_recipe
