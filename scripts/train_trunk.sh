@@ -25,7 +25,10 @@
 # glaring vehicles have tail lamps as bright as other vehicles' brakes (GLARE_TAIL_BRIGHT=0.5;
 # docs/model.md, "glare_tail_bright"), and its model adds the lit area against the track's
 # own floor (MODEL = RECIPE_MODEL plus "lamp_area": true, "track_floor": true; docs/model.md,
-# "A brake is a step over the vehicle's own lamps"); no file shipped from it yet.
+# "A brake is a step over the vehicle's own lamps"), and since the fifteenth a brake judge of
+# that floor (MODEL plus "brake_expert": true) speaks at gain 8 after each member's judged
+# fine-tune (JUDGE_GAIN=8; docs/model.md, "The head taught where the judge is wrong"); no
+# file shipped from it yet.
 #
 # What it does (docs/model.md, "The trunk recipe"):
 #   1. renders the data in parallel worker processes, once (reused when present): POOL_SEEDS
