@@ -486,11 +486,20 @@ def test_trunk_recipe_tunes_a_member_against_its_frozen_judge(tmp_path):
     judge = [k for k in before if k.startswith("brake_expert.")]
     assert judge and all(torch.equal(before[k], after[k]) for k in judge)  # frozen ...
     assert not torch.equal(before["heads.brake.weight"], after["heads.brake.weight"])  # ... not the head
+    assert not torch.equal(before["heads.left.weight"], after["heads.left.weight"])
+    assert trunk_recipe.main(["--out", str(tmp_path / "brake"), "--tune-from",
+                              str(tmp_path / "member" / "last.pt"), "--judge-gain", "8",
+                              "--judge-learn", "brake", "--lr", "0.05"] + common) == 0
+    brake = load_checkpoint(tmp_path / "brake" / "last.pt").model.state_dict()
+    moved = {k for k in before if not torch.equal(before[k], brake[k])}
+    assert moved and moved <= {"heads.brake.weight", "heads.brake.bias"}  # the brake head alone
     with pytest.raises(SystemExit):  # the member's own config: no --model beside it
         trunk_recipe.main(["--out", str(tmp_path / "x"), "--tune-from",
                            str(tmp_path / "member" / "last.pt"), "--model", judged] + common)
     with pytest.raises(ConfigError, match="brake judge"):
         trunk_recipe.judge_model(_model(), 8.0)
+    with pytest.raises(ConfigError, match="judge-learn must be one of"):
+        trunk_recipe.judge_model(member.model, 8.0, "blinkers")
 
 
 @pytest.mark.parametrize("blink_levels", [True, False])

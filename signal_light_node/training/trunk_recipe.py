@@ -139,20 +139,36 @@ def step_loss(model: torch.nn.Module, batch: Dict[str, torch.Tensor],
     return loss, parts
 
 
-def judge_model(model: torch.nn.Module, gain: float) -> None:
-    """Set the brake judge's gain and freeze the judge, for a fine-tune of everything else
-    on the published brake logits (``step_loss(judged=True)``): the head learns where the
-    judge, fitted apart, is wrong on the training renders (docs/model.md, "The head taught
-    where the judge is wrong").
+#: What a fine-tune against a frozen judge lets learn (:func:`judge_model`).
+JUDGE_LEARN = ("all", "brake")
+
+
+def judge_model(model: torch.nn.Module, gain: float, learn: str = "all") -> None:
+    """Set the brake judge's gain and freeze the judge, for a fine-tune on the published
+    brake logits (``step_loss(judged=True)``): the head learns where the judge, fitted
+    apart, is wrong on the training renders (docs/model.md, "The head taught where the
+    judge is wrong").
+
+    Args:
+        model: A single-member trunk network with a brake judge.
+        gain: The judge's gain in the published logits.
+        learn: "all": everything but the trunk and the judge learns; "brake": only the
+            brake head's output layer (the blinkers and intent stay as they are).
 
     Raises:
-        ConfigError: The model has no brake judge, or the gain is negative.
+        ConfigError: The model has no brake judge, the gain is negative or ``learn`` unknown.
     """
     if getattr(model, "brake_expert", None) is None:
         raise ConfigError("--judge-gain needs a model with a brake judge (brake_expert)")
     if not gain >= 0:
         raise ConfigError(f"--judge-gain must be >= 0, got {gain}")
+    if learn not in JUDGE_LEARN:
+        raise ConfigError(f"--judge-learn must be one of {list(JUDGE_LEARN)}, got {learn!r}")
     model.config = model.config.replace(expert_gain=float(gain))
+    if learn == "brake":
+        model.requires_grad_(False)
+        for layer in model.output_layers("brake"):
+            layer.requires_grad_(True)
     model.brake_expert.requires_grad_(False)
 
 
@@ -260,6 +276,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--judge-gain", type=float, default=None,
                         help="with a brake judge: its gain; the judge stays frozen and the "
                              "brake learns on the published logits (see judge_model)")
+    parser.add_argument("--judge-learn", choices=JUDGE_LEARN, default="all",
+                        help="with --judge-gain: what learns, everything after the trunk "
+                             "but the judge (all) or the brake head's output layer (brake)")
     args = parser.parse_args(argv)
     if args.tune_from is not None and (args.model != "{}" or args.trunk_weights is not None):
         parser.error("--tune-from takes the member's own config and trunk: drop --model and "
@@ -275,7 +294,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     else:
         model = build_fresh(json.loads(args.model), args.seed)
     if args.judge_gain is not None:
-        judge_model(model, args.judge_gain)
+        judge_model(model, args.judge_gain, args.judge_learn)
     frames = None
     if args.trunk_weights is not None:
         frames = load_trunk_weights(model, args.trunk_weights)
@@ -296,7 +315,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                                                           "step": frames["step"],
                                                           "train_from": frames["train_from"]}}
     if args.tune_from is not None:
-        meta["tuned_from"] = {"path": str(args.tune_from), "judge_gain": args.judge_gain}
+        meta["tuned_from"] = {"path": str(args.tune_from), "judge_gain": args.judge_gain,
+                              "judge_learn": args.judge_learn}
     best = train(model, caches, val, args.out, args.steps, args.batch, args.seq_len, args.lr,
                  args.seed, args.val_every, args.resume, meta, device,
                  judged=args.judge_gain is not None)
