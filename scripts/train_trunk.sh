@@ -115,6 +115,7 @@ STEPS=${STEPS:-1500}
 JUDGE_GAIN=${JUDGE_GAIN:-}
 JUDGE_STEPS=${JUDGE_STEPS:-300}
 JUDGE_LR=${JUDGE_LR:-5e-4}
+JUDGE_LEARN=${JUDGE_LEARN:-all}   # all, or brake: the brake head's output layer alone
 BATCH=${BATCH:-32}
 SEQ_LEN=${SEQ_LEN:-96}
 LR=${LR:-2e-3}
@@ -204,7 +205,7 @@ for seed in $SEEDS; do
       [[ -f "$judged/last.state.pt" ]] && resume=(--resume)
       python -m signal_light_node.training.trunk_recipe --out "$judged" --cache "$DATA/cache" \
         "${pools[@]}" --val "$DATA/val_split" --tune-from "$out/best.pt" \
-        --judge-gain "$JUDGE_GAIN" --looks "$LOOKS" --steps "$JUDGE_STEPS" --batch "$BATCH" \
+        --judge-gain "$JUDGE_GAIN" --judge-learn "$JUDGE_LEARN" --looks "$LOOKS" --steps "$JUDGE_STEPS" --batch "$BATCH" \
         --seq-len "$SEQ_LEN" --lr "$JUDGE_LR" --seed 1 --val-every 100 --threads "$THREADS" \
         --device "$DEVICE" "${resume[@]}"
     fi
