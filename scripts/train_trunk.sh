@@ -26,9 +26,9 @@
 # docs/model.md, "glare_tail_bright"), and its model adds the lit area against the track's
 # own floor (MODEL = RECIPE_MODEL plus "lamp_area": true, "track_floor": true; docs/model.md,
 # "A brake is a step over the vehicle's own lamps"), and since the fifteenth a brake judge of
-# that floor (MODEL plus "brake_expert": true) speaks at gain 8 after each member's judged
-# fine-tune (JUDGE_GAIN=8; docs/model.md, "The head taught where the judge is wrong"); no
-# file shipped from it yet.
+# that floor (MODEL plus "brake_expert": true) speaks at gain 8 after each member's brake
+# head is fine-tuned against it (JUDGE_GAIN=8, JUDGE_LEARN=brake; docs/model.md, "The head
+# taught where the judge is wrong"); no file shipped from it yet.
 #
 # What it does (docs/model.md, "The trunk recipe"):
 #   1. renders the data in parallel worker processes, once (reused when present): POOL_SEEDS
@@ -109,13 +109,14 @@ MODEL=${MODEL:-$RECIPE_MODEL}
 LOOKS=${LOOKS:-1}
 STEPS=${STEPS:-1500}
 # JUDGE_GAIN (default empty: no such stage), for a MODEL with "brake_expert": true: each
-# member then has its brake judge set to that gain and frozen, and everything else
-# fine-tuned JUDGE_STEPS steps at JUDGE_LR on the published brake logits (RUN/.../judged;
-# docs/model.md, "The head taught where the judge is wrong"); those are what is joined.
+# member then has its brake judge set to that gain and frozen, and its brake head's output
+# layer (JUDGE_LEARN=brake; all: every layer after the trunk) fine-tuned JUDGE_STEPS steps
+# at JUDGE_LR on the published brake logits (RUN/.../judged; docs/model.md, "The head
+# taught where the judge is wrong"); those are what is joined.
 JUDGE_GAIN=${JUDGE_GAIN:-}
 JUDGE_STEPS=${JUDGE_STEPS:-300}
 JUDGE_LR=${JUDGE_LR:-5e-4}
-JUDGE_LEARN=${JUDGE_LEARN:-all}   # all, or brake: the brake head's output layer alone
+JUDGE_LEARN=${JUDGE_LEARN:-brake}   # brake: the brake head's output layer alone; or all
 BATCH=${BATCH:-32}
 SEQ_LEN=${SEQ_LEN:-96}
 LR=${LR:-2e-3}
