@@ -206,9 +206,9 @@ for seed in $SEEDS; do
       [[ -f "$judged/last.state.pt" ]] && resume=(--resume)
       python -m signal_light_node.training.trunk_recipe --out "$judged" --cache "$DATA/cache" \
         "${pools[@]}" --val "$DATA/val_split" --tune-from "$out/best.pt" \
-        --judge-gain "$JUDGE_GAIN" --judge-learn "$JUDGE_LEARN" --looks "$LOOKS" --steps "$JUDGE_STEPS" --batch "$BATCH" \
-        --seq-len "$SEQ_LEN" --lr "$JUDGE_LR" --seed 1 --val-every 100 --threads "$THREADS" \
-        --device "$DEVICE" "${resume[@]}"
+        --judge-gain "$JUDGE_GAIN" --judge-learn "$JUDGE_LEARN" --looks "$LOOKS" \
+        --steps "$JUDGE_STEPS" --batch "$BATCH" --seq-len "$SEQ_LEN" --lr "$JUDGE_LR" \
+        --seed 1 --val-every 100 --threads "$THREADS" --device "$DEVICE" "${resume[@]}"
     fi
     out=$judged
   fi

@@ -496,6 +496,17 @@ def test_trunk_recipe_tunes_a_member_against_its_frozen_judge(tmp_path):
     with pytest.raises(SystemExit):  # the member's own config: no --model beside it
         trunk_recipe.main(["--out", str(tmp_path / "x"), "--tune-from",
                            str(tmp_path / "member" / "last.pt"), "--model", judged] + common)
+    from signal_light_node.training import join_members
+
+    joined = tmp_path / "joined.pt"
+    member_file = str(tmp_path / "member" / "last.pt")
+    assert join_members.main(["--member", member_file, "--member", member_file,
+                              "--out", str(joined)]) == 0
+    with pytest.raises(ConfigError, match="joined file of 2 members"):
+        trunk_recipe.main(["--out", str(tmp_path / "x"), "--tune-from", str(joined),
+                           "--judge-gain", "8"] + common)
+    with pytest.raises(SystemExit):  # what learns only means something against a judge
+        trunk_recipe.main(["--out", str(tmp_path / "x"), "--judge-learn", "brake"] + common)
     with pytest.raises(ConfigError, match="brake judge"):
         trunk_recipe.judge_model(_model(), 8.0)
     with pytest.raises(ConfigError, match="judge-learn must be one of"):

@@ -283,6 +283,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     if args.tune_from is not None and (args.model != "{}" or args.trunk_weights is not None):
         parser.error("--tune-from takes the member's own config and trunk: drop --model and "
                      "--trunk-weights")
+    if args.judge_learn != "all" and args.judge_gain is None:
+        parser.error("--judge-learn goes with --judge-gain")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -291,6 +293,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         parser.error("CUDA requested but not available")
     if args.tune_from is not None:
         model = load_checkpoint(args.tune_from).model
+        if model.config.members != 1:
+            raise ConfigError(f"--tune-from {args.tune_from}: a joined file of "
+                              f"{model.config.members} members; tune each member, then join")
     else:
         model = build_fresh(json.loads(args.model), args.seed)
     if args.judge_gain is not None:
