@@ -354,6 +354,26 @@ def test_a_dark_gate_keeps_the_judge_out_of_bright_crops():
     assert float((bright["brake"] - bright["main_brake"]).abs().max()) == 0.0
 
 
+def test_a_red_judge_reads_only_the_lit_red_area():
+    from signal_light_node.model import lamp_evidence as lamps
+
+    n = lamps.floor_features()
+    floor = torch.arange(float(n))[None].repeat(2, 1)
+    maps = torch.rand(2, lamps.lamp_channels(area=True), 8, 8)
+    red = lamps.expert_inputs(floor, maps, red_only=True)
+    body = lamps.crop_brightness(maps)
+    # the red channel of each region's share, rise and fall: every second value
+    assert lamps.RED_FLOOR == tuple(range(1, n, 2))
+    assert red.shape == (2, lamps.expert_features(True)) == (2, n + 1)
+    assert torch.equal(red[:, :n // 2], floor[:, 1::2])
+    assert torch.allclose(red[:, n // 2:n], floor[:, 1::2] * body)
+    assert lamps.expert_inputs(floor, maps).shape[1] == lamps.expert_features() == 2 * n + 1
+    model = _model(**dict(JUDGE, expert_red=True))
+    assert model.brake_expert.in_features == n + 1
+    with pytest.raises(ConfigError, match="expert_red chooses the brake judge's inputs"):
+        trunk_config(**dict(FLOOR, expert_red=True))
+
+
 def test_lamp_area_caches_apart_from_the_plain_lamp_maps():
     from signal_light_node.training.feature_cache import trunk_fingerprint
 
@@ -385,7 +405,8 @@ def test_checkpoint_round_trip_needs_no_wheel(tmp_path, monkeypatch):
                                       "cell_periods": True, "cell_pooled": True},
                                      {"frequency_evidence": False, "lamp_detail": 2,
                                       "lamp_area": True}, FLOOR,
-                                     dict(JUDGE, expert_dark=0.9)])
+                                     dict(JUDGE, expert_dark=0.9),
+                                     dict(JUDGE, expert_red=True)])
 def test_onnx_export_steps_like_torch(tmp_path, changes):
     from signal_light_node.model.onnx_export import export_onnx
 

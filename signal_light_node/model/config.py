@@ -127,6 +127,10 @@ class ModelConfig:
             frames whose crop is darker on average than this (brightness in [0, 1]; 0: in
             every frame). By day the judge misjudges brakes the head tells well
             (docs/model.md, "The judge kept to dark scenes").
+        expert_red: With ``brake_expert``, the judge reads the lit-red area only (its
+            share, rise and fall per region, the same times brightness, and brightness:
+            19 values, not 37): by day the near-white area of body highlights reads as lit
+            lamps (docs/model.md, "The head taught where the judge is wrong").
         floor_rate: With ``track_floor``, the weight of a frame in the floor's slow rise
             and the ceiling's slow fall.
         lit_map_head: Give the CNN a training-only 1x1 convolution on the backbone's
@@ -183,6 +187,7 @@ class ModelConfig:
     brake_expert: bool = False
     expert_gain: float = 1.0
     expert_dark: float = 0.0
+    expert_red: bool = False
     floor_rate: float = 0.02
     lit_map_head: bool = False
     members: int = 1
@@ -209,7 +214,7 @@ class ModelConfig:
         for name in ("use_attention", "temporal_input", "relative_evidence", "frequency_evidence",
                      "lit_head", "lit_periods", "blink_levels", "cell_periods",
                      "cell_pooled", "lamp_area", "track_floor", "brake_expert",
-                     "lit_map_head"):
+                     "expert_red", "lit_map_head"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"model config {name} must be true or false, got "
                                   f"{getattr(self, name)!r}")
@@ -283,6 +288,9 @@ class ModelConfig:
         if self.brake_expert and not self.track_floor:
             raise ConfigError("model config brake_expert judges the lit area against the "
                               "track's floor: it needs track_floor")
+        if self.expert_red and not self.brake_expert:
+            raise ConfigError("model config expert_red chooses the brake judge's inputs: it "
+                              "needs brake_expert")
         if self.lamp_detail > 1 and self.frequency_evidence:
             raise ConfigError("model config frequency_evidence reads whole lamp-map halves: "
                               "it needs lamp_detail 1")

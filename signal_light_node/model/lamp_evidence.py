@@ -246,16 +246,25 @@ def floor_step(shares: Tensor, floor: Tensor, ceiling: Tensor, seen: Tensor, rat
     return torch.cat((shares, shares - floor, ceiling - shares), 1), floor, ceiling
 
 
-def expert_features() -> int:
+#: Positions of the lit-red area in :func:`floor_step`'s vector (its second area channel of
+#: every region, in the share, the rise and the fall).
+RED_FLOOR = tuple(i for i in range(3 * FLOOR_REGIONS * AREA_CHANNELS)
+                  if i % AREA_CHANNELS == 1)
+
+
+def expert_features(red_only: bool = False) -> int:
     """Length of :func:`expert_inputs`."""
-    return 2 * floor_features() + 1
+    return 2 * (len(RED_FLOOR) if red_only else floor_features()) + 1
 
 
-def expert_inputs(floor_vector: Tensor, fine_maps: Tensor) -> Tensor:
-    """``[N, 2V + 1]``: :func:`floor_step`'s vector, the same times the crop's mean
-    brightness, and that brightness (from the mean-brightness channel of ``[N, C, F, F]``
-    fine lamp maps): a linear judge of it can weigh the lit area by how dark the scene is,
-    since by day a red body or the sun moves the shares as much as a brake does."""
+def expert_inputs(floor_vector: Tensor, fine_maps: Tensor, red_only: bool = False) -> Tensor:
+    """``[N, 2V + 1]``: :func:`floor_step`'s vector (with ``red_only`` its lit-red part), the
+    same times the crop's mean brightness, and that brightness (from the mean-brightness
+    channel of ``[N, C, F, F]`` fine lamp maps): a linear judge of it can weigh the lit area
+    by how dark the scene is, since by day a red body or the sun moves the shares as much
+    as a brake does."""
+    if red_only:
+        floor_vector = floor_vector[:, list(RED_FLOOR)]
     body = crop_brightness(fine_maps)
     return torch.cat((floor_vector, floor_vector * body, body), 1)
 

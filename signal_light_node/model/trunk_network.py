@@ -259,7 +259,7 @@ class TrunkLightNet(TrunkFront):
                               nn.Linear(config.lit_hidden, n_lit))
         self.brake_expert: Optional[nn.Linear] = None
         if config.brake_expert:
-            self.brake_expert = nn.Linear(lamps.expert_features(), 1)
+            self.brake_expert = nn.Linear(lamps.expert_features(config.expert_red), 1)
 
     def output_layers(self, task: str) -> List[nn.Module]:
         """The layers whose logits are ``task``'s (one: its head)."""
@@ -417,7 +417,7 @@ class TrunkLightNet(TrunkFront):
             return None
         floor = vector[:, vector.shape[1] - lamps.floor_features():]
         fine = lamps.depth_to_space(maps, self.config.lamp_detail)
-        logit = self.brake_expert(lamps.expert_inputs(floor, fine))
+        logit = self.brake_expert(lamps.expert_inputs(floor, fine, self.config.expert_red))
         if self.config.expert_dark > 0:
             dark = lamps.crop_brightness(fine) < self.config.expert_dark
             logit = logit * dark.to(logit.dtype)
