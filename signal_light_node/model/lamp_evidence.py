@@ -248,8 +248,7 @@ def floor_step(shares: Tensor, floor: Tensor, ceiling: Tensor, seen: Tensor, rat
 
 #: Positions of the lit-red area in :func:`floor_step`'s vector (its second area channel of
 #: every region, in the share, the rise and the fall).
-RED_FLOOR = tuple(i for i in range(3 * FLOOR_REGIONS * AREA_CHANNELS)
-                  if i % AREA_CHANNELS == 1)
+RED_FLOOR = tuple(i for i in range(floor_features()) if i % AREA_CHANNELS == 1)
 
 
 def expert_features(red_only: bool = False) -> int:
