@@ -363,7 +363,6 @@ def test_a_red_judge_reads_only_the_lit_red_area():
     red = lamps.expert_inputs(floor, maps, red_only=True)
     body = lamps.crop_brightness(maps)
     # the red channel of each region's share, rise and fall: every second value
-    assert lamps.RED_FLOOR == tuple(range(1, n, 2))
     assert red.shape == (2, lamps.expert_features(True)) == (2, n + 1)
     assert torch.equal(red[:, :n // 2], floor[:, 1::2])
     assert torch.allclose(red[:, n // 2:n], floor[:, 1::2] * body)
@@ -372,6 +371,33 @@ def test_a_red_judge_reads_only_the_lit_red_area():
     assert model.brake_expert.in_features == n + 1
     with pytest.raises(ConfigError, match="expert_red chooses the brake judge's inputs"):
         trunk_config(**dict(FLOOR, expert_red=True))
+
+
+def test_the_high_lamp_region_is_the_upper_centre_only():
+    """A lamp lit in the upper centre shows in the fourth region and not in a tail lamp's
+    place; the vector, the history and the judge grow by that region."""
+    grid = 16
+    crop = torch.full((1, 3, 64, 64), 0.1)
+    crop[0, 2, 12:20, 28:36] = 0.9  # the centre high-mounted stop lamp
+    tail = _lamp_crop(1.0)  # tail lamps at the sides, lower down
+    high, = lamps.area_shares(lamps.lamp_maps(crop, grid, area=True), high_lamp=True)
+    low, = lamps.area_shares(lamps.lamp_maps(tail, grid, area=True), high_lamp=True)
+    a = lamps.AREA_CHANNELS
+    assert high.shape[0] == lamps.floor_regions(True) * a == (lamps.FLOOR_REGIONS + 1) * a
+    red = high[1::a]  # whole, left half, right half, upper centre
+    assert float(red[3]) > 4 * float(red[0]) > 0
+    assert float(low[1::a][3]) == 0.0 and float(low[1::a][0]) > 0
+    plain = lamps.area_shares(lamps.lamp_maps(crop, grid, area=True))
+    assert torch.equal(plain[0], high[:3 * a])
+    model, judge = _model(**dict(FLOOR, high_lamp=True)), _model(**dict(JUDGE, high_lamp=True))
+    assert model.n_vector == _model(**FLOOR).n_vector + 3 * a
+    assert judge.brake_expert.in_features == lamps.expert_features(False, True) \
+        == 2 * lamps.floor_features(True) + 1
+    with torch.no_grad():
+        out, _ = judge.forward_sequence(torch.rand(2, 3, 3, 64, 64))
+    assert out["brake"].shape == (2, 3, 3)
+    with pytest.raises(ConfigError, match="high_lamp adds a region"):
+        trunk_config(frequency_evidence=False, lamp_detail=2, lamp_area=True, high_lamp=True)
 
 
 def test_lamp_area_caches_apart_from_the_plain_lamp_maps():
@@ -406,7 +432,8 @@ def test_checkpoint_round_trip_needs_no_wheel(tmp_path, monkeypatch):
                                      {"frequency_evidence": False, "lamp_detail": 2,
                                       "lamp_area": True}, FLOOR,
                                      dict(JUDGE, expert_dark=0.9),
-                                     dict(JUDGE, expert_red=True)])
+                                     dict(JUDGE, expert_red=True),
+                                     dict(JUDGE, expert_red=True, high_lamp=True)])
 def test_onnx_export_steps_like_torch(tmp_path, changes):
     from signal_light_node.model.onnx_export import export_onnx
 

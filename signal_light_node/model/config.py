@@ -131,6 +131,10 @@ class ModelConfig:
             share, rise and fall per region, the same times brightness, and brightness:
             19 values, not 37): by day the near-white area of body highlights reads as lit
             lamps (docs/model.md, "The head taught where the judge is wrong").
+        high_lamp: With ``track_floor``, the lit area also of the crop's upper centre
+            (``model.lamp_evidence.HIGH_LAMP_BOX``), where a centre high-mounted stop lamp
+            sits, dark unless braking: steady tail lamps, however bright, do not light it
+            (docs/model.md, "The centre high-mounted stop lamp").
         floor_rate: With ``track_floor``, the weight of a frame in the floor's slow rise
             and the ceiling's slow fall.
         lit_map_head: Give the CNN a training-only 1x1 convolution on the backbone's
@@ -188,6 +192,7 @@ class ModelConfig:
     expert_gain: float = 1.0
     expert_dark: float = 0.0
     expert_red: bool = False
+    high_lamp: bool = False
     floor_rate: float = 0.02
     lit_map_head: bool = False
     members: int = 1
@@ -214,7 +219,7 @@ class ModelConfig:
         for name in ("use_attention", "temporal_input", "relative_evidence", "frequency_evidence",
                      "lit_head", "lit_periods", "blink_levels", "cell_periods",
                      "cell_pooled", "lamp_area", "track_floor", "brake_expert",
-                     "expert_red", "lit_map_head"):
+                     "expert_red", "high_lamp", "lit_map_head"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"model config {name} must be true or false, got "
                                   f"{getattr(self, name)!r}")
@@ -288,6 +293,9 @@ class ModelConfig:
         if self.brake_expert and not self.track_floor:
             raise ConfigError("model config brake_expert judges the lit area against the "
                               "track's floor: it needs track_floor")
+        if self.high_lamp and not self.track_floor:
+            raise ConfigError("model config high_lamp adds a region to the track's floor: "
+                              "it needs track_floor")
         if self.expert_red and not self.brake_expert:
             raise ConfigError("model config expert_red chooses the brake judge's inputs: it "
                               "needs brake_expert")

@@ -201,22 +201,44 @@ def resonator_features(n_signals: int, n_periods: int) -> int:
     return (n_signals + n_signals // 2) * n_periods
 
 
-#: Regions whose lit area :func:`floor_step` follows: the whole crop, its left and right half.
+#: Regions whose lit area :func:`floor_step` follows: the whole crop, its left and right half
+#: (and with ``high_lamp`` the upper centre, :data:`HIGH_LAMP_BOX`).
 FLOOR_REGIONS = 3
+#: Rows and columns of the crop's upper centre, as fractions of its side: where a centre
+#: high-mounted stop lamp sits on the rear glass or the roof edge, dark unless braking. Its
+#: lit red ranked night brakes at 0.86-0.88 on both generators, the whole crop's at
+#: 0.70-0.84 (docs/model.md, "The centre high-mounted stop lamp").
+HIGH_LAMP_BOX = (0.1, 0.5, 0.35, 0.65)
 
 
-def floor_features() -> int:
+def floor_regions(high_lamp: bool = False) -> int:
+    """Regions of :func:`area_shares`."""
+    return FLOOR_REGIONS + int(high_lamp)
+
+
+def floor_features(high_lamp: bool = False) -> int:
     """Length of :func:`floor_step`'s vector: per region and area channel the share, its
     rise over the floor and its fall under the ceiling."""
-    return 3 * FLOOR_REGIONS * AREA_CHANNELS
+    return 3 * floor_regions(high_lamp) * AREA_CHANNELS
 
 
-def area_shares(fine_maps: Tensor) -> Tensor:
+def _box_cells(grid: int, low: float, high: float) -> slice:
+    """The cells of a ``grid`` side that a fraction range covers (at least one)."""
+    start = int(low * grid)
+    return slice(start, max(start + 1, int(high * grid)))
+
+
+def area_shares(fine_maps: Tensor, high_lamp: bool = False) -> Tensor:
     """``[N, R * A]``: the bright and lit-red shares (:func:`lamp_maps` with ``area``) of the
-    whole crop, its left half and its right half, from ``[N, C, F, F]`` fine lamp maps."""
+    whole crop, its left half and its right half (and with ``high_lamp`` its upper centre),
+    from ``[N, C, F, F]`` fine lamp maps."""
     area = fine_maps[:, LAMP_CHANNELS:LAMP_CHANNELS + AREA_CHANNELS]
     half = area.shape[3] // 2
-    regions = (area, area[..., :half], area[..., half:])
+    regions = [area, area[..., :half], area[..., half:]]
+    if high_lamp:
+        top, bottom, left, right = HIGH_LAMP_BOX
+        grid = area.shape[3]
+        regions.append(area[..., _box_cells(grid, top, bottom), _box_cells(grid, left, right)])
     return torch.cat([r.mean(dim=(2, 3)) for r in regions], 1)
 
 
@@ -246,24 +268,21 @@ def floor_step(shares: Tensor, floor: Tensor, ceiling: Tensor, seen: Tensor, rat
     return torch.cat((shares, shares - floor, ceiling - shares), 1), floor, ceiling
 
 
-#: Positions of the lit-red area in :func:`floor_step`'s vector (its second area channel of
-#: every region, in the share, the rise and the fall).
-RED_FLOOR = tuple(i for i in range(floor_features()) if i % AREA_CHANNELS == 1)
-
-
-def expert_features(red_only: bool = False) -> int:
+def expert_features(red_only: bool = False, high_lamp: bool = False) -> int:
     """Length of :func:`expert_inputs`."""
-    return 2 * (len(RED_FLOOR) if red_only else floor_features()) + 1
+    floor = floor_features(high_lamp)
+    return 2 * (floor // AREA_CHANNELS if red_only else floor) + 1
 
 
 def expert_inputs(floor_vector: Tensor, fine_maps: Tensor, red_only: bool = False) -> Tensor:
-    """``[N, 2V + 1]``: :func:`floor_step`'s vector (with ``red_only`` its lit-red part), the
-    same times the crop's mean brightness, and that brightness (from the mean-brightness
-    channel of ``[N, C, F, F]`` fine lamp maps): a linear judge of it can weigh the lit area
-    by how dark the scene is, since by day a red body or the sun moves the shares as much
-    as a brake does."""
+    """``[N, 2V + 1]``: :func:`floor_step`'s vector (with ``red_only`` its lit-red part: the
+    second area channel of every region's share, rise and fall), the same times the crop's
+    mean brightness, and that brightness (from the mean-brightness channel of
+    ``[N, C, F, F]`` fine lamp maps): a linear judge of it can weigh the lit area by how
+    dark the scene is, since by day a red body or the sun moves the shares as much as a
+    brake does."""
     if red_only:
-        floor_vector = floor_vector[:, list(RED_FLOOR)]
+        floor_vector = floor_vector[:, 1::AREA_CHANNELS]
     body = crop_brightness(fine_maps)
     return torch.cat((floor_vector, floor_vector * body, body), 1)
 

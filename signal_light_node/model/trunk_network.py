@@ -232,7 +232,7 @@ class TrunkLightNet(TrunkFront):
             (len(LIT_TASKS) * len(lamps.PERIODS) + self.level_lamps
              + sum(self.lit_sizes[:self.level_lamps]) if config.lit_periods else 0) + \
             (n_cell_vector if config.cell_periods else 0) + \
-            (lamps.floor_features() if config.track_floor else 0)
+            (lamps.floor_features(config.high_lamp) if config.track_floor else 0)
         self.freq: Optional[nn.Sequential] = None
         if self.n_vector:
             self.freq = nn.Sequential(nn.Linear(self.n_vector, FREQ_CHANNELS), nn.ReLU(inplace=True))
@@ -259,7 +259,8 @@ class TrunkLightNet(TrunkFront):
                               nn.Linear(config.lit_hidden, n_lit))
         self.brake_expert: Optional[nn.Linear] = None
         if config.brake_expert:
-            self.brake_expert = nn.Linear(lamps.expert_features(config.expert_red), 1)
+            self.brake_expert = nn.Linear(
+                lamps.expert_features(config.expert_red, config.high_lamp), 1)
 
     def output_layers(self, task: str) -> List[nn.Module]:
         """The layers whose logits are ``task``'s (one: its head)."""
@@ -282,7 +283,7 @@ class TrunkLightNet(TrunkFront):
             s = self.n_cell_signals
             shapes.append(((2 * s * len(lamps.PERIODS), 1, 1), (3 * s, 1, 1)))
         if self.config.track_floor:
-            shares = (lamps.FLOOR_REGIONS * lamps.AREA_CHANNELS, 1, 1)
+            shares = (lamps.floor_regions(self.config.high_lamp) * lamps.AREA_CHANNELS, 1, 1)
             shapes.append((shares, shares))
         return shapes
 
@@ -389,7 +390,8 @@ class TrunkLightNet(TrunkFront):
         """The track vector's lit-area part against the track's floor and ceiling, and
         the new history."""
         n = maps.shape[0]
-        shares = lamps.area_shares(lamps.depth_to_space(maps, self.config.lamp_detail))
+        shares = lamps.area_shares(lamps.depth_to_space(maps, self.config.lamp_detail),
+                                   self.config.high_lamp)
         floor, ceiling = (h.reshape(n, -1) for h in history)
         vector, floor, ceiling = lamps.floor_step(shares, floor, ceiling, seen,
                                                   self.config.floor_rate)
@@ -415,7 +417,7 @@ class TrunkLightNet(TrunkFront):
         floor part is their last) and lamp maps of ``M`` frames; None without one."""
         if self.brake_expert is None or vector is None:
             return None
-        floor = vector[:, vector.shape[1] - lamps.floor_features():]
+        floor = vector[:, vector.shape[1] - lamps.floor_features(self.config.high_lamp):]
         fine = lamps.depth_to_space(maps, self.config.lamp_detail)
         logit = self.brake_expert(lamps.expert_inputs(floor, fine, self.config.expert_red))
         if self.config.expert_dark > 0:
