@@ -111,8 +111,9 @@ STEPS=${STEPS:-1500}
 # JUDGE_GAIN (default empty: no such stage), for a MODEL with "brake_expert": true: each
 # member then has its brake judge set to that gain and frozen, and its brake head's output
 # layer (JUDGE_LEARN=brake; all: every layer after the trunk) fine-tuned JUDGE_STEPS steps
-# at JUDGE_LR on the published brake logits (RUN/.../judged; docs/model.md, "The head
-# taught where the judge is wrong"); those are what is joined.
+# at JUDGE_LR on the published brake logits, drawing its windows with the member's seed
+# (RUN/.../judged; docs/model.md, "The head taught where the judge is wrong"); those are
+# what is joined.
 JUDGE_GAIN=${JUDGE_GAIN:-}
 JUDGE_STEPS=${JUDGE_STEPS:-300}
 JUDGE_LR=${JUDGE_LR:-5e-4}
@@ -208,7 +209,7 @@ for seed in $SEEDS; do
         "${pools[@]}" --val "$DATA/val_split" --tune-from "$out/best.pt" \
         --judge-gain "$JUDGE_GAIN" --judge-learn "$JUDGE_LEARN" --looks "$LOOKS" \
         --steps "$JUDGE_STEPS" --batch "$BATCH" --seq-len "$SEQ_LEN" --lr "$JUDGE_LR" \
-        --seed 1 --val-every 100 --threads "$THREADS" --device "$DEVICE" "${resume[@]}"
+        --seed "$seed" --val-every 100 --threads "$THREADS" --device "$DEVICE" "${resume[@]}"
     fi
     out=$judged
   fi
