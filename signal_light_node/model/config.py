@@ -133,8 +133,10 @@ class ModelConfig:
             lamps (docs/model.md, "The head taught where the judge is wrong").
         high_lamp: With ``track_floor``, the lit area also of the crop's upper centre
             (``model.lamp_evidence.HIGH_LAMP_BOX``), where a centre high-mounted stop lamp
-            sits, dark unless braking: steady tail lamps, however bright, do not light it
-            (docs/model.md, "The centre high-mounted stop lamp").
+            sits, dark unless braking: steady tail lamps, however bright, do not light it.
+            Screened and not in the recipe: inside the model it did not stop the heads
+            calling steady night tail lamps braking (docs/model.md, "The centre
+            high-mounted stop lamp").
         floor_rate: With ``track_floor``, the weight of a frame in the floor's slow rise
             and the ceiling's slow fall.
         lit_map_head: Give the CNN a training-only 1x1 convolution on the backbone's
