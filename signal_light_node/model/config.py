@@ -35,6 +35,16 @@ def _float3(value: Any, name: str) -> Tuple[float, float, float]:
 ENCODERS: Tuple[str, ...] = ("cnn", "efficientnet_lite0")
 
 
+#: Options that build on another one: ``(option, the option it needs, what it does with it)``,
+#: checked in this order.
+_NEEDS = (
+    ("track_floor", "lamp_area", "follows the lit area"),
+    ("brake_expert", "track_floor", "judges the lit area against the track's floor"),
+    ("high_lamp", "track_floor", "adds a region to the track's floor"),
+    ("expert_red", "brake_expert", "chooses the brake judge's inputs"),
+)
+
+
 @dataclass(frozen=True)
 class ModelConfig:
     """Everything needed to build a model and feed it exactly as in training.
@@ -289,18 +299,9 @@ class ModelConfig:
         if self.lamp_area and self.encoder == "cnn":
             raise ConfigError("model config lamp_area adds lamp-map channels: it needs the "
                               "trunk encoder (the CNN has no lamp maps)")
-        if self.track_floor and not self.lamp_area:
-            raise ConfigError("model config track_floor follows the lit area: it needs "
-                              "lamp_area")
-        if self.brake_expert and not self.track_floor:
-            raise ConfigError("model config brake_expert judges the lit area against the "
-                              "track's floor: it needs track_floor")
-        if self.high_lamp and not self.track_floor:
-            raise ConfigError("model config high_lamp adds a region to the track's floor: "
-                              "it needs track_floor")
-        if self.expert_red and not self.brake_expert:
-            raise ConfigError("model config expert_red chooses the brake judge's inputs: it "
-                              "needs brake_expert")
+        for option, needed, why in _NEEDS:
+            if getattr(self, option) and not getattr(self, needed):
+                raise ConfigError(f"model config {option} {why}: it needs {needed}")
         if self.lamp_detail > 1 and self.frequency_evidence:
             raise ConfigError("model config frequency_evidence reads whole lamp-map halves: "
                               "it needs lamp_detail 1")
