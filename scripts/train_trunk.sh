@@ -107,6 +107,9 @@ WIDE_TRUCK_LAMPS=${WIDE_TRUCK_LAMPS:-1}
 RECIPE_MODEL='{"frequency_evidence": false, "lamp_detail": 2, "lit_hidden": 128, "blink_levels": false}'
 MODEL=${MODEL:-$RECIPE_MODEL}
 LOOKS=${LOOKS:-1}
+# The looks' camera also draws per-channel gains in exp(+-LOOK_WHITE_BALANCE) (0: none;
+# docs/model.md, "Orange blinkers by day").
+LOOK_WHITE_BALANCE=${LOOK_WHITE_BALANCE:-0}
 STEPS=${STEPS:-1500}
 # JUDGE_GAIN (default empty: no such stage), for a MODEL with "brake_expert": true: each
 # member then has its brake judge set to that gain and frozen, and its brake head's output
@@ -195,7 +198,8 @@ for seed in $SEEDS; do
     resume=()
     [[ -f "$out/last.state.pt" ]] && resume=(--resume)
     python -m signal_light_node.training.trunk_recipe --out "$out" --cache "$DATA/cache" \
-      "${pools[@]}" --val "$DATA/val_split" --model "$MODEL" --looks "$LOOKS" --steps "$STEPS" \
+      "${pools[@]}" --val "$DATA/val_split" --model "$MODEL" --looks "$LOOKS" \
+      --look-white-balance "$LOOK_WHITE_BALANCE" --steps "$STEPS" \
       --batch "$BATCH" --seq-len "$SEQ_LEN" --lr "$LR" --seed "$seed" --val-every "$VAL_EVERY" \
       --threads "$THREADS" --device "$DEVICE" "${trunk[@]}" "${resume[@]}"
   fi
@@ -208,6 +212,7 @@ for seed in $SEEDS; do
       python -m signal_light_node.training.trunk_recipe --out "$judged" --cache "$DATA/cache" \
         "${pools[@]}" --val "$DATA/val_split" --tune-from "$out/best.pt" \
         --judge-gain "$JUDGE_GAIN" --judge-learn "$JUDGE_LEARN" --looks "$LOOKS" \
+        --look-white-balance "$LOOK_WHITE_BALANCE" \
         --steps "$JUDGE_STEPS" --batch "$BATCH" --seq-len "$SEQ_LEN" --lr "$JUDGE_LR" \
         --seed "$seed" --val-every 100 --threads "$THREADS" --device "$DEVICE" "${resume[@]}"
     fi

@@ -470,6 +470,34 @@ def test_feature_cache_trains_the_model_that_runs_on_crops(tmp_path):
         FeatureCache.load(tmp_path / "cache", trunk_fingerprint(other))
 
 
+def test_a_look_with_white_balance_is_cached_apart_and_reused(tmp_path):
+    from signal_light_node.data.split import write_split
+    from signal_light_node.training.feature_cache import MANIFEST, FeatureCache, write_cache
+    from signal_light_node.training.trunk_recipe import look_name
+
+    split = tmp_path / "split"
+    write_split(split, seed=5, n_sequences=1, seq_len=8, crop=trunk_config().crop_config(),
+                progress=False)
+    model = _model()
+    plain = write_cache(split, model, tmp_path / look_name("split", 1), 1001)
+    tinted = write_cache(split, model, tmp_path / look_name("split", 1, 0.3), 1001,
+                         white_balance=0.3)
+    assert (plain.name, tinted.name) == ("split_look1", "split_look1_wb0.3")
+    assert look_name("split", 0, 0.3) == "split_look0"
+    maps = [FeatureCache.load(p).maps.astype(np.float32) for p in (plain, tinted)]
+    assert np.abs(maps[0] - maps[1]).max() > 0.01
+    # A cache written before the option (no white_balance in its manifest) is a look
+    # without white balance: reused as such, never for a tinted look.
+    manifest = json.loads((plain / MANIFEST).read_text())
+    del manifest["white_balance"]
+    (plain / MANIFEST).write_text(json.dumps(manifest))
+    stamp = (plain / "maps.npy").stat().st_mtime_ns
+    write_cache(split, model, plain, 1001)
+    assert (plain / "maps.npy").stat().st_mtime_ns == stamp
+    write_cache(split, model, plain, 1001, white_balance=0.3)
+    assert json.loads((plain / MANIFEST).read_text())["white_balance"] == 0.3
+
+
 def test_trunk_recipe_trains_resumes_and_calibrates(tmp_path):
     from signal_light_node.data.split import write_split
     from signal_light_node.training import calibrate, trunk_recipe

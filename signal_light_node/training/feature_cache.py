@@ -85,20 +85,26 @@ def _frame_features(net: torch.nn.Module, crops: np.ndarray, batch: int
 
 def write_cache(split_dir: "str | os.PathLike[str]", model: torch.nn.Module,
                 out_dir: "str | os.PathLike[str]", augment_seed: Optional[int] = None,
-                batch: int = 512) -> Path:
+                batch: int = 512, white_balance: float = 0.0) -> Path:
     """Cache the per-frame features of every track of ``split_dir`` (see the module doc).
 
-    Reuses an existing cache made from the same split, trunk and seed.
+    Reuses an existing cache made from the same split, trunk, seed and white balance.
+
+    Args:
+        white_balance: With ``augment_seed``, the random camera's per-channel gain range
+            (``CameraResponse.draw``); 0 draws none, as caches made before it.
 
     Returns:
         The cache directory.
     """
     split_dir, out = Path(split_dir), Path(out_dir)
     info = {"split": str(split_dir.resolve()), "trunk": trunk_fingerprint(model),
-            "augment_seed": augment_seed, "config": model.config.to_dict()}
+            "augment_seed": augment_seed, "white_balance": float(white_balance),
+            "config": model.config.to_dict()}
     if (out / MANIFEST).is_file():
         old = json.loads((out / MANIFEST).read_text())
-        if all(old.get(k) == info[k] for k in ("split", "trunk", "augment_seed")):
+        old.setdefault("white_balance", 0.0)  # caches written before the option had none
+        if all(old.get(k) == info[k] for k in ("split", "trunk", "augment_seed", "white_balance")):
             LOG.info("%s: cache exists, reused", out)
             return out
     net = inference_copy(model.eval())
@@ -111,7 +117,7 @@ def write_cache(split_dir: "str | os.PathLike[str]", model: torch.nn.Module,
     for track in split_tracks(split_dir):
         crops = track["crops"]
         if rng is not None:
-            crops = randomise_camera(warp_sequence(crops, rng), rng)
+            crops = randomise_camera(warp_sequence(crops, rng), rng, white_balance)
         f, m = _frame_features(net, crops, batch)
         columns["features"].append(f)
         columns["maps"].append(m)

@@ -248,6 +248,17 @@ def build_fresh(changes: Dict[str, Any], seed: int) -> torch.nn.Module:
     return build_model(config, pretrained=True)
 
 
+def look_seed(pool: str, look: int) -> Optional[int]:
+    """The augmentation seed of a pool's look (None: the clean look 0)."""
+    return None if look == 0 else 1000 * look + zlib.crc32(pool.encode()) % 1000
+
+
+def look_name(pool: str, look: int, white_balance: float = 0.0) -> str:
+    """A look's cache directory name; looks with white balance get their own."""
+    name = f"{pool}_look{look}"
+    return name + f"_wb{white_balance:g}" if look > 0 and white_balance > 0 else name
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True)
@@ -257,6 +268,9 @@ def main(argv: Optional[List[str]] = None) -> int:
                         help="cache directory (default: OUT/../cache)")
     parser.add_argument("--looks", type=int, default=1,
                         help="augmented looks cached per pool besides the clean one")
+    parser.add_argument("--look-white-balance", type=float, default=0.0,
+                        help="the augmented looks' camera also draws per-channel gains in "
+                             "exp(+-this) (a camera's white balance and tint; 0: none)")
     parser.add_argument("--model", default="{}", help="JSON changes on trunk_config()")
     parser.add_argument("--steps", type=int, default=1500)
     parser.add_argument("--batch", type=int, default=32)
@@ -283,6 +297,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     if args.tune_from is not None and (args.model != "{}" or args.trunk_weights is not None):
         parser.error("--tune-from takes the member's own config and trunk: drop --model and "
                      "--trunk-weights")
+    if args.look_white_balance < 0:
+        parser.error(f"--look-white-balance must be >= 0, got {args.look_white_balance}")
     if args.judge_learn != "all" and args.judge_gain is None:
         parser.error("--judge-learn goes with --judge-gain")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
@@ -310,8 +326,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     caches = []
     for pool in args.pool:
         for look in range(args.looks + 1):
-            seed = None if look == 0 else 1000 * look + zlib.crc32(pool.name.encode()) % 1000
-            path = write_cache(pool, model, cache_root / f"{pool.name}_look{look}", seed)
+            name = look_name(pool.name, look, args.look_white_balance)
+            path = write_cache(pool, model, cache_root / name, look_seed(pool.name, look),
+                               white_balance=args.look_white_balance)
             caches.append(FeatureCache.load(path, fingerprint))
     val = FeatureCache.load(write_cache(args.val, model, cache_root / args.val.name), fingerprint)
     meta = {"recipe": "trunk_recipe", "args": {k: str(v) for k, v in vars(args).items()},
