@@ -496,6 +496,11 @@ def test_a_look_with_white_balance_is_cached_apart_and_reused(tmp_path):
     assert (plain / "maps.npy").stat().st_mtime_ns == stamp
     write_cache(split, model, plain, 1001, white_balance=0.3)
     assert json.loads((plain / MANIFEST).read_text())["white_balance"] == 0.3
+    # The clean look draws no camera, so asking it for white balance reuses it.
+    clean = write_cache(split, model, tmp_path / "split_look0", None)
+    stamp = (clean / "maps.npy").stat().st_mtime_ns
+    write_cache(split, model, clean, None, white_balance=0.3)
+    assert (clean / "maps.npy").stat().st_mtime_ns == stamp
 
 
 def test_trunk_recipe_trains_resumes_and_calibrates(tmp_path):

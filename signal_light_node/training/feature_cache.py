@@ -98,6 +98,8 @@ def write_cache(split_dir: "str | os.PathLike[str]", model: torch.nn.Module,
         The cache directory.
     """
     split_dir, out = Path(split_dir), Path(out_dir)
+    if augment_seed is None:
+        white_balance = 0.0  # the clean look draws no camera: one cache whatever is asked
     info = {"split": str(split_dir.resolve()), "trunk": trunk_fingerprint(model),
             "augment_seed": augment_seed, "white_balance": float(white_balance),
             "config": model.config.to_dict()}
