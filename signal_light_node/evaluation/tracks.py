@@ -48,6 +48,9 @@ class TrackSequence:
             (``runtime.box_sight.box_cover``, what the node can tell from the frame's
             boxes; NaN where not known), or None: tracks read from bags have it, splits
             keep no other boxes.
+        scene: The scene the track was recorded in (a split's scene seed, a bag's name);
+            tracks of one scene share its camera and light, so confidence intervals
+            resample scenes (``evaluation.bootstrap``). Empty: not known.
     """
 
     track_id: str
@@ -63,6 +66,7 @@ class TrackSequence:
     crop_config: CropConfig = field(default_factory=CropConfig)
     lit_maps: Optional[np.ndarray] = None
     cover: Optional[np.ndarray] = None
+    scene: str = ""
 
     def __len__(self) -> int:
         return int(self.labels.shape[0])
@@ -163,4 +167,5 @@ def track_from_item(item: Mapping[str, Any], track_id: str, source: str = "synth
                          stamps_ns=stamps, box_size=per_frame("box_size"),
                          occlusion=per_frame("occlusion"),
                          lighting=str(meta.get("lighting", "unknown")),
-                         source=source, crops=crops, lit_maps=item.get("lit_maps"))
+                         source=source, crops=crops, lit_maps=item.get("lit_maps"),
+                         scene=str(meta.get("seed", "")))

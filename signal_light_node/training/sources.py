@@ -305,6 +305,7 @@ def _read_bag_tracks(path: Path, crop_config: CropConfig,
             crops=np.stack(rec["crop"])[order],
             crop_config=crop_config,
             cover=np.asarray(rec["cover"], np.float64)[order],
+            scene=path.name,
         ))
     if not tracks:
         raise BagIOError(f"bag {path}: no frame has an image, detections"
