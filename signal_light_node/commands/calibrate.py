@@ -6,6 +6,8 @@ right and intent heads is lowered, and the offset added to the ON logit of both 
 (how readily the filter turns a blinker on), chosen on grids by the mean of intent macro-F1 and brake F1 through the
 node's intent filter (:mod:`signal_light_node.training.unknown_bias`). ``--holdout-fraction`` keeps a share of
 the track IDs out of the fit and writes the before/after report beside the checkpoint.
+``--night-negatives ... --max-false-brake X`` adds a third: the brake's ON offset nearest 0
+that keeps those night tracks' false brakes within X (:mod:`signal_light_node.training.brake_bound`).
 Examples::
 
     signal-light calibrate out/day_labelled --holdout-fraction 0.5 --out runs/mine/calibrated.pt
@@ -34,6 +36,7 @@ def _grid(text: str) -> tuple:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``signal-light calibrate``."""
+    from signal_light_node.training.brake_bound import DEFAULT_BRAKE_GRID
     from signal_light_node.training.unknown_bias import DEFAULT_GRID, DEFAULT_ON_GRID
 
     parser.formatter_class = argparse.ArgumentDefaultsHelpFormatter
@@ -52,6 +55,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--on-grid", type=_grid, default=DEFAULT_ON_GRID, metavar="O,O,...",
                         help="blinker ON offsets to try (logit "
                              "units; 0 alone keeps the ON logits; write --on-grid=-1,0,1)")
+    parser.add_argument("--night-negatives", type=Path, nargs="+", default=[],
+                        metavar="LABELLED",
+                        help="night tracks whose steady tail lamps glare as brakes do "
+                             "(render_data.sh: NIGHT_NEGATIVE_TRACKS): the brake ON offset "
+                             "is then the one nearest 0 that keeps their false brakes within "
+                             "--max-false-brake")
+    parser.add_argument("--max-false-brake", type=float, default=None, metavar="X",
+                        help="with --night-negatives: the largest share of their brake-OFF "
+                             "frames that may be published ON")
+    parser.add_argument("--brake-grid", type=_grid, default=DEFAULT_BRAKE_GRID,
+                        metavar="O,O,...", help="brake ON offsets to try (0 or below; write "
+                                                "--brake-grid=-1,0)")
     add_torch_options(parser)
 
 
@@ -59,15 +74,21 @@ def run(args: argparse.Namespace) -> int:
     """Fit, write the checkpoint (and report), print what was found."""
     import torch
 
-    from signal_light_node.training.unknown_bias import calibrate_checkpoint, summary_lines
+    from signal_light_node.training.unknown_bias import (BrakeBoundRequest,
+                                                         calibrate_checkpoint, summary_lines)
 
     require_pt_checkpoints(args, "calibrate")
     if not 0.0 <= args.holdout_fraction < 1.0:
         raise ConfigError(f"--holdout-fraction must be in [0, 1), got {args.holdout_fraction}")
+    if bool(args.night_negatives) != (args.max_false_brake is not None):
+        raise ConfigError("--night-negatives and --max-false-brake go together")
+    bound = None
+    if args.night_negatives:
+        bound = BrakeBoundRequest(args.night_negatives, args.max_false_brake, args.brake_grid)
     if args.threads:
         torch.set_num_threads(int(args.threads))
     fit, report = calibrate_checkpoint(args.out, args.inputs, args.checkpoint,
                                        args.holdout_fraction, args.seed, args.grid,
-                                       args.on_grid)
+                                       args.on_grid, bound)
     print("\n".join(summary_lines(fit, args.out, report)))
     return 0
