@@ -3,7 +3,10 @@
 # POOL_SEEDS pools of POOL_TRACKS whole tracks (style families 0 and 1), one worker process
 # per pool, and beside them the validation split (windows), the own test split and the
 # held-out family test split (style family 2), plus a family-2 calibration split when
-# CAL_TRACKS > 0. OBLIQUE (default 0) is the share of the pools' front and rear views drawn
+# CAL_TRACKS > 0 and, when NIGHT_NEGATIVE_TRACKS > 0, family-2 night negatives
+# (family_night_negatives, seed NIGHT_NEGATIVE_SEED): night scenes whose every lit vehicle
+# glares with tail lamps as bright as a brake, the hard case that bounds the brake's ON
+# offset in calibration (training.brake_bound; its brakes are labelled as usual). OBLIQUE (default 0) is the share of the pools' front and rear views drawn
 # turned (synth.traffic.OBLIQUE_YAW_DEG), TAIL_GLARE (default 0) the share of their lit
 # dusk and night vehicles with clipped tail lamps (synth.traffic.Vehicle.glare), REAR_BAR
 # (default 0) the share of their rear views with a full-width tail bar (synth.lamps.tail_bar),
@@ -42,6 +45,8 @@ CAL_SEED=${CAL_SEED:-920001}
 TEST_TRACKS=${TEST_TRACKS:-240}
 TEST_FRAMES=${TEST_FRAMES:-150}
 CAL_TRACKS=${CAL_TRACKS:-0}
+NIGHT_NEGATIVE_SEED=${NIGHT_NEGATIVE_SEED:-960001}
+NIGHT_NEGATIVE_TRACKS=${NIGHT_NEGATIVE_TRACKS:-0}
 OBLIQUE=${OBLIQUE:-0}
 TAIL_GLARE=${TAIL_GLARE:-0}
 REAR_BAR=${REAR_BAR:-0}
@@ -71,7 +76,8 @@ for seed in $POOL_SEEDS; do
   fi
 done
 python - "$DATA" "$VAL_SEED" "$VAL_SEQUENCES" "$VAL_LEN" "$TEST_SEED" "$FAMILY_SEED" \
-  "$TEST_TRACKS" "$TEST_FRAMES" "$CAL_SEED" "$CAL_TRACKS" "$TRUTH_RULE" <<'PY'
+  "$TEST_TRACKS" "$TEST_FRAMES" "$CAL_SEED" "$CAL_TRACKS" "$TRUTH_RULE" \
+  "$NIGHT_NEGATIVE_SEED" "$NIGHT_NEGATIVE_TRACKS" <<'PY'
 import sys
 from pathlib import Path
 
@@ -79,24 +85,30 @@ from signal_light_node.data.split import write_split
 from signal_light_node.model import ModelConfig
 from signal_light_node.synth.lamps import HELD_OUT_FAMILY
 
-run, val_seed, val_n, val_len, test_seed, family_seed, test_n, test_len, cal_seed, cal_n, rule = \
-    sys.argv[1:]
+(run, val_seed, val_n, val_len, test_seed, family_seed, test_n, test_len, cal_seed, cal_n, rule,
+ neg_seed, neg_n) = sys.argv[1:]
 crop = ModelConfig().crop_config()
-splits = [("val_split", val_seed, val_n, val_len, False, None),
-          ("test_split", test_seed, test_n, test_len, True, None),
-          ("family_test_split", family_seed, test_n, test_len, True, HELD_OUT_FAMILY)]
+# name, seed, items, length, whole tracks, renderer overrides, stream options
+held_out = {"family": HELD_OUT_FAMILY}
+splits = [("val_split", val_seed, val_n, val_len, False, {}, {}),
+          ("test_split", test_seed, test_n, test_len, True, {}, {}),
+          ("family_test_split", family_seed, test_n, test_len, True, held_out, {})]
 if int(cal_n) > 0:
-    splits.append(("family_cal_split", cal_seed, cal_n, test_len, True, HELD_OUT_FAMILY))
-for name, seed, n, length, full, family in splits:
+    splits.append(("family_cal_split", cal_seed, cal_n, test_len, True, held_out, {}))
+if int(neg_n) > 0:
+    glare = dict(held_out, tail_glare=1.0, glare_tail_bright=1.0)
+    splits.append(("family_night_negatives", neg_seed, neg_n, test_len, True, glare,
+                   {"lighting": "night"}))
+for name, seed, n, length, full, overrides, options in splits:
     out = Path(run) / name
     if (out / "manifest.json").is_file():
         print(f"{out} exists; reusing it")
         continue
-    overrides = {} if family is None else {"family": family}
+    overrides = dict(overrides)
     if rule != "lamp":
         overrides["truth_rule"] = rule
     extra = {"renderer_overrides": overrides} if overrides else {}
     write_split(out, seed=int(seed), n_sequences=int(n), seq_len=int(length), crop=crop,
-                full_tracks=full, progress=False, **extra)
+                full_tracks=full, progress=False, **extra, **options)
 PY
 for pid in "${pids[@]}"; do wait "$pid"; done

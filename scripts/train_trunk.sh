@@ -49,7 +49,8 @@
 #      training/join_members.py; docs/model.md, "Members over one trunk");
 #   3. fits one temperature per head on the family calibration split (never a test set),
 #      then on the same split the UNKNOWN margin and the blinkers' ON offset the node's
-#      filter scores best with (`signal-light calibrate`);
+#      filter scores best with (`signal-light calibrate`), and with MAX_FALSE_BRAKE set the
+#      brake's ON offset bounded on the family's night negatives;
 #   4. copies the calibrated checkpoint to WEIGHTS, records the trunk's batch-norm
 #      statistics on the training pools as its reference (`signal-light adapt --reference`)
 #      and, with EXPORT=1, exports it to ONNX and int8 ONNX (calibrated on
@@ -118,6 +119,13 @@ STEPS=${STEPS:-1500}
 # (RUN/.../judged; docs/model.md, "The head taught where the judge is wrong"); those are
 # what is joined.
 JUDGE_GAIN=${JUDGE_GAIN:-}
+# MAX_FALSE_BRAKE (default empty: no bound): step 3 then also renders NIGHT_NEGATIVE_TRACKS
+# (default 80) night tracks of the held-out family whose tail lamps glare as brightly as
+# brakes (DATA/family_night_negatives) and gives the brake the ON offset nearest 0 that
+# publishes at most that share of their brake-OFF frames ON (docs/model.md, "A bound on
+# false night brakes").
+MAX_FALSE_BRAKE=${MAX_FALSE_BRAKE:-}
+NIGHT_NEGATIVE_TRACKS=${NIGHT_NEGATIVE_TRACKS:-$([[ -n "$MAX_FALSE_BRAKE" ]] && echo 80 || echo 0)}
 JUDGE_STEPS=${JUDGE_STEPS:-300}
 JUDGE_LR=${JUDGE_LR:-5e-4}
 JUDGE_LEARN=${JUDGE_LEARN:-brake}   # brake: the brake head's output layer alone; or all
@@ -151,7 +159,8 @@ echo "== 1/5 data in $DATA: pools (seeds $POOL_SEEDS), validation, test, family 
 pool_dirs=()
 for seed in $POOL_SEEDS; do pool_dirs+=("$DATA/pool_$seed"); done
 DATA=$DATA POOL_SEEDS=$POOL_SEEDS POOL_NAME=pool CAL_TRACKS=${CAL_TRACKS:-120} \
-  GLARE_TAIL_HOT=0 GLARE_TAIL_BRIGHT=0 bash scripts/render_data.sh
+  NIGHT_NEGATIVE_TRACKS=$NIGHT_NEGATIVE_TRACKS GLARE_TAIL_HOT=0 GLARE_TAIL_BRIGHT=0 \
+  bash scripts/render_data.sh
 if [[ -n "$GLARE_POOL_SEEDS" ]]; then
   DATA=$DATA POOL_SEEDS=$GLARE_POOL_SEEDS POOL_NAME=glare_pool TAIL_GLARE=$GLARE_SHARE \
     GLARE_TAIL_HOT=$GLARE_TAIL_HOT GLARE_TAIL_BRIGHT=$GLARE_TAIL_BRIGHT CAL_TRACKS=${CAL_TRACKS:-120} \
@@ -232,8 +241,13 @@ python -m signal_light_node.training.calibrate --checkpoint "$model/best.pt" \
   --split "$DATA/family_cal_split" --cache "$DATA/cache" --out "$model/calibrated.pt"
 # Temperatures make the probabilities honest; the offsets move the decisions the node's
 # filter takes from them (docs/model.md, "The blinkers' ON offset fitted for the shipped file").
+brake_bound=()
+if [[ -n "$MAX_FALSE_BRAKE" ]]; then
+  brake_bound=(--night-negatives "$DATA/family_night_negatives" --max-false-brake "$MAX_FALSE_BRAKE")
+fi
 signal-light calibrate "$DATA/family_cal_split" --checkpoint "$model/calibrated.pt" \
-  --out "$model/calibrated.pt" --threads "$THREADS" --device "$DEVICE" --no-progress
+  --out "$model/calibrated.pt" --threads "$THREADS" --device "$DEVICE" --no-progress \
+  "${brake_bound[@]}"
 
 echo "== 4/5 calibrated checkpoint -> $WEIGHTS"
 mkdir -p "$(dirname "$WEIGHTS")"
