@@ -74,8 +74,8 @@ def run(args: argparse.Namespace) -> int:
     """Fit, write the checkpoint (and report), print what was found."""
     import torch
 
-    from signal_light_node.training.unknown_bias import (BrakeBoundRequest,
-                                                         calibrate_checkpoint, summary_lines)
+    from signal_light_node.training.brake_bound import BrakeBound, summary_line
+    from signal_light_node.training.unknown_bias import calibrate_checkpoint, summary_lines
 
     require_pt_checkpoints(args, "calibrate")
     if not 0.0 <= args.holdout_fraction < 1.0:
@@ -84,11 +84,14 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--night-negatives and --max-false-brake go together")
     bound = None
     if args.night_negatives:
-        bound = BrakeBoundRequest(args.night_negatives, args.max_false_brake, args.brake_grid)
+        bound = BrakeBound(args.night_negatives, args.max_false_brake, args.brake_grid)
     if args.threads:
         torch.set_num_threads(int(args.threads))
     fit, report = calibrate_checkpoint(args.out, args.inputs, args.checkpoint,
                                        args.holdout_fraction, args.seed, args.grid,
                                        args.on_grid, bound)
-    print("\n".join(summary_lines(fit, args.out, report)))
+    lines = summary_lines(fit, args.out, report)
+    if bound is not None and bound.fit is not None:
+        lines.append(summary_line(bound.fit))
+    print("\n".join(lines))
     return 0

@@ -22,8 +22,9 @@ exports carry it in the brake head's bias.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
-from typing import Dict, Sequence, Tuple
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Dict, Optional, Sequence, Tuple
 
 import numpy as np
 import torch.nn as nn
@@ -126,6 +127,35 @@ def fit_brake_offset(model: nn.Module, tracks: Sequence[TrackSequence], bound: f
                     offset, 100 * fit.false_on[offset])
     fit.offset, fit.met = choose_offset(fit.false_on, bound)
     return fit
+
+
+class BrakeBound:
+    """``calibrate_checkpoint``'s ``after_fit``: fit the brake ON offset on the night
+    negatives, apply it to the model, and return its metadata entry (the fit stays in
+    :attr:`fit`).
+
+    Args:
+        negatives: Labelled splits or bags of night negatives.
+        bound: The largest share of their brake-OFF frames that may be published ON.
+        grid: The brake ON offsets to try (0 or below).
+    """
+
+    def __init__(self, negatives: Sequence[Path], bound: float,
+                 grid: Sequence[float] = DEFAULT_BRAKE_GRID) -> None:
+        self.negatives, self.bound, self.grid = list(negatives), float(bound), tuple(grid)
+        self.fit: Optional[BrakeBoundFit] = None
+
+    def __call__(self, model: nn.Module) -> Dict[str, Any]:
+        from signal_light_node.training.unknown_bias import apply_offsets, load_labelled
+
+        tracks = load_labelled(self.negatives, model.config.crop_config())
+        self.fit = fit_brake_offset(model, tracks, self.bound, self.grid)
+        apply_offsets(model, brake_offsets(model, self.fit.offset))
+        entry = asdict(self.fit)
+        for key in ("false_on", "recall"):
+            entry[key] = {f"{o:g}": v for o, v in entry[key].items()}
+        entry["data"] = [str(p) for p in self.negatives]
+        return {BRAKE_META_KEY: entry}
 
 
 def summary_line(fit: BrakeBoundFit) -> str:

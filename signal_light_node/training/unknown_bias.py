@@ -41,7 +41,7 @@ import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -51,9 +51,6 @@ from signal_light_node.errors import ConfigError
 from signal_light_node.evaluation.tracks import TrackSequence
 from signal_light_node.model.checkpoint import FILE_META
 from signal_light_node.runtime.crops import CropConfig
-
-if TYPE_CHECKING:
-    from signal_light_node.training.brake_bound import BrakeBoundFit
 
 logger = logging.getLogger(__name__)
 
@@ -85,8 +82,6 @@ class MarginFit:
         fit_frames: Their frames scored.
         edges: What was chosen at the end of its grid (:func:`grid_edges`): a wider grid
             might score better still.
-        brake: The brake ON offset's fit on night negatives, where one was asked for
-            (``training.brake_bound``).
     """
 
     margin: float
@@ -95,7 +90,6 @@ class MarginFit:
     fit_tracks: int = 0
     fit_frames: int = 0
     edges: List[str] = field(default_factory=list)
-    brake: Optional["BrakeBoundFit"] = None
 
 
 def grid_edges(margin: float, on_offset: float, grid: Sequence[float],
@@ -280,13 +274,14 @@ def calibrate_checkpoint(out: Path, inputs: Sequence[Path],
                          checkpoint: Optional[Path] = None, holdout_fraction: float = 0.0,
                          seed: int = 0, grid: Sequence[float] = DEFAULT_GRID,
                          on_grid: Sequence[float] = DEFAULT_ON_GRID,
-                         brake_bound: Optional["BrakeBoundRequest"] = None
+                         after_fit: Optional[Callable[[nn.Module], Dict[str, Any]]] = None
                          ) -> Tuple[MarginFit, Optional[Dict[str, Any]]]:
     """Fit the UNKNOWN margin and ON offsets of ``checkpoint`` on ``inputs``, write ``out``
     (and, with held-out tracks, its before/after report); returns the fit and the report.
 
-    With ``brake_bound``, the brake's ON offset is then fitted on its night negatives
-    (``training.brake_bound``) and applied too; the fit is ``MarginFit.brake``.
+    ``after_fit`` is called with the model once its margin and offsets are applied; it may
+    move the model further (``training.brake_bound.BrakeBound``), and what it returns joins
+    the checkpoint's metadata.
 
     Raises:
         ConfigError: Bad grid or fraction, no track, or a head without UNKNOWN.
@@ -305,9 +300,7 @@ def calibrate_checkpoint(out: Path, inputs: Sequence[Path],
     kept, held = split_by_track_id(tracks, holdout_fraction, seed)
     fit = fit_unknown_margin(loaded.model, kept, grid, on_grid)
     apply_offsets(loaded.model, head_offsets(loaded.model, fit.margin, fit.on_offset))
-    extra: Dict[str, Any] = {}
-    if brake_bound is not None:
-        extra = _bound_brake(loaded.model, brake_bound, fit)
+    extra = after_fit(loaded.model) if after_fit is not None else {}
     meta = {k: v for k, v in loaded.meta.items() if k not in FILE_META}
     meta[META_KEY] = {"margin": fit.margin, "on_offset": fit.on_offset,
                       "on_heads": list(ON_HEADS),
@@ -330,39 +323,6 @@ def calibrate_checkpoint(out: Path, inputs: Sequence[Path],
     return fit, report
 
 
-@dataclass
-class BrakeBoundRequest:
-    """Bound the false brakes at night (``training.brake_bound``).
-
-    Attributes:
-        negatives: Labelled splits or bags of night negatives.
-        bound: The largest share of their brake-OFF frames that may be published ON.
-        grid: The brake ON offsets to try (0 or below).
-    """
-
-    negatives: Sequence[Path]
-    bound: float
-    grid: Sequence[float]
-
-
-def _bound_brake(model: nn.Module, request: BrakeBoundRequest, fit: MarginFit
-                 ) -> Dict[str, Any]:
-    """Fit and apply the brake ON offset; its metadata entry."""
-    from dataclasses import asdict
-
-    from signal_light_node.training.brake_bound import (BRAKE_META_KEY, brake_offsets,
-                                                        fit_brake_offset)
-
-    negatives = load_labelled(request.negatives, model.config.crop_config())
-    fit.brake = fit_brake_offset(model, negatives, request.bound, request.grid)
-    apply_offsets(model, brake_offsets(model, fit.brake.offset))
-    entry = asdict(fit.brake)
-    for key in ("false_on", "recall"):
-        entry[key] = {f"{o:g}": v for o, v in entry[key].items()}
-    entry["data"] = [str(p) for p in request.negatives]
-    return {BRAKE_META_KEY: entry}
-
-
 def summary_lines(fit: MarginFit, out: Path, report: Optional[Dict[str, Any]]) -> List[str]:
     """What ``signal-light calibrate`` prints."""
     grid = ", ".join(f"{m:g}: {100 * s:.1f} %" for m, s in sorted(fit.scores.items()))
@@ -373,10 +333,6 @@ def summary_lines(fit: MarginFit, out: Path, report: Optional[Dict[str, Any]]) -
              f"of {', '.join(ON_HEADS)}); wrote {out}"]
     if fit.edges:
         lines.append(f"note: {'; '.join(fit.edges)}: a wider grid may score better")
-    if fit.brake is not None:
-        from signal_light_node.training.brake_bound import summary_line
-
-        lines.append(summary_line(fit.brake))
     if report is not None:
         for key in ("before", "after"):
             r = report[key]
