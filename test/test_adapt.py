@@ -24,6 +24,7 @@ from signal_light_node.training.adapt_norms import (REFERENCE_KEY, AdaptSettings
                                                     check_stats, measure_batch_norms,
                                                     stepped_crops)
 from signal_light_node.training.sources import load_unlabelled_bag_tracks
+from cli_refusal import refused
 
 REPO = Path(__file__).resolve().parents[1]
 BAG = REPO / "bags" / "day_street"
@@ -277,11 +278,7 @@ def test_the_trunk_model_keeps_its_stem_and_the_stems_reference(tmp_path: Path) 
 
 
 def _refused(capsys, args, out: Path) -> str:
-    assert main(["adapt", *map(str, args), "--out", str(out), "--no-progress"]) == 2
-    err = capsys.readouterr().err.strip()
-    assert err.startswith("signal-light adapt: error:") and "\n" not in err
-    assert not out.exists() and not list(out.parent.glob(out.name + "*"))
-    return err
+    return refused(capsys, "adapt", args, out, extra=("--no-progress",))
 
 
 @needs_bag

@@ -20,6 +20,7 @@ from signal_light_node.training.brake_bound import (BRAKE_META_KEY, brake_offset
                                                     choose_offset, fit_brake_offset)
 from signal_light_node.training.sources import load_bag_tracks
 from signal_light_node.training.unknown_bias import apply_offsets, class_index, task_heads
+from cli_refusal import refused
 
 REPO = Path(__file__).resolve().parents[1]
 DAY = REPO / "bags" / "day_street"
@@ -96,11 +97,7 @@ def test_calibrate_writes_the_brake_offset_into_the_brake_head(tmp_path: Path, c
 
 
 def _refused(capsys, args, out: Path) -> str:
-    assert main(["calibrate", *map(str, args), "--out", str(out)]) == 2
-    err = capsys.readouterr().err.strip()
-    assert err.startswith("signal-light calibrate: error:") and "\n" not in err
-    assert not out.exists()
-    return err
+    return refused(capsys, "calibrate", args, out)
 
 
 @needs_bags

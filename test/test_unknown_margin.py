@@ -19,6 +19,7 @@ from signal_light_node.training.unknown_bias import (MARGIN_HEADS, META_KEY, ON_
                                                      MarginFit, fit_unknown_margin, grid_edges,
                                                      head_offsets, summary_lines, task_heads,
                                                      unknown_index, with_offsets)
+from cli_refusal import refused
 
 REPO = Path(__file__).resolve().parents[1]
 BAG = REPO / "bags" / "day_street"
@@ -163,11 +164,7 @@ def test_a_choice_at_the_end_of_its_grid_is_named() -> None:
 
 
 def _refused(capsys, args, out: Path) -> str:
-    assert main(["calibrate", *map(str, args), "--out", str(out)]) == 2
-    err = capsys.readouterr().err.strip()
-    assert err.startswith("signal-light calibrate: error:") and "\n" not in err
-    assert not out.exists()
-    return err
+    return refused(capsys, "calibrate", args, out)
 
 
 def test_a_missing_bag_is_refused(tmp_path: Path, capsys) -> None:
