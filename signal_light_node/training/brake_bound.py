@@ -2,7 +2,7 @@
 
 Steady tail lamps at night are bright, red and clipped, as brake lamps are; a model may
 rank a brake above a tail lamp within a scene and still call the tail lamps braking where
-its absolute level does not carry over (docs/model.md, "How many scenes decide step 3").
+its absolute level does not carry over (docs/model.md, "A bound on false night brakes").
 The held-out family's calibration split does not see that failure, so the UNKNOWN margin
 and blinker offset fitted there (``unknown_bias``) leave the brake's threshold where
 training put it. A false brake is what a prediction module reacts to, so the brake gets a
@@ -32,6 +32,8 @@ import torch.nn as nn
 from signal_light_node.errors import ConfigError
 from signal_light_node.evaluation.tracks import TrackSequence
 from signal_light_node.labels import LightStatus
+from signal_light_node.training.unknown_bias import (apply_offsets, class_index, load_labelled,
+                                                     with_offsets)
 
 logger = logging.getLogger(__name__)
 
@@ -68,8 +70,6 @@ class BrakeBoundFit:
 
 def brake_offsets(model: nn.Module, offset: float) -> Dict[str, np.ndarray]:
     """What to add to each brake class's logit: ``offset`` on ON."""
-    from signal_light_node.training.unknown_bias import class_index
-
     delta = np.zeros(len(model.config.class_names["brake"]))
     delta[class_index(model, "brake", "ON")] = float(offset)
     return {"brake": delta}
@@ -103,7 +103,6 @@ def fit_brake_offset(model: nn.Module, tracks: Sequence[TrackSequence], bound: f
     from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
     from signal_light_node.evaluation.streaming import chunks, model_track_probs, score_batch
     from signal_light_node.runtime.intent_filter import IntentFilterConfig
-    from signal_light_node.training.unknown_bias import with_offsets
 
     _check(bound, grid, tracks)
     settings, light_filter = EvalSettings(), IntentFilterConfig()
@@ -146,8 +145,6 @@ class BrakeBound:
         self.fit: Optional[BrakeBoundFit] = None
 
     def __call__(self, model: nn.Module) -> Dict[str, Any]:
-        from signal_light_node.training.unknown_bias import apply_offsets, load_labelled
-
         tracks = load_labelled(self.negatives, model.config.crop_config())
         self.fit = fit_brake_offset(model, tracks, self.bound, self.grid)
         apply_offsets(model, brake_offsets(model, self.fit.offset))
