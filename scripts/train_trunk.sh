@@ -2,7 +2,7 @@
 # Train the pretrained-trunk model (encoder efficientnet_lite0, docs/model.md "The trunk
 # model") -- one command:
 #
-#   scripts/train_trunk.sh                          # CPU (about 75 minutes on 2 cores)
+#   scripts/train_trunk.sh                          # CPU (2.5 hours on 2 cores once data are cached)
 #   DEVICE=cuda THREADS=16 scripts/train_trunk.sh   # a lent GPU machine
 #
 # It writes WEIGHTS (default RUN/trunk.pt) and, with EXPORT=1 (the default when WEIGHTS is
@@ -12,8 +12,8 @@
 # session added step 3's ON offset to that file) came from
 #
 #   TRUNK_WEIGHTS=runs/frames/A2_best.pt POOL_SEEDS="31 32 33 34 35 36" \
-#     GLARE_POOL_SEEDS="31 32 33" SEEDS="1 2" WEIGHTS=signal_light_node/weights/default.pt \
-#     scripts/train_trunk.sh
+#     GLARE_POOL_SEEDS="31 32 33" SEEDS="1 2" STEPS=1500 \
+#     WEIGHTS=signal_light_node/weights/default.pt scripts/train_trunk.sh
 #
 # (FRAME_STEPS=2000 TRAIN_FROM=-1 instead of TRUNK_WEIGHTS trains that per-frame trunk too).
 # Since 2026-11-27 (tenth session) the recipe's pools 34-36 are truck pools instead
@@ -28,7 +28,8 @@
 # "A brake is a step over the vehicle's own lamps"), and since the fifteenth a brake judge of
 # that floor (MODEL plus "brake_expert": true) speaks at gain 8 after each member's brake
 # head is fine-tuned against it (JUDGE_GAIN=8, JUDGE_LEARN=brake; docs/model.md, "The head
-# taught where the judge is wrong"); no file shipped from it yet.
+# taught where the judge is wrong"), and since the eighteenth each member trains 3,000 steps
+# (STEPS, was 1,500; docs/model.md, "Twice the steps"); no file shipped from it yet.
 #
 # What it does (docs/model.md, "The trunk recipe"):
 #   1. renders the data in parallel worker processes, once (reused when present): POOL_SEEDS
@@ -111,7 +112,7 @@ LOOKS=${LOOKS:-1}
 # The looks' camera also draws per-channel gains in exp(+-LOOK_WHITE_BALANCE) (0: none;
 # docs/model.md, "Orange blinkers by day").
 LOOK_WHITE_BALANCE=${LOOK_WHITE_BALANCE:-0}
-STEPS=${STEPS:-1500}
+STEPS=${STEPS:-3000}
 # JUDGE_GAIN (default empty: no such stage), for a MODEL with "brake_expert": true: each
 # member then has its brake judge set to that gain and frozen, and its brake head's output
 # layer (JUDGE_LEARN=brake; all: every layer after the trunk) fine-tuned JUDGE_STEPS steps
