@@ -32,8 +32,8 @@ import torch.nn as nn
 from signal_light_node.errors import ConfigError
 from signal_light_node.evaluation.tracks import TrackSequence
 from signal_light_node.labels import LightStatus
-from signal_light_node.training.unknown_bias import (apply_offsets, class_index, load_labelled,
-                                                     with_offsets)
+from signal_light_node.training.unknown_bias import (ModelPass, apply_offsets, class_index,
+                                                     load_labelled)
 
 logger = logging.getLogger(__name__)
 
@@ -100,23 +100,11 @@ def fit_brake_offset(model: nn.Module, tracks: Sequence[TrackSequence], bound: f
         ConfigError: A bound outside [0, 1), an offset above 0, no track, or tracks without
             a brake-OFF frame.
     """
-    from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
-    from signal_light_node.evaluation.streaming import chunks, model_track_probs, score_batch
-    from signal_light_node.runtime.intent_filter import IntentFilterConfig
-
     _check(bound, grid, tracks)
-    settings, light_filter = EvalSettings(), IntentFilterConfig()
-    model = model.eval()
-    outputs = [(batch, model_track_probs(model, batch))
-               for batch in chunks(tracks, settings.batch_tracks)]
-    temperatures = dict(model.config.temperatures)
+    passed = ModelPass(model, tracks)
     fit = BrakeBoundFit(offset=0.0, bound=float(bound), met=False, tracks=len(tracks))
     for offset in sorted({float(o) for o in grid}, reverse=True):
-        scorer = TrackScorer(settings)
-        for batch, raw in outputs:
-            score_batch(scorer, batch, with_offsets(raw, brake_offsets(model, offset),
-                                                    temperatures), light_filter)
-        m = scorer.strict.confusion("brake")
+        m = passed.scorer(brake_offsets(model, offset)).strict.confusion("brake")
         if m[OFF].sum() == 0:
             raise ConfigError("the night negative tracks have no brake-OFF frame to count")
         fit.off_frames = int(m[OFF].sum())

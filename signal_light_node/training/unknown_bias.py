@@ -41,7 +41,7 @@ import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+from typing import TYPE_CHECKING, Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -51,6 +51,9 @@ from signal_light_node.errors import ConfigError
 from signal_light_node.evaluation.tracks import TrackSequence
 from signal_light_node.model.checkpoint import FILE_META
 from signal_light_node.runtime.crops import CropConfig
+
+if TYPE_CHECKING:
+    from signal_light_node.evaluation.scoring import TrackScorer
 
 logger = logging.getLogger(__name__)
 
@@ -197,6 +200,39 @@ def _best(values: Dict[float, float]) -> float:
     return min((k for k, v in values.items() if v == top), key=lambda k: (abs(k), k))
 
 
+class ModelPass:
+    """One pass of a model over labelled tracks, scored under any offsets of its heads'
+    logits without running it again (:func:`with_offsets`), filtered and counted as
+    ``evaluate`` does.
+
+    Args:
+        model: The model (set to eval mode).
+        tracks: The labelled tracks.
+    """
+
+    def __init__(self, model: nn.Module, tracks: Sequence[TrackSequence]) -> None:
+        from signal_light_node.evaluation.scoring import EvalSettings
+        from signal_light_node.evaluation.streaming import chunks, model_track_probs
+        from signal_light_node.runtime.intent_filter import IntentFilterConfig
+
+        self.settings, self.light_filter = EvalSettings(), IntentFilterConfig()
+        model = model.eval()
+        self.temperatures = dict(model.config.temperatures)
+        self.outputs = [(batch, model_track_probs(model, batch))
+                        for batch in chunks(tracks, self.settings.batch_tracks)]
+
+    def scorer(self, offsets: Dict[str, np.ndarray]) -> "TrackScorer":
+        """Every track scored as the model moved by ``offsets`` would publish it."""
+        from signal_light_node.evaluation.scoring import TrackScorer
+        from signal_light_node.evaluation.streaming import score_batch
+
+        scorer = TrackScorer(self.settings)
+        for batch, raw in self.outputs:
+            score_batch(scorer, batch, with_offsets(raw, offsets, self.temperatures),
+                        self.light_filter)
+        return scorer
+
+
 def fit_unknown_margin(model: nn.Module, tracks: Sequence[TrackSequence],
                        grid: Sequence[float] = DEFAULT_GRID,
                        on_grid: Sequence[float] = (0.0,)) -> MarginFit:
@@ -209,10 +245,7 @@ def fit_unknown_margin(model: nn.Module, tracks: Sequence[TrackSequence],
     Raises:
         ConfigError: An empty grid, a negative margin, or no track to fit on.
     """
-    from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
-    from signal_light_node.evaluation.streaming import (chunks, model_track_probs, score_batch,
-                                                        scorer_result)
-    from signal_light_node.runtime.intent_filter import IntentFilterConfig
+    from signal_light_node.evaluation.streaming import scorer_result
 
     if not grid or min(grid) < 0:
         raise ConfigError(f"the margins to try must be >= 0, got {list(grid)}")
@@ -221,22 +254,14 @@ def fit_unknown_margin(model: nn.Module, tracks: Sequence[TrackSequence],
     if not tracks:
         raise ConfigError("no labelled track to fit the UNKNOWN margin on")
     head_offsets(model, 0.0)  # every head has the classes moved
-    settings, light_filter = EvalSettings(), IntentFilterConfig()
-    model = model.eval()
-    outputs = [(batch, model_track_probs(model, batch))
-               for batch in chunks(tracks, settings.batch_tracks)]
-    temperatures = dict(model.config.temperatures)
+    passed = ModelPass(model, tracks)
     fit = MarginFit(margin=0.0, fit_tracks=len(tracks))
     chosen: Dict[float, float] = {}
     for margin in sorted({float(m) for m in grid}):
         by_offset: Dict[float, float] = {}
         for on in sorted({float(o) for o in on_grid}):
-            offsets = head_offsets(model, margin, on)
-            scorer = TrackScorer(settings)
-            for batch, raw in outputs:
-                score_batch(scorer, batch, with_offsets(raw, offsets, temperatures),
-                            light_filter)
-            result = scorer_result(scorer, light_filter)
+            result = scorer_result(passed.scorer(head_offsets(model, margin, on)),
+                                   passed.light_filter)
             by_offset[on] = score(result)
             fit.fit_frames = int(result["counts"]["scored"])
         chosen[margin] = _best(by_offset)
