@@ -6,7 +6,7 @@
 # CAL_TRACKS > 0 and, when NIGHT_NEGATIVE_TRACKS > 0, family-2 night negatives
 # (family_night_negatives, seed NIGHT_NEGATIVE_SEED): night scenes whose every lit vehicle
 # glares with tail lamps as bright as a brake, the hard case that bounds the brake's ON
-# offset in calibration (training.brake_bound; its brakes are labelled as usual). OBLIQUE (default 0) is the share of the pools' front and rear views drawn
+# offset in calibration (training.night_bound; its brakes are labelled as usual). OBLIQUE (default 0) is the share of the pools' front and rear views drawn
 # turned (synth.traffic.OBLIQUE_YAW_DEG), TAIL_GLARE (default 0) the share of their lit
 # dusk and night vehicles with clipped tail lamps (synth.traffic.Vehicle.glare), REAR_BAR
 # (default 0) the share of their rear views with a full-width tail bar (synth.lamps.tail_bar),

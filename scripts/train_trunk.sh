@@ -50,8 +50,9 @@
 #      training/join_members.py; docs/model.md, "Members over one trunk");
 #   3. fits one temperature per head on the family calibration split (never a test set),
 #      then on the same split the UNKNOWN margin and the blinkers' ON offset the node's
-#      filter scores best with (`signal-light calibrate`), and with MAX_FALSE_BRAKE set the
-#      brake's ON offset bounded on the family's night negatives;
+#      filter scores best with (`signal-light calibrate`), and with MAX_FALSE_BRAKE or
+#      MAX_FALSE_BLINKER set the brake's or blinkers' ON offset bounded on the family's
+#      night negatives;
 #   4. copies the calibrated checkpoint to WEIGHTS, records the trunk's batch-norm
 #      statistics on the training pools as its reference (`signal-light adapt --reference`)
 #      and, with EXPORT=1, exports it to ONNX and int8 ONNX (calibrated on
@@ -125,8 +126,11 @@ JUDGE_GAIN=${JUDGE_GAIN:-}
 # brakes (DATA/family_night_negatives) and gives the brake the ON offset nearest 0 that
 # publishes at most that share of their brake-OFF frames ON (docs/model.md, "A bound on
 # false night brakes").
+# MAX_FALSE_BLINKER (default empty) does the same for the blinkers: a further blinker ON
+# offset keeping those tracks' blinker-OFF frames published ON within it (training/night_bound.py).
 MAX_FALSE_BRAKE=${MAX_FALSE_BRAKE:-}
-NIGHT_NEGATIVE_TRACKS=${NIGHT_NEGATIVE_TRACKS:-$([[ -n "$MAX_FALSE_BRAKE" ]] && echo 80 || echo 0)}
+MAX_FALSE_BLINKER=${MAX_FALSE_BLINKER:-}
+NIGHT_NEGATIVE_TRACKS=${NIGHT_NEGATIVE_TRACKS:-$([[ -n "$MAX_FALSE_BRAKE$MAX_FALSE_BLINKER" ]] && echo 80 || echo 0)}
 JUDGE_STEPS=${JUDGE_STEPS:-300}
 JUDGE_LR=${JUDGE_LR:-5e-4}
 JUDGE_LEARN=${JUDGE_LEARN:-brake}   # brake: the brake head's output layer alone; or all
@@ -242,13 +246,13 @@ python -m signal_light_node.training.calibrate --checkpoint "$model/best.pt" \
   --split "$DATA/family_cal_split" --cache "$DATA/cache" --out "$model/calibrated.pt"
 # Temperatures make the probabilities honest; the offsets move the decisions the node's
 # filter takes from them (docs/model.md, "The blinkers' ON offset fitted for the shipped file").
-brake_bound=()
-if [[ -n "$MAX_FALSE_BRAKE" ]]; then
-  brake_bound=(--night-negatives "$DATA/family_night_negatives" --max-false-brake "$MAX_FALSE_BRAKE")
-fi
+night_bounds=()
+[[ -n "$MAX_FALSE_BRAKE" ]] && night_bounds+=(--max-false-brake "$MAX_FALSE_BRAKE")
+[[ -n "$MAX_FALSE_BLINKER" ]] && night_bounds+=(--max-false-blinker "$MAX_FALSE_BLINKER")
+(( ${#night_bounds[@]} )) && night_bounds+=(--night-negatives "$DATA/family_night_negatives")
 signal-light calibrate "$DATA/family_cal_split" --checkpoint "$model/calibrated.pt" \
   --out "$model/calibrated.pt" --threads "$THREADS" --device "$DEVICE" --no-progress \
-  "${brake_bound[@]}"
+  "${night_bounds[@]}"
 
 echo "== 4/5 calibrated checkpoint -> $WEIGHTS"
 mkdir -p "$(dirname "$WEIGHTS")"

@@ -7,7 +7,8 @@ right and intent heads is lowered, and the offset added to the ON logit of both 
 node's intent filter (:mod:`signal_light_node.training.unknown_bias`). ``--holdout-fraction`` keeps a share of
 the track IDs out of the fit and writes the before/after report beside the checkpoint.
 ``--night-negatives ... --max-false-brake X`` adds a third: the brake's ON offset nearest 0
-that keeps those night tracks' false brakes within X (:mod:`signal_light_node.training.brake_bound`).
+that keeps those night tracks' false brakes within X; ``--max-false-blinker Y`` a further
+blinker ON offset for their false blinkers (:mod:`signal_light_node.training.night_bound`).
 Examples::
 
     signal-light calibrate out/day_labelled --holdout-fraction 0.5 --out runs/mine/calibrated.pt
@@ -36,7 +37,7 @@ def _grid(text: str) -> tuple:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``signal-light calibrate``."""
-    from signal_light_node.training.brake_bound import DEFAULT_BRAKE_GRID
+    from signal_light_node.training.night_bound import DEFAULT_OFFSET_GRID
     from signal_light_node.training.unknown_bias import DEFAULT_GRID, DEFAULT_ON_GRID
 
     parser.formatter_class = argparse.ArgumentDefaultsHelpFormatter
@@ -58,15 +59,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--night-negatives", type=Path, nargs="+", default=[],
                         metavar="LABELLED",
                         help="night tracks whose steady tail lamps glare as brakes do "
-                             "(render_data.sh: NIGHT_NEGATIVE_TRACKS): the brake ON offset "
-                             "is then the one nearest 0 that keeps their false brakes within "
-                             "--max-false-brake")
-    parser.add_argument("--max-false-brake", type=float, default=None, metavar="X",
-                        help="with --night-negatives: the largest share of their brake-OFF "
-                             "frames that may be published ON")
-    parser.add_argument("--brake-grid", type=_grid, default=DEFAULT_BRAKE_GRID,
-                        metavar="O,O,...", help="brake ON offsets to try (0 or below; write "
-                                                "--brake-grid=-1,0)")
+                             "(render_data.sh: NIGHT_NEGATIVE_TRACKS): with --max-false-brake "
+                             "or --max-false-blinker, the ON offset nearest 0 that keeps "
+                             "their false lights within it")
+    for group in ("brake", "blinker"):
+        parser.add_argument(f"--max-false-{group}", type=float, default=None, metavar="X",
+                            help=f"with --night-negatives: the largest share of their "
+                                 f"{group}-OFF frames that may be published ON")
+        parser.add_argument(f"--{group}-grid", type=_grid, default=DEFAULT_OFFSET_GRID,
+                            metavar="O,O,...", help=f"{group} ON offsets to try (0 or below; "
+                                                    f"write --{group}-grid=-1,0)")
     add_torch_options(parser)
 
 
@@ -74,24 +76,33 @@ def run(args: argparse.Namespace) -> int:
     """Fit, write the checkpoint (and report), print what was found."""
     import torch
 
-    from signal_light_node.training.brake_bound import BrakeBound, summary_line
+    from signal_light_node.training.night_bound import in_turn, summary_line
     from signal_light_node.training.unknown_bias import calibrate_checkpoint, summary_lines
 
     require_pt_checkpoints(args, "calibrate")
     if not 0.0 <= args.holdout_fraction < 1.0:
         raise ConfigError(f"--holdout-fraction must be in [0, 1), got {args.holdout_fraction}")
-    if bool(args.night_negatives) != (args.max_false_brake is not None):
-        raise ConfigError("--night-negatives and --max-false-brake go together")
-    bound = None
-    if args.night_negatives:
-        bound = BrakeBound(args.night_negatives, args.max_false_brake, args.brake_grid)
+    bounds = _night_bounds(args)
     if args.threads:
         torch.set_num_threads(int(args.threads))
     fit, report = calibrate_checkpoint(args.out, args.inputs, args.checkpoint,
                                        args.holdout_fraction, args.seed, args.grid,
-                                       args.on_grid, bound)
+                                       args.on_grid, in_turn(bounds) if bounds else None)
     lines = summary_lines(fit, args.out, report)
-    if bound is not None and bound.fit is not None:
-        lines.append(summary_line(bound.fit))
+    lines += [summary_line(bound.fit) for bound in bounds if bound.fit is not None]
     print("\n".join(lines))
     return 0
+
+
+def _night_bounds(args: argparse.Namespace) -> list:
+    """The brake and blinker bounds asked for, in that order (``training.night_bound``)."""
+    from signal_light_node.training.night_bound import LightBound
+
+    asked = [(g, getattr(args, f"max_false_{g}"), getattr(args, f"{g}_grid"))
+             for g in ("brake", "blinker")]
+    asked = [a for a in asked if a[1] is not None]
+    if bool(args.night_negatives) != bool(asked):
+        raise ConfigError("--night-negatives goes with --max-false-brake or "
+                          "--max-false-blinker, and they with it")
+    return [LightBound(args.night_negatives, bound, grid, group) for group, bound, grid in asked]
+

@@ -1,0 +1,183 @@
+"""ON offsets held to bounds on false lights at night: brakes, and blinkers.
+
+Steady tail lamps at night are bright, red and clipped, as brake lamps are; a model may
+rank a brake above a tail lamp within a scene and still call the tail lamps braking where
+its absolute level does not carry over (docs/model.md, "A bound on false night brakes"),
+and a glaring steady lamp may be taken for a blinker. The held-out family's calibration
+split does not see that failure, so the UNKNOWN margin and blinker offset fitted there
+(``unknown_bias``) leave the thresholds where training put them. A false light is what a
+prediction module reacts to, so each light group gets a bound of its own, checked on hard
+negatives of the project's own renderer: night tracks of the held-out family whose tail
+lamps glare as brightly as brakes (``scripts/render_data.sh``: ``NIGHT_NEGATIVE_TRACKS``).
+
+:func:`fit_light_offset` runs the model once over those tracks; for each offset of a grid
+(logit units, 0 or below) it moves the ON logit of the group's lights as adding it to their
+heads' bias would (``unknown_bias.with_offsets``), publishes through the node's intent
+filter, and counts the OFF frames published ON (over the group's lights together). The
+offset nearest 0 whose share is within the bound wins: the least recall given up for it.
+``signal-light calibrate --night-negatives ... --max-false-brake X --max-false-blinker Y``
+applies them after the UNKNOWN margin, so the checkpoint and its exports carry them in the
+heads' bias.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Dict, Optional, Sequence, Tuple
+
+import numpy as np
+import torch.nn as nn
+
+from signal_light_node.errors import ConfigError
+from signal_light_node.evaluation.tracks import TrackSequence
+from signal_light_node.labels import LightStatus
+from signal_light_node.training.unknown_bias import (ModelPass, apply_offsets, class_index,
+                                                     load_labelled)
+
+logger = logging.getLogger(__name__)
+
+#: ON offsets tried by default (logit units; 0 = the lights as trained).
+DEFAULT_OFFSET_GRID: Tuple[float, ...] = (0.0, -0.25, -0.5, -0.75, -1.0, -1.5, -2.0)
+#: The light groups a bound is for: name -> the heads whose ON logit it moves.
+LIGHT_GROUPS: Dict[str, Tuple[str, ...]] = {"brake": ("brake",), "blinker": ("left", "right")}
+
+OFF, ON = int(LightStatus.OFF), int(LightStatus.ON)
+
+
+def meta_key(group: str) -> str:
+    """Checkpoint metadata key of a group's fit (``brake_bound``, ``blinker_bound``)."""
+    return f"{group}_bound"
+
+
+@dataclass
+class LightBoundFit:
+    """What :func:`fit_light_offset` found.
+
+    Attributes:
+        group: The light group (a key of :data:`LIGHT_GROUPS`).
+        offset: The ON offset chosen (added to the group's heads' ON logit).
+        bound: The largest share of OFF frames published ON that was allowed.
+        met: Whether the chosen offset meets the bound (else it is the grid's lowest).
+        false_on: Per offset tried, the share of OFF frames published ON.
+        recall: Per offset tried, the share of ON frames published ON.
+        tracks: Negative tracks it was fitted on.
+        off_frames: Their OFF light-frames scored.
+    """
+
+    group: str
+    offset: float
+    bound: float
+    met: bool
+    false_on: Dict[float, float] = field(default_factory=dict)
+    recall: Dict[float, float] = field(default_factory=dict)
+    tracks: int = 0
+    off_frames: int = 0
+
+
+def light_offsets(model: nn.Module, group: str, offset: float) -> Dict[str, np.ndarray]:
+    """What to add to each class logit of the group's heads: ``offset`` on ON."""
+    offsets = {}
+    for task in LIGHT_GROUPS[group]:
+        delta = np.zeros(len(model.config.class_names[task]))
+        delta[class_index(model, task, "ON")] = float(offset)
+        offsets[task] = delta
+    return offsets
+
+
+def choose_offset(false_on: Dict[float, float], bound: float) -> Tuple[float, bool]:
+    """The offset nearest 0 whose share is within ``bound``; else the lowest, not met."""
+    within = [o for o, share in false_on.items() if share <= bound]
+    if within:
+        return max(within), True
+    return min(false_on), False
+
+
+def _check(group: str, bound: float, grid: Sequence[float],
+           tracks: Sequence[TrackSequence]) -> None:
+    if group not in LIGHT_GROUPS:
+        raise ConfigError(f"no light group {group!r}; one of {sorted(LIGHT_GROUPS)}")
+    if not 0.0 <= bound < 1.0:
+        raise ConfigError(f"the false {group} bound must be in [0, 1), got {bound}")
+    if not grid or max(grid) > 0.0:
+        raise ConfigError(f"{group} ON offsets must be 0 or below, got {list(grid)}")
+    if not tracks:
+        raise ConfigError(f"no night negative track to bound the false {group}s on")
+
+
+def fit_light_offset(model: nn.Module, tracks: Sequence[TrackSequence], bound: float,
+                     grid: Sequence[float] = DEFAULT_OFFSET_GRID,
+                     group: str = "brake") -> LightBoundFit:
+    """Choose the group's ON offset on ``tracks`` (see the module doc); ``model`` is unchanged.
+
+    Raises:
+        ConfigError: An unknown group, a bound outside [0, 1), an offset above 0, no track,
+            or tracks without an OFF frame of the group.
+    """
+    _check(group, bound, grid, tracks)
+    passed = ModelPass(model, tracks)
+    fit = LightBoundFit(group=group, offset=0.0, bound=float(bound), met=False,
+                        tracks=len(tracks))
+    for offset in sorted({float(o) for o in grid}, reverse=True):
+        strict = passed.scorer(light_offsets(model, group, offset)).strict
+        m = sum(strict.confusion(task) for task in LIGHT_GROUPS[group])
+        if m[OFF].sum() == 0:
+            raise ConfigError(f"the night negative tracks have no {group}-OFF frame to count")
+        fit.off_frames = int(m[OFF].sum())
+        fit.false_on[offset] = float(m[OFF, ON] / m[OFF].sum())
+        fit.recall[offset] = float(m[ON, ON] / m[ON].sum()) if m[ON].sum() else float("nan")
+        logger.info("%s ON offset %+.2f: %.1f %% of %s-OFF frames published ON",
+                    group, offset, 100 * fit.false_on[offset], group)
+    fit.offset, fit.met = choose_offset(fit.false_on, bound)
+    return fit
+
+
+class LightBound:
+    """One of ``calibrate_checkpoint``'s ``after_fit`` steps: fit the group's ON offset on
+    the night negatives, apply it to the model, and return its metadata entry (the fit
+    stays in :attr:`fit`).
+
+    Args:
+        negatives: Labelled splits or bags of night negatives.
+        bound: The largest share of their OFF frames that may be published ON.
+        grid: The ON offsets to try (0 or below).
+        group: The light group (a key of :data:`LIGHT_GROUPS`).
+    """
+
+    def __init__(self, negatives: Sequence[Path], bound: float,
+                 grid: Sequence[float] = DEFAULT_OFFSET_GRID, group: str = "brake") -> None:
+        self.negatives, self.bound, self.grid = list(negatives), float(bound), tuple(grid)
+        self.group = group
+        self.fit: Optional[LightBoundFit] = None
+
+    def __call__(self, model: nn.Module) -> Dict[str, Any]:
+        tracks = load_labelled(self.negatives, model.config.crop_config())
+        self.fit = fit_light_offset(model, tracks, self.bound, self.grid, self.group)
+        apply_offsets(model, light_offsets(model, self.group, self.fit.offset))
+        entry = asdict(self.fit)
+        for key in ("false_on", "recall"):
+            entry[key] = {f"{o:g}": v for o, v in entry[key].items()}
+        entry["data"] = [str(p) for p in self.negatives]
+        return {meta_key(self.group): entry}
+
+
+def in_turn(steps: Sequence[Callable[[nn.Module], Dict[str, Any]]]
+            ) -> Callable[[nn.Module], Dict[str, Any]]:
+    """One ``after_fit`` that runs ``steps`` in order and merges what they return."""
+    def run(model: nn.Module) -> Dict[str, Any]:
+        meta: Dict[str, Any] = {}
+        for step in steps:
+            meta.update(step(model))
+        return meta
+    return run
+
+
+def summary_line(fit: LightBoundFit) -> str:
+    """What ``signal-light calibrate`` prints of a fit."""
+    shares = ", ".join(f"{o:+g}: {100 * s:.1f} %" for o, s in sorted(fit.false_on.items(),
+                                                                       reverse=True))
+    verdict = "within" if fit.met else "NOT within (the grid's lowest offset kept)"
+    return (f"{fit.group} ON offset {fit.offset:+g}, {verdict} the bound of "
+            f"{100 * fit.bound:.1f} % of {fit.group}-OFF frames published ON on {fit.tracks} "
+            f"night negative tracks ({fit.off_frames} frames; per offset: {shares})")
