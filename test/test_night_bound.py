@@ -16,7 +16,7 @@ from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
 from signal_light_node.evaluation.streaming import chunks, predict_track_probs
 from signal_light_node.model import load_checkpoint
 from signal_light_node.model.checkpoint import DEFAULT_WEIGHTS
-from signal_light_node.training.night_bound import (LIGHT_GROUPS, choose_offset,
+from signal_light_node.training.night_bound import (LIGHT_GROUPS, NightBounds, choose_offset,
                                                     fit_light_offset, light_offsets, meta_key)
 from signal_light_node.training.sources import load_bag_tracks
 from signal_light_node.training.unknown_bias import apply_offsets, class_index, task_heads
@@ -64,6 +64,20 @@ def test_the_fit_counts_as_the_model_moved_by_its_offset_publishes(group: str) -
     apply_offsets(moved, light_offsets(moved, group, -1.0))
     assert fit.false_on[-1.0] == pytest.approx(_false_on(moved, tracks, group), abs=1e-9)
     assert fit.false_on[0.0] == pytest.approx(_false_on(model, tracks, group), abs=1e-9)
+
+
+@needs_bags
+def test_a_later_group_is_fitted_on_the_model_moved_by_the_earlier() -> None:
+    bounds = NightBounds([NIGHT], [("brake", 0.0, (0.0, -4.0)), ("blinker", 0.0, (0.0, -3.0))])
+    model = load_checkpoint(DEFAULT_WEIGHTS).model.eval()
+    bounds(model)
+    brake, blinker = bounds.fits
+    moved = load_checkpoint(DEFAULT_WEIGHTS).model.eval()
+    apply_offsets(moved, light_offsets(moved, "brake", brake.offset))
+    alone = fit_light_offset(moved, load_bag_tracks(NIGHT, moved.config.crop_config()),
+                             0.0, (0.0, -3.0), "blinker")
+    assert blinker.false_on == pytest.approx(alone.false_on, abs=1e-9)
+    assert brake.offset == -4.0  # else the brake moved nothing and this proves little
 
 
 def test_bad_bounds_and_grids_are_refused() -> None:

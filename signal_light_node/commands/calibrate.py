@@ -37,7 +37,7 @@ def _grid(text: str) -> tuple:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``signal-light calibrate``."""
-    from signal_light_node.training.night_bound import DEFAULT_OFFSET_GRID
+    from signal_light_node.training.night_bound import DEFAULT_OFFSET_GRID, LIGHT_GROUPS
     from signal_light_node.training.unknown_bias import DEFAULT_GRID, DEFAULT_ON_GRID
 
     parser.formatter_class = argparse.ArgumentDefaultsHelpFormatter
@@ -62,7 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(render_data.sh: NIGHT_NEGATIVE_TRACKS): with --max-false-brake "
                              "or --max-false-blinker, the ON offset nearest 0 that keeps "
                              "their false lights within it")
-    for group in ("brake", "blinker"):
+    for group in LIGHT_GROUPS:
         parser.add_argument(f"--max-false-{group}", type=float, default=None, metavar="X",
                             help=f"with --night-negatives: the largest share of their "
                                  f"{group}-OFF frames that may be published ON")
@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     """Fit, write the checkpoint (and report), print what was found."""
     import torch
 
-    from signal_light_node.training.night_bound import in_turn, summary_line
+    from signal_light_node.training.night_bound import summary_line
     from signal_light_node.training.unknown_bias import calibrate_checkpoint, summary_lines
 
     require_pt_checkpoints(args, "calibrate")
@@ -87,22 +87,21 @@ def run(args: argparse.Namespace) -> int:
         torch.set_num_threads(int(args.threads))
     fit, report = calibrate_checkpoint(args.out, args.inputs, args.checkpoint,
                                        args.holdout_fraction, args.seed, args.grid,
-                                       args.on_grid, in_turn(bounds) if bounds else None)
+                                       args.on_grid, bounds)
     lines = summary_lines(fit, args.out, report)
-    lines += [summary_line(bound.fit) for bound in bounds if bound.fit is not None]
+    lines += [summary_line(fit) for fit in (bounds.fits if bounds else [])]
     print("\n".join(lines))
     return 0
 
 
-def _night_bounds(args: argparse.Namespace) -> list:
-    """The brake and blinker bounds asked for, in that order (``training.night_bound``)."""
-    from signal_light_node.training.night_bound import LightBound
+def _night_bounds(args: argparse.Namespace):
+    """The brake and blinker bounds asked for, as one ``after_fit`` (or None)."""
+    from signal_light_node.training.night_bound import LIGHT_GROUPS, NightBounds
 
     asked = [(g, getattr(args, f"max_false_{g}"), getattr(args, f"{g}_grid"))
-             for g in ("brake", "blinker")]
+             for g in LIGHT_GROUPS]
     asked = [a for a in asked if a[1] is not None]
     if bool(args.night_negatives) != bool(asked):
         raise ConfigError("--night-negatives goes with --max-false-brake or "
                           "--max-false-blinker, and they with it")
-    return [LightBound(args.night_negatives, bound, grid, group) for group, bound, grid in asked]
-
+    return NightBounds(args.night_negatives, asked) if asked else None

@@ -25,7 +25,7 @@ from __future__ import annotations
 import logging
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Dict, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch.nn as nn
@@ -116,11 +116,18 @@ def fit_light_offset(model: nn.Module, tracks: Sequence[TrackSequence], bound: f
             or tracks without an OFF frame of the group.
     """
     _check(group, bound, grid, tracks)
-    passed = ModelPass(model, tracks)
+    return fit_on_pass(ModelPass(model, tracks), model, bound, grid, group)
+
+
+def fit_on_pass(passed: ModelPass, model: nn.Module, bound: float, grid: Sequence[float],
+                group: str, base: Optional[Dict[str, np.ndarray]] = None) -> LightBoundFit:
+    """:func:`fit_light_offset` on a model pass already made, with the other groups'
+    offsets ``base`` (disjoint heads) applied beside each of this group's."""
     fit = LightBoundFit(group=group, offset=0.0, bound=float(bound), met=False,
-                        tracks=len(tracks))
+                        tracks=sum(len(batch) for batch, _ in passed.outputs))
     for offset in sorted({float(o) for o in grid}, reverse=True):
-        strict = passed.scorer(light_offsets(model, group, offset)).strict
+        offsets = dict(base or {}, **light_offsets(model, group, offset))
+        strict = passed.scorer(offsets).strict
         m = sum(strict.confusion(task) for task in LIGHT_GROUPS[group])
         if m[OFF].sum() == 0:
             raise ConfigError(f"the night negative tracks have no {group}-OFF frame to count")
@@ -133,44 +140,43 @@ def fit_light_offset(model: nn.Module, tracks: Sequence[TrackSequence], bound: f
     return fit
 
 
-class LightBound:
-    """One of ``calibrate_checkpoint``'s ``after_fit`` steps: fit the group's ON offset on
-    the night negatives, apply it to the model, and return its metadata entry (the fit
-    stays in :attr:`fit`).
+class NightBounds:
+    """``calibrate_checkpoint``'s ``after_fit``: one model pass over the night negatives,
+    each group's ON offset fitted on it in turn (a later group sees the earlier ones'
+    offsets), all applied to the model; returns their metadata entries (the fits stay in
+    :attr:`fits`).
 
     Args:
         negatives: Labelled splits or bags of night negatives.
-        bound: The largest share of their OFF frames that may be published ON.
-        grid: The ON offsets to try (0 or below).
-        group: The light group (a key of :data:`LIGHT_GROUPS`).
+        bounds: ``(group, bound, grid)`` per light group: the largest share of its OFF
+            frames that may be published ON, and the ON offsets to try (0 or below).
     """
 
-    def __init__(self, negatives: Sequence[Path], bound: float,
-                 grid: Sequence[float] = DEFAULT_OFFSET_GRID, group: str = "brake") -> None:
-        self.negatives, self.bound, self.grid = list(negatives), float(bound), tuple(grid)
-        self.group = group
-        self.fit: Optional[LightBoundFit] = None
+    def __init__(self, negatives: Sequence[Path],
+                 bounds: Sequence[Tuple[str, float, Sequence[float]]]) -> None:
+        self.negatives = list(negatives)
+        self.bounds = [(group, float(bound), tuple(grid)) for group, bound, grid in bounds]
+        self.fits: List[LightBoundFit] = []
 
     def __call__(self, model: nn.Module) -> Dict[str, Any]:
         tracks = load_labelled(self.negatives, model.config.crop_config())
-        self.fit = fit_light_offset(model, tracks, self.bound, self.grid, self.group)
-        apply_offsets(model, light_offsets(model, self.group, self.fit.offset))
-        entry = asdict(self.fit)
+        for group, bound, grid in self.bounds:
+            _check(group, bound, grid, tracks)
+        passed, chosen, meta = ModelPass(model, tracks), {}, {}
+        for group, bound, grid in self.bounds:
+            fit = fit_on_pass(passed, model, bound, grid, group, chosen)
+            chosen.update(light_offsets(model, group, fit.offset))
+            self.fits.append(fit)
+            meta[meta_key(group)] = self._entry(fit)
+        apply_offsets(model, chosen)
+        return meta
+
+    def _entry(self, fit: LightBoundFit) -> Dict[str, Any]:
+        entry = asdict(fit)
         for key in ("false_on", "recall"):
             entry[key] = {f"{o:g}": v for o, v in entry[key].items()}
         entry["data"] = [str(p) for p in self.negatives]
-        return {meta_key(self.group): entry}
-
-
-def in_turn(steps: Sequence[Callable[[nn.Module], Dict[str, Any]]]
-            ) -> Callable[[nn.Module], Dict[str, Any]]:
-    """One ``after_fit`` that runs ``steps`` in order and merges what they return."""
-    def run(model: nn.Module) -> Dict[str, Any]:
-        meta: Dict[str, Any] = {}
-        for step in steps:
-            meta.update(step(model))
-        return meta
-    return run
+        return entry
 
 
 def summary_line(fit: LightBoundFit) -> str:

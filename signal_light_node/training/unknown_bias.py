@@ -305,7 +305,7 @@ def calibrate_checkpoint(out: Path, inputs: Sequence[Path],
     (and, with held-out tracks, its before/after report); returns the fit and the report.
 
     ``after_fit`` is called with the model once its margin and offsets are applied; it may
-    move the model further (``training.night_bound.LightBound``), and what it returns joins
+    move the model further (``training.night_bound.NightBounds``), and what it returns joins
     the checkpoint's metadata.
 
     Raises:
