@@ -25,7 +25,7 @@ from __future__ import annotations
 import logging
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Sequence, Tuple
 
 import numpy as np
 import torch.nn as nn
@@ -120,14 +120,13 @@ def fit_light_offset(model: nn.Module, tracks: Sequence[TrackSequence], bound: f
 
 
 def fit_on_pass(passed: ModelPass, model: nn.Module, bound: float, grid: Sequence[float],
-                group: str, base: Optional[Dict[str, np.ndarray]] = None) -> LightBoundFit:
-    """:func:`fit_light_offset` on a model pass already made, with the other groups'
-    offsets ``base`` (disjoint heads) applied beside each of this group's."""
+                group: str) -> LightBoundFit:
+    """:func:`fit_light_offset` on a model pass already made (the groups' heads are scored
+    apart, so each group's fit ignores the others' offsets)."""
     fit = LightBoundFit(group=group, offset=0.0, bound=float(bound), met=False,
                         tracks=sum(len(batch) for batch, _ in passed.outputs))
     for offset in sorted({float(o) for o in grid}, reverse=True):
-        offsets = dict(base or {}, **light_offsets(model, group, offset))
-        strict = passed.scorer(offsets).strict
+        strict = passed.scorer(light_offsets(model, group, offset)).strict
         m = sum(strict.confusion(task) for task in LIGHT_GROUPS[group])
         if m[OFF].sum() == 0:
             raise ConfigError(f"the night negative tracks have no {group}-OFF frame to count")
@@ -142,9 +141,8 @@ def fit_on_pass(passed: ModelPass, model: nn.Module, bound: float, grid: Sequenc
 
 class NightBounds:
     """``calibrate_checkpoint``'s ``after_fit``: one model pass over the night negatives,
-    each group's ON offset fitted on it in turn (a later group sees the earlier ones'
-    offsets), all applied to the model; returns their metadata entries (the fits stay in
-    :attr:`fits`).
+    each group's ON offset fitted on it, all applied to the model; returns their metadata
+    entries (the fits stay in :attr:`fits`).
 
     Args:
         negatives: Labelled splits or bags of night negatives.
@@ -164,7 +162,7 @@ class NightBounds:
             _check(group, bound, grid, tracks)
         passed, chosen, meta = ModelPass(model, tracks), {}, {}
         for group, bound, grid in self.bounds:
-            fit = fit_on_pass(passed, model, bound, grid, group, chosen)
+            fit = fit_on_pass(passed, model, bound, grid, group)
             chosen.update(light_offsets(model, group, fit.offset))
             self.fits.append(fit)
             meta[meta_key(group)] = self._entry(fit)
