@@ -161,6 +161,7 @@ class NightBounds:
         for group, bound, grid in self.bounds:
             _check(group, bound, grid, tracks)
         passed, chosen, meta = ModelPass(model, tracks), {}, {}
+        self.fits = []
         for group, bound, grid in self.bounds:
             fit = fit_on_pass(passed, model, bound, grid, group)
             chosen.update(light_offsets(model, group, fit.offset))
