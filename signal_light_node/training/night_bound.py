@@ -33,15 +33,15 @@ import torch.nn as nn
 from signal_light_node.errors import ConfigError
 from signal_light_node.evaluation.tracks import TrackSequence
 from signal_light_node.labels import LightStatus
-from signal_light_node.training.unknown_bias import (ModelPass, apply_offsets, class_index,
-                                                     load_labelled)
+from signal_light_node.training.unknown_bias import (ON_HEADS, ModelPass, apply_offsets,
+                                                     load_labelled, on_offsets)
 
 logger = logging.getLogger(__name__)
 
 #: ON offsets tried by default (logit units; 0 = the lights as trained).
 DEFAULT_OFFSET_GRID: Tuple[float, ...] = (0.0, -0.25, -0.5, -0.75, -1.0, -1.5, -2.0)
 #: The light groups a bound is for: name -> the heads whose ON logit it moves.
-LIGHT_GROUPS: Dict[str, Tuple[str, ...]] = {"brake": ("brake",), "blinker": ("left", "right")}
+LIGHT_GROUPS: Dict[str, Tuple[str, ...]] = {"brake": ("brake",), "blinker": ON_HEADS}
 
 OFF, ON = int(LightStatus.OFF), int(LightStatus.ON)
 
@@ -78,12 +78,7 @@ class LightBoundFit:
 
 def light_offsets(model: nn.Module, group: str, offset: float) -> Dict[str, np.ndarray]:
     """What to add to each class logit of the group's heads: ``offset`` on ON."""
-    offsets = {}
-    for task in LIGHT_GROUPS[group]:
-        delta = np.zeros(len(model.config.class_names[task]))
-        delta[class_index(model, task, "ON")] = float(offset)
-        offsets[task] = delta
-    return offsets
+    return on_offsets(model, LIGHT_GROUPS[group], offset)
 
 
 def choose_offset(false_on: Dict[float, float], bound: float) -> Tuple[float, bool]:

@@ -146,8 +146,16 @@ def head_offsets(model: nn.Module, margin: float,
     out = {t: np.zeros(len(model.config.class_names[t])) for t in MARGIN_HEADS}
     for task in MARGIN_HEADS:
         out[task][unknown_index(model, task)] -= float(margin)
-    for task in ON_HEADS:
-        out[task][class_index(model, task, "ON")] += float(on_offset)
+    for task, delta in on_offsets(model, ON_HEADS, on_offset).items():
+        out[task] += delta
+    return out
+
+
+def on_offsets(model: nn.Module, tasks: Sequence[str], offset: float) -> Dict[str, np.ndarray]:
+    """Per head of ``tasks``, what to add to each class's logit: ``offset`` on ON."""
+    out = {t: np.zeros(len(model.config.class_names[t])) for t in tasks}
+    for task in tasks:
+        out[task][class_index(model, task, "ON")] = float(offset)
     return out
 
 
