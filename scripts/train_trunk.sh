@@ -114,6 +114,12 @@ LOOKS=${LOOKS:-1}
 # docs/model.md, "Orange blinkers by day").
 LOOK_WHITE_BALANCE=${LOOK_WHITE_BALANCE:-0}
 STEPS=${STEPS:-3000}
+# MEMBER_FILE (default best): which file of each run is joined and calibrated: best (best.pt,
+# its best validation step) or last (last.pt, its last step; docs/model.md, "The last step of
+# each member").
+MEMBER_FILE=${MEMBER_FILE:-best}
+[[ "$MEMBER_FILE" == best || "$MEMBER_FILE" == last ]] || {
+  echo "train_trunk.sh: MEMBER_FILE must be best or last, not '$MEMBER_FILE'" >&2; exit 2; }
 # JUDGE_GAIN (default empty: no such stage), for a MODEL with "brake_expert": true: each
 # member then has its brake judge set to that gain and frozen, and its brake head's output
 # layer (JUDGE_LEARN=brake; all: every layer after the trunk) fine-tuned JUDGE_STEPS steps
@@ -224,7 +230,7 @@ for seed in $SEEDS; do
       resume=()
       [[ -f "$judged/last.state.pt" ]] && resume=(--resume)
       python -m signal_light_node.training.trunk_recipe --out "$judged" --cache "$DATA/cache" \
-        "${pools[@]}" --val "$DATA/val_split" --tune-from "$out/best.pt" \
+        "${pools[@]}" --val "$DATA/val_split" --tune-from "$out/$MEMBER_FILE.pt" \
         --judge-gain "$JUDGE_GAIN" --judge-learn "$JUDGE_LEARN" --looks "$LOOKS" \
         --look-white-balance "$LOOK_WHITE_BALANCE" \
         --steps "$JUDGE_STEPS" --batch "$BATCH" --seq-len "$SEQ_LEN" --lr "$JUDGE_LR" \
@@ -232,17 +238,19 @@ for seed in $SEEDS; do
     fi
     out=$judged
   fi
-  members+=(--member "$out/best.pt")
+  members+=(--member "$out/$MEMBER_FILE.pt")
 done
 model=$RUN/trunk
+joined=$out/$MEMBER_FILE.pt
 if (( n_seeds > 1 )); then
   model=$RUN/joined
   echo "== 2b/5 $n_seeds runs joined into one model over the shared trunk: $model/best.pt"
   python -m signal_light_node.training.join_members "${members[@]}" --out "$model/best.pt"
+  joined=$model/best.pt
 fi
 
 echo "== 3/5 per-head temperatures, then the UNKNOWN margin and blinker ON offset, on the family calibration split"
-python -m signal_light_node.training.calibrate --checkpoint "$model/best.pt" \
+python -m signal_light_node.training.calibrate --checkpoint "$joined" \
   --split "$DATA/family_cal_split" --cache "$DATA/cache" --out "$model/calibrated.pt"
 # Temperatures make the probabilities honest; the offsets move the decisions the node's
 # filter takes from them (docs/model.md, "The blinkers' ON offset fitted for the shipped file").
