@@ -389,3 +389,38 @@ def test_the_brake_judge_and_the_brake_head_learn_apart():
     head_e, _, _ = _judge_gradients(model, batch, 4.0, 0.0, judged=True)
     assert judge_d is None and "expert_brake" not in parts_d
     assert not torch.allclose(head_d, head_e)
+
+
+def _labels(rows):
+    """Frames of (view, left, right) as labels [N, len(TASKS)], other tasks OFF."""
+    from signal_light_node.labels import TASKS
+    out = np.zeros((len(rows), len(TASKS)), np.int64)
+    for i, (view, left, right) in enumerate(rows):
+        out[i, TASKS.index("view")], out[i, TASKS.index("left")] = view, left
+        out[i, TASKS.index("right")] = right
+    return out
+
+
+def test_side_blink_tracks_are_those_showing_a_blinker_on_from_its_own_side():
+    from signal_light_node.labels import LightStatus as S, View as V
+    from signal_light_node.training.sampling import side_blink_tracks
+
+    labels = _labels([(V.BEHIND, S.ON, S.OFF), (V.BEHIND, S.OFF, S.ON),    # rear blinks
+                      (V.LEFT, S.OFF, S.UNKNOWN), (V.LEFT, S.ON, S.UNKNOWN),  # left side, left ON
+                      (V.RIGHT, S.UNKNOWN, S.ON),                          # right side, right ON
+                      (V.LEFT, S.UNKNOWN, S.ON), (V.FRONT, S.ON, S.ON)])   # other side / front
+    offsets = np.array([0, 2, 4, 5, 7])
+    assert side_blink_tracks(labels, offsets).tolist() == [False, True, True, False]
+
+
+def test_track_draws_weigh_side_blink_tracks_and_stay_uniform_at_one():
+    from types import SimpleNamespace
+    from signal_light_node.labels import LightStatus as S, View as V
+    from signal_light_node.training.trunk_recipe import track_draws
+
+    labels = _labels([(V.RIGHT, S.UNKNOWN, S.ON), (V.BEHIND, S.OFF, S.OFF),
+                      (V.BEHIND, S.ON, S.OFF)])
+    cache = SimpleNamespace(labels=labels, offsets=np.array([0, 1, 2, 3]))
+    assert track_draws([cache], 1.0) == [None]
+    p = track_draws([cache], 3.0)[0]
+    assert np.allclose(p, [0.6, 0.2, 0.2])

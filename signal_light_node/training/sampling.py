@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.labels import TASKS, Intent, LightStatus
+from signal_light_node.labels import TASKS, Intent, LightStatus, View
 
 #: Strata from rarest to most common; a window belongs to the first one it matches.
 STRATA = ("hazard", "brake_blink", "blink", "brake", "plain")
@@ -60,6 +60,18 @@ def sequence_stratum(labels: np.ndarray, mask: Optional[np.ndarray] = None) -> s
     if np.any(braking):
         return "brake"
     return "plain"
+
+
+def side_blink_tracks(labels: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Per track (frames ``offsets[i]:offsets[i+1]`` of ``labels [N, len(TASKS)]``): does it
+    show a blinker ON from the blinker's own side (a LEFT view with the left blinker ON, a
+    RIGHT view with the right one)? The model misses those most (docs/model.md)."""
+    view = labels[:, TASKS.index("view")]
+    on = LightStatus.ON
+    side = (((view == View.LEFT) & (labels[:, TASKS.index("left")] == on))
+            | ((view == View.RIGHT) & (labels[:, TASKS.index("right")] == on)))
+    running = np.concatenate(([0], np.cumsum(side, dtype=np.int64)))
+    return running[offsets[1:]] > running[offsets[:-1]]
 
 
 def stratum_weights(strata: Sequence[str]) -> np.ndarray:

@@ -47,6 +47,7 @@ from signal_light_node.training.feature_cache import (FeatureCache, collate_wind
                                                       trunk_fingerprint, write_cache)
 from signal_light_node.training.loss import (brake_judge_loss, multitask_loss, share_weights,
                                              warmup_frames)
+from signal_light_node.training.sampling import side_blink_tracks
 from signal_light_node.training.trunk_finetune import load_trunk_weights
 
 LOG = logging.getLogger("trunk_recipe")
@@ -55,13 +56,29 @@ TASK_WEIGHTS = {"intent": 1.0, "brake": 1.0, "left": 0.5, "right": 0.5, "view": 
 LIT_WEIGHT = 0.5
 
 
-def _batch(caches: Sequence[FeatureCache], rng: np.random.Generator, batch: int, seq_len: int
-           ) -> Dict[str, torch.Tensor]:
-    """``batch`` windows from random tracks of random caches, padded to ``seq_len``."""
+def track_draws(caches: Sequence[FeatureCache], side_blink_weight: float
+                ) -> List[Optional[np.ndarray]]:
+    """Per cache, the probability of drawing each track: tracks with a blinker ON seen from
+    its own side (:func:`~signal_light_node.training.sampling.side_blink_tracks`) weigh
+    ``side_blink_weight``, the others 1; None (uniform) at weight 1."""
+    if side_blink_weight == 1.0:
+        return [None] * len(caches)
+    draws: List[Optional[np.ndarray]] = []
+    for cache in caches:
+        weight = np.where(side_blink_tracks(cache.labels, cache.offsets), side_blink_weight, 1.0)
+        draws.append(weight / weight.sum())
+    return draws
+
+
+def _batch(caches: Sequence[FeatureCache], rng: np.random.Generator, batch: int, seq_len: int,
+           draws: Optional[Sequence[Optional[np.ndarray]]] = None) -> Dict[str, torch.Tensor]:
+    """``batch`` windows from random tracks of random caches, padded to ``seq_len``; a
+    cache's tracks drawn with ``draws`` (:func:`track_draws`) or uniformly."""
     rows: List[Tuple[Dict[str, np.ndarray], float]] = []
     for _ in range(batch):
-        cache = caches[int(rng.integers(len(caches)))]
-        track = int(rng.integers(len(cache)))
+        index = int(rng.integers(len(caches)))
+        cache, p = caches[index], (draws[index] if draws is not None else None)
+        track = int(rng.integers(len(cache))) if p is None else int(rng.choice(len(cache), p=p))
         length = int(cache.lengths[track])
         start = 0 if rng.random() < 0.5 else int(rng.integers(0, max(1, length - seq_len // 2)))
         rows.append((cache.window(track, start, seq_len), float(cache.fps[track])))
@@ -191,15 +208,17 @@ def _save(out: Path, model: torch.nn.Module, optim: torch.optim.Optimizer,
 def train(model: torch.nn.Module, train_caches: Sequence[FeatureCache], val: FeatureCache,
           out: Path, steps: int, batch: int, seq_len: int, lr: float, seed: int,
           val_every: int, resume: bool, meta: Dict[str, Any],
-          device: Optional[torch.device] = None, judged: bool = False) -> Dict[str, Any]:
-    """The training loop of the module doc (``judged``: see :func:`step_loss`); returns the
-    best validation figures."""
+          device: Optional[torch.device] = None, judged: bool = False,
+          side_blink_weight: float = 1.0) -> Dict[str, Any]:
+    """The training loop of the module doc (``judged``: see :func:`step_loss`;
+    ``side_blink_weight``: :func:`track_draws`); returns the best validation figures."""
     device = device or torch.device("cpu")
     rng = np.random.default_rng(seed)
     model.to(device).freeze_encoder()
     params = [p for p in model.parameters() if p.requires_grad]
     optim = torch.optim.AdamW(params, lr=lr, weight_decay=1e-4)
     weights = {k: v.to(device) for k, v in class_weights(train_caches, model.config).items()}
+    draws = track_draws(train_caches, side_blink_weight)
     progress: Dict[str, Any] = {"step": 0, "best": {"score": -1.0}, "history": []}
     if resume and (out / "last.state.pt").is_file():
         saved = torch.load(out / "last.state.pt", weights_only=False, map_location=device)
@@ -213,7 +232,7 @@ def train(model: torch.nn.Module, train_caches: Sequence[FeatureCache], val: Fea
     while progress["step"] < steps:
         for group in optim.param_groups:
             group["lr"] = _lr(progress["step"], steps, lr)
-        b = {k: v.to(device) for k, v in _batch(train_caches, rng, batch, seq_len).items()}
+        b = {k: v.to(device) for k, v in _batch(train_caches, rng, batch, seq_len, draws).items()}
         loss, parts = step_loss(model, b, weights, judged)
         optim.zero_grad(set_to_none=True)
         loss.backward()
@@ -280,6 +299,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--val-every", type=int, default=250)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--resume", action="store_true")
+    parser.add_argument("--side-blink-weight", type=float, default=1.0,
+                        help="draw tracks with a blinker ON seen from its own side this many "
+                             "times as often as the others (1: uniform)")
     parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     parser.add_argument("--trunk-weights", type=Path, default=None,
                         help="start from this per-frame stage's trunk (trunk_finetune's "
@@ -299,6 +321,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                      "--trunk-weights")
     if args.look_white_balance < 0:
         parser.error(f"--look-white-balance must be >= 0, got {args.look_white_balance}")
+    if args.side_blink_weight <= 0:
+        parser.error(f"--side-blink-weight must be > 0, got {args.side_blink_weight}")
     if args.judge_learn != "all" and args.judge_gain is None:
         parser.error("--judge-learn goes with --judge-gain")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
@@ -341,7 +365,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                               "judge_learn": args.judge_learn}
     best = train(model, caches, val, args.out, args.steps, args.batch, args.seq_len, args.lr,
                  args.seed, args.val_every, args.resume, meta, device,
-                 judged=args.judge_gain is not None)
+                 judged=args.judge_gain is not None, side_blink_weight=args.side_blink_weight)
     (args.out / "summary.json").write_text(json.dumps(best, indent=1))
     LOG.info("best: %s", best)
     return 0
