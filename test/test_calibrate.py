@@ -43,3 +43,14 @@ def test_a_cnn_model_is_calibrated_from_its_crops_and_its_heads_apply_the_temper
         scaled, _ = calibrated.model.eval().step_logits(crops, calibrated.model.initial_state(2))
     for task, temperature in calibrated.config.temperatures.items():
         assert torch.allclose(scaled[task], raw[task] / temperature, atol=1e-5)
+
+
+def test_temperatures_are_not_fitted_over_on_offsets(tmp_path):
+    from signal_light_node.errors import ConfigError
+    from signal_light_node.training.calibrate import calibrate
+
+    config = ModelConfig(on_offsets={"left": -1.0})
+    path = save_checkpoint(tmp_path / "m.pt", build_model(config), config)
+    with pytest.raises(ConfigError, match="before them"):
+        calibrate(path, tmp_path / "no_split", tmp_path / "cal.pt", tmp_path / "cache")
+    assert not (tmp_path / "cal.pt").exists()

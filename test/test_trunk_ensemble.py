@@ -97,13 +97,26 @@ def test_temperatures_apply_to_the_mean(tmp_path):
     assert torch.allclose(hot["intent"], plain["intent"])
 
 
+def test_on_offsets_shift_the_mean_once(tmp_path):
+    """The members are built without the file's ON offsets, so they apply once, to the mean."""
+    joined = _joined(tmp_path)
+    shifted = build_model(joined.config.replace(on_offsets={"left": -1.0})).eval()
+    shifted.load_state_dict(joined.state_dict())
+    crops = torch.rand(3, 3, 64, 64)
+    plain, hot = _first_logits(joined, crops), _first_logits(shifted, crops)
+    gap = lambda z: z[:, 1] - z[:, 0]  # noqa: E731 - ON against OFF (classes OFF, ON, UNKNOWN)
+    torch.testing.assert_close(gap(hot["left"]), gap(plain["left"]) - 1.0)
+    torch.testing.assert_close(hot["left"].logsumexp(1), plain["left"].logsumexp(1))
+    assert torch.allclose(hot["right"], plain["right"])
+
+
 def test_offsets_on_the_heads_move_the_mean_logits(tmp_path):
     from signal_light_node.training.unknown_bias import apply_offsets, head_offsets
 
     joined = _joined(tmp_path)
     crops = torch.rand(2, 3, 64, 64)
     before = _first_logits(joined, crops)
-    offsets = head_offsets(joined, margin=0.5, on_offset=-1.0)
+    offsets = head_offsets(joined, margin=0.5)
     apply_offsets(joined, offsets)
     after = _first_logits(joined, crops)
     for task, delta in offsets.items():

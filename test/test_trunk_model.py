@@ -433,7 +433,9 @@ def test_checkpoint_round_trip_needs_no_wheel(tmp_path, monkeypatch):
                                       "lamp_area": True}, FLOOR,
                                      dict(JUDGE, expert_dark=0.9),
                                      dict(JUDGE, expert_red=True),
-                                     dict(JUDGE, expert_red=True, high_lamp=True)])
+                                     dict(JUDGE, expert_red=True, high_lamp=True),
+                                     dict(temperatures={"left": 1.5},
+                                          on_offsets={"left": -1.0, "brake": 0.5})])
 def test_onnx_export_steps_like_torch(tmp_path, changes):
     from signal_light_node.model.onnx_export import export_onnx
 
@@ -613,3 +615,30 @@ def test_without_blink_levels_a_steady_lit_blinker_leaves_the_track_vector_as_an
 
     same = torch.allclose(vectors(6.0), vectors(-6.0), atol=1e-6)
     assert same != blink_levels
+
+
+def test_on_offsets_move_on_against_off_and_leave_unknown_as_it_is():
+    plain = _model(temperatures={"right": 1.5})
+    shifted = _model(temperatures={"right": 1.5}, on_offsets={"right": -1.25, "brake": 0.5})
+    shifted.load_state_dict(plain.state_dict())
+    crops = torch.rand(3, 3, 64, 64)
+    with torch.no_grad():
+        p0, _ = plain.step(crops, plain.initial_state(3))
+        p1, _ = shifted.step(crops, shifted.initial_state(3))
+    for task, offset in (("right", -1.25), ("brake", 0.5)):  # classes OFF, ON, UNKNOWN
+        torch.testing.assert_close(p1[task][:, 2], p0[task][:, 2])
+        odds0, odds1 = p0[task][:, 1] / p0[task][:, 0], p1[task][:, 1] / p1[task][:, 0]
+        torch.testing.assert_close(torch.log(odds1 / odds0), torch.full((3,), offset))
+    for task in ("left", "intent", "view"):
+        torch.testing.assert_close(p1[task], p0[task])
+
+
+@pytest.mark.parametrize("offsets,why", [({"view": -1.0}, "ON and OFF"),
+                                         ({"intent": -1.0}, "ON and OFF"),
+                                         ({"left": float("nan")}, "finite"),
+                                         ({"left": "low"}, "malformed")])
+def test_on_offsets_that_cannot_apply_are_refused(offsets, why):
+    with pytest.raises(ConfigError, match=why):
+        trunk_config(on_offsets=offsets)
+    config = trunk_config(on_offsets={"brake": -0.75})
+    assert ModelConfig.from_dict(config.to_dict()).on_offsets == {"brake": -0.75}

@@ -15,10 +15,11 @@ from signal_light_node.model import load_checkpoint
 from signal_light_node.model.checkpoint import DEFAULT_WEIGHTS
 from signal_light_node.model.interface import to_input
 from signal_light_node.training.unknown_bias import (MARGIN_HEADS, META_KEY, ON_HEADS,
-                                                     apply_offsets, apply_unknown_margin,
+                                                     add_on_offsets, apply_offsets,
+                                                     apply_unknown_margin, class_index,
                                                      MarginFit, fit_unknown_margin, grid_edges,
-                                                     head_offsets, summary_lines, task_heads,
-                                                     unknown_index, with_offsets)
+                                                     head_offsets, on_offsets, summary_lines,
+                                                     task_heads, unknown_index, with_offsets)
 from cli_refusal import refused
 
 REPO = Path(__file__).resolve().parents[1]
@@ -66,18 +67,25 @@ def test_offsets_applied_to_outputs_equal_the_offsets_in_the_biases() -> None:
     model = loaded.model.eval()
     model.config = dataclasses.replace(model.config, temperatures={"left": 1.7, "brake": 0.6})
     crops = np.random.default_rng(1).integers(0, 255, (5, 64, 64, 3), dtype=np.uint8)
-    offsets = head_offsets(model, 1.25, -0.5)
+    offsets, shifts = head_offsets(model, 1.25), on_offsets(ON_HEADS, -0.5)
+    on_off = {t: (class_index(model, t, "ON"), class_index(model, t, "OFF")) for t in ON_HEADS}
     with torch.no_grad():
         p0, _ = model.step(to_input(crops), model.initial_state(5))
         apply_offsets(model, offsets)
+        margin_only, _ = model.step(to_input(crops), model.initial_state(5))
+        add_on_offsets(model, shifts)
         p1, _ = model.step(to_input(crops), model.initial_state(5))
     moved = with_offsets({t: v.numpy() for t, v in p0.items()}, offsets,
-                         dict(model.config.temperatures))
+                         dict(model.config.temperatures), shifts, on_off)
     for task in p0:
         np.testing.assert_allclose(moved[task], p1[task].numpy(), atol=1e-5, err_msg=task)
-    assert offsets["left"].tolist() == [0.0, -0.5, -1.25]  # OFF, ON, UNKNOWN
-    assert offsets["right"].tolist() == [0.0, -0.5, -1.25]
+    for task in ON_HEADS:  # the ON offset moves ON against OFF; UNKNOWN is the margin's
+        k, on = unknown_index(model, task), class_index(model, task, "ON")
+        torch.testing.assert_close(p1[task][:, k], margin_only[task][:, k])
+        assert bool((p1[task][:, on] < margin_only[task][:, on]).all()), task
+    assert offsets["left"].tolist() == [0.0, 0.0, -1.25]  # OFF, ON, UNKNOWN
     assert offsets["brake"].tolist() == [0.0, 0.0, -1.25] and ON_HEADS == ("left", "right")
+    assert model.config.on_offsets == {"left": -0.5, "right": -0.5}
 
 
 @needs_bag
@@ -90,7 +98,8 @@ def test_the_fit_scores_as_evaluate_scores_the_model_moved_by_its_choice() -> No
     tracks = load_bag_tracks(BAG, model.config.crop_config())[:3]
     fit = fit_unknown_margin(model, tracks, (0.0, 2.5), (-1.0, 0.0, 1.5))
     moved = load_checkpoint(DEFAULT_WEIGHTS).model.eval()
-    apply_offsets(moved, head_offsets(moved, fit.margin, fit.on_offset))
+    apply_offsets(moved, head_offsets(moved, fit.margin))
+    add_on_offsets(moved, on_offsets(ON_HEADS, fit.on_offset))
     assert fit.scores[fit.margin] == pytest.approx(
         score(evaluate_tracks(moved, tracks, progress=False)), abs=1e-9)
     plain = fit_unknown_margin(model, tracks, (0.0,))
@@ -131,7 +140,9 @@ def test_calibrate_writes_the_margin_and_a_held_out_report(tmp_path: Path, capsy
     on = info["on_offset"]
     assert on in (-1.0, 0.0, 1.0) and info["on_heads"] == list(ON_HEADS)
     shipped = load_checkpoint(DEFAULT_WEIGHTS).model
-    expected = head_offsets(shipped, margin, on)
+    expected = head_offsets(shipped, margin)
+    shifted = {t: v for t, v in on_offsets(ON_HEADS, on).items() if v != 0.0}
+    assert loaded.config.on_offsets == shifted
     for task in MARGIN_HEADS:
         for new, old in zip(task_heads(loaded.model, task), task_heads(shipped, task)):
             moved = (new.bias - old.bias).detach()

@@ -159,6 +159,10 @@ class ModelConfig:
             each, and joined by ``training.join_members``.
         temperatures: Per-task logit temperature of the heads (missing tasks 1.0), fitted
             on a held-out style family by ``training.calibrate``.
+        on_offsets: Per light task (brake, left, right), a shift of ON against OFF in
+            log-odds applied after the temperatures, P(UNKNOWN) left as it is
+            (:func:`~signal_light_node.model.network.apply_on_offsets`); fitted by
+            ``signal-light calibrate`` (``training.unknown_bias``, ``training.night_bound``).
     """
 
     arch: str = "convlstm_attention"
@@ -209,6 +213,7 @@ class ModelConfig:
     lit_map_head: bool = False
     members: int = 1
     temperatures: Mapping[str, float] = field(default_factory=dict, hash=False)
+    on_offsets: Mapping[str, float] = field(default_factory=dict, hash=False)
 
     def __post_init__(self) -> None:
         set_ = lambda name, value: object.__setattr__(self, name, value)  # noqa: E731
@@ -313,13 +318,20 @@ class ModelConfig:
                                  for t, names in dict(self.class_names).items()})
             set_("light_codes", {str(k): int(v) for k, v in dict(self.light_codes).items()})
             set_("temperatures", {str(k): float(v) for k, v in dict(self.temperatures).items()})
+            set_("on_offsets", {str(k): float(v) for k, v in dict(self.on_offsets).items()})
         except (TypeError, ValueError) as exc:
-            raise ConfigError(f"model config class_names / light_codes are malformed: {exc}") from None
+            raise ConfigError(f"model config class_names / light_codes / temperatures / "
+                              f"on_offsets are malformed: {exc}") from None
         bad = {k: v for k, v in self.temperatures.items()
                if k not in self.class_names or not (math.isfinite(v) and v > 0)}
         if bad:
             raise ConfigError(f"model config temperatures must be positive numbers per task, "
                               f"got {bad}")
+        bad = {k: v for k, v in self.on_offsets.items()
+               if not {"ON", "OFF"} <= set(self.class_names.get(k, ())) or not math.isfinite(v)}
+        if bad:
+            raise ConfigError(f"model config on_offsets must be finite numbers per task with "
+                              f"ON and OFF classes, got {bad}")
 
     @property
     def num_classes(self) -> Dict[str, int]:
@@ -349,6 +361,7 @@ class ModelConfig:
         out["class_names"] = {t: list(n) for t, n in self.class_names.items()}
         out["light_codes"] = dict(self.light_codes)
         out["temperatures"] = dict(self.temperatures)
+        out["on_offsets"] = dict(self.on_offsets)
         return out
 
     @classmethod

@@ -24,7 +24,7 @@ in eval mode this is the same computation as stepping frame by frame.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Dict, List, Mapping, Optional, Tuple
+from typing import TYPE_CHECKING, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -106,6 +106,31 @@ def apply_temperatures(logits: Dict[str, Tensor], temperatures: Mapping[str, flo
     task without one, or with 1.0, is left as it is, so an uncalibrated graph is unchanged)."""
     return {t: v if temperatures.get(t, 1.0) == 1.0 else v * (1.0 / temperatures[t])
             for t, v in logits.items()}
+
+
+def apply_on_offsets(logits: Dict[str, Tensor], on_offsets: Mapping[str, float],
+                     class_names: Mapping[str, Sequence[str]]) -> Dict[str, Tensor]:
+    """Each task of ``on_offsets`` with ON shifted against OFF by its offset in log-odds
+    (``ModelConfig.on_offsets``), P(UNKNOWN) unchanged: the pair's total stays, split anew.
+    An offset added to the ON logit alone would move probability to UNKNOWN too, and make
+    UNKNOWNs where a threshold was meant to move between ON and OFF (docs/model.md)."""
+    out = dict(logits)
+    for task, offset in on_offsets.items():
+        if offset == 0.0:
+            continue
+        on, off = class_names[task].index("ON"), class_names[task].index("OFF")
+        columns = list(logits[task].unbind(-1))
+        pair = torch.logsumexp(torch.stack((columns[on], columns[off]), -1), -1)
+        gap = columns[on] - columns[off] + offset
+        columns[on], columns[off] = pair + F.logsigmoid(gap), pair + F.logsigmoid(-gap)
+        out[task] = torch.stack(columns, -1)
+    return out
+
+
+def calibrated_logits(logits: Dict[str, Tensor], config: "ModelConfig") -> Dict[str, Tensor]:
+    """The heads' logits as published: temperatures, then ON offsets (both from ``config``)."""
+    return apply_on_offsets(apply_temperatures(logits, config.temperatures), config.on_offsets,
+                            config.class_names)
 
 
 class AttentionFCN(nn.Module):
@@ -368,8 +393,7 @@ class LightStateNet(nn.Module):
         grid = F.adaptive_avg_pool2d(F.relu(self.head_conv(hidden)), self.config.head_grid)
         pooled = torch.cat((grid.flatten(1), hidden.amax(dim=(2, 3))), 1)
         z = self.fc(pooled)
-        return apply_temperatures({t: head(z) for t, head in self.heads.items()},
-                                  self.config.temperatures)
+        return calibrated_logits({t: head(z) for t, head in self.heads.items()}, self.config)
 
     # ---------------------------------------------------------------------- public API
 

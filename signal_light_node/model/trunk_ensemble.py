@@ -21,7 +21,7 @@ from torch import Tensor, nn
 
 from signal_light_node.errors import ConfigError
 from signal_light_node.model.interface import State
-from signal_light_node.model.network import apply_temperatures
+from signal_light_node.model.network import calibrated_logits
 from signal_light_node.model.trunk_network import TrunkFront, TrunkLightNet
 
 if TYPE_CHECKING:  # pragma: no cover - typing only
@@ -29,8 +29,8 @@ if TYPE_CHECKING:  # pragma: no cover - typing only
 
 
 def member_config(config: "ModelConfig") -> "ModelConfig":
-    """The config of one member: the same model, alone and without temperatures."""
-    return config.replace(members=1, temperatures={})
+    """The config of one member: the same model, alone, without temperatures or ON offsets."""
+    return config.replace(members=1, temperatures={}, on_offsets={})
 
 
 class TrunkEnsemble(TrunkFront):
@@ -71,7 +71,7 @@ class TrunkEnsemble(TrunkFront):
 
     def _average(self, outputs: List[Dict[str, Tensor]]) -> Dict[str, Tensor]:
         mean = {k: torch.stack([o[k] for o in outputs]).mean(0) for k in outputs[0]}
-        return apply_temperatures(mean, self.config.temperatures)
+        return calibrated_logits(mean, self.config)
 
     def _run_members(self, run: Callable[[nn.Module, Optional[State]],
                                          Tuple[Dict[str, Tensor], State]],

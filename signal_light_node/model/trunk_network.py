@@ -45,7 +45,7 @@ from signal_light_node.errors import ConfigError
 from signal_light_node.labels import TASKS, LightStatus
 from signal_light_node.model import lamp_evidence as lamps
 from signal_light_node.model.interface import State, state_batch_size
-from signal_light_node.model.network import (apply_temperatures, check_crops, convlstm_stack,
+from signal_light_node.model.network import (calibrated_logits, check_crops, convlstm_stack,
                                                 eval_frozen, register_normalisation)
 from signal_light_node.model.trunk import CUTS, EfficientLiteTrunk, load_imagenet_weights
 
@@ -443,7 +443,7 @@ class TrunkLightNet(TrunkFront):
                     else 0.0 for k in range(logits["brake"].shape[1])]
             gain = self.config.expert_gain
             logits["brake"] = logits["brake"] + expert * expert.new_tensor(sign) * gain
-        return dict(apply_temperatures(logits, self.config.temperatures), **extra)
+        return dict(calibrated_logits(logits, self.config), **extra)
 
     def step_features(self, features: Tensor, maps: Tensor, state: State
                       ) -> Tuple[Dict[str, Tensor], State]:

@@ -24,6 +24,7 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 import torch
 
+from signal_light_node.errors import ConfigError
 from signal_light_node.evaluation.metrics import expected_calibration_error
 from signal_light_node.model.checkpoint import load_checkpoint, save_checkpoint
 from signal_light_node.labels import TASKS
@@ -79,6 +80,9 @@ def _softmax(logits: np.ndarray, temperature: float) -> np.ndarray:
 def calibrate(checkpoint: Path, split: Path, out: Path, cache_root: Path) -> Dict[str, Dict[str, float]]:
     """Fit the temperatures of ``checkpoint`` on ``split``; write the calibrated ``out``."""
     loaded = load_checkpoint(checkpoint)
+    if loaded.config.on_offsets:  # they act after the temperatures: fitted first, on raw logits
+        raise ConfigError(f"{checkpoint} has ON offsets {dict(loaded.config.on_offsets)}: fit "
+                          f"the temperatures of the file before them")
     model = loaded.model.eval()
     if hasattr(model, "frame_features"):  # a frozen trunk: its features cached once
         fingerprint = trunk_fingerprint(model)

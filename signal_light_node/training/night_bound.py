@@ -11,13 +11,14 @@ negatives of the project's own renderer: night tracks of the held-out family who
 lamps glare as brightly as brakes (``scripts/render_data.sh``: ``NIGHT_NEGATIVE_TRACKS``).
 
 :func:`fit_light_offset` runs the model once over those tracks; for each offset of a grid
-(logit units, 0 or below) it moves the ON logit of the group's lights as adding it to their
-heads' bias would (``unknown_bias.with_offsets``), publishes through the node's intent
+(log-odds, 0 or below) it shifts the ON of the group's lights against their OFF, as the
+config's ``on_offsets`` would (``unknown_bias.with_offsets``; P(UNKNOWN) stays), publishes
+through the node's intent
 filter, and counts the OFF frames published ON (over the group's lights together). The
 offset nearest 0 whose share is within the bound wins: the least recall given up for it.
 ``signal-light calibrate --night-negatives ... --max-false-brake X --max-false-blinker Y``
 applies them after the UNKNOWN margin, so the checkpoint and its exports carry them in the
-heads' bias.
+config's ``on_offsets``.
 """
 
 from __future__ import annotations
@@ -27,13 +28,12 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Sequence, Tuple
 
-import numpy as np
 import torch.nn as nn
 
 from signal_light_node.errors import ConfigError
 from signal_light_node.evaluation.tracks import TrackSequence
 from signal_light_node.labels import LightStatus
-from signal_light_node.training.unknown_bias import (ON_HEADS, ModelPass, apply_offsets,
+from signal_light_node.training.unknown_bias import (ON_HEADS, ModelPass, add_on_offsets,
                                                      load_labelled, on_offsets)
 
 logger = logging.getLogger(__name__)
@@ -57,7 +57,7 @@ class LightBoundFit:
 
     Attributes:
         group: The light group (a key of :data:`LIGHT_GROUPS`).
-        offset: The ON offset chosen (added to the group's heads' ON logit).
+        offset: The ON offset chosen (the group's heads' ON against OFF, log-odds).
         bound: The largest share of OFF frames published ON that was allowed.
         met: Whether the chosen offset meets the bound (else it is the grid's lowest).
         false_on: Per offset tried, the share of OFF frames published ON.
@@ -76,9 +76,9 @@ class LightBoundFit:
     off_frames: int = 0
 
 
-def light_offsets(model: nn.Module, group: str, offset: float) -> Dict[str, np.ndarray]:
-    """What to add to each class logit of the group's heads: ``offset`` on ON."""
-    return on_offsets(model, LIGHT_GROUPS[group], offset)
+def light_offsets(group: str, offset: float) -> Dict[str, float]:
+    """The group's heads' shifts of ON against OFF: ``offset`` each."""
+    return on_offsets(LIGHT_GROUPS[group], offset)
 
 
 def choose_offset(false_on: Dict[float, float], bound: float) -> Tuple[float, bool]:
@@ -111,17 +111,17 @@ def fit_light_offset(model: nn.Module, tracks: Sequence[TrackSequence], bound: f
             or tracks without an OFF frame of the group.
     """
     _check(group, bound, grid, tracks)
-    return fit_on_pass(ModelPass(model, tracks), model, bound, grid, group)
+    return fit_on_pass(ModelPass(model, tracks), bound, grid, group)
 
 
-def fit_on_pass(passed: ModelPass, model: nn.Module, bound: float, grid: Sequence[float],
+def fit_on_pass(passed: ModelPass, bound: float, grid: Sequence[float],
                 group: str) -> LightBoundFit:
     """:func:`fit_light_offset` on a model pass already made (the groups' heads are scored
     apart, so each group's fit ignores the others' offsets)."""
     fit = LightBoundFit(group=group, offset=0.0, bound=float(bound), met=False,
                         tracks=sum(len(batch) for batch, _ in passed.outputs))
     for offset in sorted({float(o) for o in grid}, reverse=True):
-        strict = passed.scorer(light_offsets(model, group, offset)).strict
+        strict = passed.scorer({}, light_offsets(group, offset)).strict
         m = sum(strict.confusion(task) for task in LIGHT_GROUPS[group])
         if m[OFF].sum() == 0:
             raise ConfigError(f"the night negative tracks have no {group}-OFF frame to count")
@@ -158,11 +158,11 @@ class NightBounds:
         passed, chosen, meta = ModelPass(model, tracks), {}, {}
         self.fits = []
         for group, bound, grid in self.bounds:
-            fit = fit_on_pass(passed, model, bound, grid, group)
-            chosen.update(light_offsets(model, group, fit.offset))
+            fit = fit_on_pass(passed, bound, grid, group)
+            chosen.update(light_offsets(group, fit.offset))
             self.fits.append(fit)
             meta[meta_key(group)] = self._entry(fit)
-        apply_offsets(model, chosen)
+        add_on_offsets(model, chosen)
         return meta
 
     def _entry(self, fit: LightBoundFit) -> Dict[str, Any]:

@@ -19,13 +19,16 @@ docs/model.md).
   fine-tune's rule);
 * runs the model once over the fit tracks; for every margin ``b`` of the grid and ON
   offset ``o`` of the ON grid it moves those outputs as subtracting ``b`` from the
-  UNKNOWN logit of the brake, left, right and intent heads and adding ``o`` to the ON
-  logit of both blinkers would
+  UNKNOWN logit of the brake, left, right and intent heads and shifting both blinkers'
+  ON against their OFF by ``o`` in log-odds would
   (:func:`with_offsets`), and scores them as ``evaluate`` does (the node's intent
   filter): the mean of intent macro-F1 and brake F1. The best setting wins; ties go to
   the smaller margin and the offset nearest 0;
-* writes the chosen setting into the heads' biases (:func:`apply_offsets`: the
-  checkpoint, its ONNX export and its int8 export all carry it) and the checkpoint's
+* writes the margin into the heads' biases (:func:`apply_offsets`) and the ON offset into
+  the config's ``on_offsets`` (:func:`add_on_offsets`; it leaves P(UNKNOWN) as it is,
+  where a bias on ON alone would make UNKNOWNs: docs/model.md, "The last step of each
+  member"): the checkpoint, its ONNX export and its int8 export all carry both; and the
+  checkpoint's
   ``meta["unknown_margin"]`` (margin, ON offset, the grid's scores, the data) and, with
   held-out tracks, the before/after report beside it (``MODEL.report.json`` / ``.md``,
   as the fine-tune's).
@@ -41,7 +44,7 @@ import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Dict, List, Optional, Sequence, Tuple
+from typing import TYPE_CHECKING, Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -49,6 +52,7 @@ from torch import nn
 
 from signal_light_node.errors import ConfigError
 from signal_light_node.evaluation.tracks import TrackSequence
+from signal_light_node.labels import LIGHT_TASKS
 from signal_light_node.model.checkpoint import FILE_META
 from signal_light_node.runtime.crops import CropConfig
 
@@ -139,24 +143,27 @@ def class_index(model: nn.Module, task: str, name: str) -> int:
     return names.index(name)
 
 
-def head_offsets(model: nn.Module, margin: float,
-                 on_offset: float = 0.0) -> Dict[str, np.ndarray]:
+def head_offsets(model: nn.Module, margin: float) -> Dict[str, np.ndarray]:
     """Per head, what to add to each class's logit: ``-margin`` on UNKNOWN of
-    :data:`MARGIN_HEADS`, ``on_offset`` on ON of :data:`ON_HEADS`."""
+    :data:`MARGIN_HEADS`."""
     out = {t: np.zeros(len(model.config.class_names[t])) for t in MARGIN_HEADS}
     for task in MARGIN_HEADS:
         out[task][unknown_index(model, task)] -= float(margin)
-    for task, delta in on_offsets(model, ON_HEADS, on_offset).items():
-        out[task] += delta
     return out
 
 
-def on_offsets(model: nn.Module, tasks: Sequence[str], offset: float) -> Dict[str, np.ndarray]:
-    """Per head of ``tasks``, what to add to each class's logit: ``offset`` on ON."""
-    out = {t: np.zeros(len(model.config.class_names[t])) for t in tasks}
-    for task in tasks:
-        out[task][class_index(model, task, "ON")] = float(offset)
-    return out
+def on_offsets(tasks: Sequence[str], offset: float) -> Dict[str, float]:
+    """Per head of ``tasks``, its shift of ON against OFF (``ModelConfig.on_offsets``)."""
+    return {task: float(offset) for task in tasks}
+
+
+def add_on_offsets(model: nn.Module, shifts: Mapping[str, float]) -> None:
+    """Add ``shifts`` to the model's ``config.on_offsets`` (in place; the heads read them
+    from it after the temperatures); a sum of 0 is dropped."""
+    total = dict(model.config.on_offsets)
+    for task, shift in shifts.items():
+        total[task] = total.get(task, 0.0) + float(shift)
+    model.config = model.config.replace(on_offsets={t: v for t, v in total.items() if v != 0.0})
 
 
 def apply_offsets(model: nn.Module, offsets: Dict[str, np.ndarray]) -> None:
@@ -183,22 +190,35 @@ def score(result: Dict[str, Any]) -> float:
 
 
 def with_offsets(raw: Dict[str, np.ndarray], offsets: Dict[str, np.ndarray],
-                 temperatures: Dict[str, float]) -> Dict[str, np.ndarray]:
-    """What a model would output after :func:`apply_offsets`, from what it output before:
-    the heads' probabilities are a softmax of (logit + bias) / temperature, so adding
-    ``d`` to a class's bias multiplies its probability by ``exp(d / T)`` before
-    renormalising (exact, no second model pass).
+                 temperatures: Dict[str, float], shifts: Optional[Mapping[str, float]] = None,
+                 on_off: Optional[Mapping[str, Tuple[int, int]]] = None
+                 ) -> Dict[str, np.ndarray]:
+    """What a model would output after :func:`apply_offsets` and :func:`add_on_offsets`,
+    from what it output before (exact, no second model pass): the heads' probabilities are
+    a softmax of (logit + bias) / temperature, so adding ``d`` to a class's bias multiplies
+    its probability by ``exp(d / T)`` before renormalising; a shift ``s`` of ON against OFF
+    then multiplies the odds of ON to OFF by ``exp(s)``, their sum kept.
 
     Args:
         raw: Task -> probabilities ``[..., K]`` (``evaluation.streaming.model_track_probs``).
         offsets: :func:`head_offsets`.
         temperatures: The model config's temperatures (missing tasks 1.0).
+        shifts: :func:`on_offsets` (none by default).
+        on_off: Per task of ``shifts``, the indices of its ON and OFF classes.
     """
     out = dict(raw)
     for task, delta in offsets.items():
         scale = np.exp(np.asarray(delta, np.float64) / float(temperatures.get(task, 1.0)))
-        moved = raw[task].astype(np.float64) * scale
+        moved = out[task].astype(np.float64) * scale
         out[task] = (moved / moved.sum(axis=-1, keepdims=True)).astype(raw[task].dtype)
+    for task, shift in (shifts or {}).items():
+        on, off = (on_off or {})[task]
+        p = out[task].astype(np.float64)
+        lit, dark = p[..., on] * math.exp(shift), p[..., off]
+        total = p[..., on] + dark
+        share = np.divide(lit, lit + dark, out=np.zeros_like(lit), where=lit + dark > 0)
+        p[..., on], p[..., off] = total * share, total * (1.0 - share)
+        out[task] = p.astype(raw[task].dtype)
     return out
 
 
@@ -226,18 +246,22 @@ class ModelPass:
         self.settings, self.light_filter = EvalSettings(), IntentFilterConfig()
         model = model.eval()
         self.temperatures = dict(model.config.temperatures)
+        self.on_off = {t: (class_index(model, t, "ON"), class_index(model, t, "OFF"))
+                       for t in LIGHT_TASKS}
         self.outputs = [(batch, model_track_probs(model, batch))
                         for batch in chunks(tracks, self.settings.batch_tracks)]
 
-    def scorer(self, offsets: Dict[str, np.ndarray]) -> "TrackScorer":
-        """Every track scored as the model moved by ``offsets`` would publish it."""
+    def scorer(self, offsets: Dict[str, np.ndarray],
+               shifts: Optional[Mapping[str, float]] = None) -> "TrackScorer":
+        """Every track scored as the model moved by bias ``offsets`` and ON ``shifts``
+        (:func:`with_offsets`) would publish it."""
         from signal_light_node.evaluation.scoring import TrackScorer
         from signal_light_node.evaluation.streaming import score_batch
 
         scorer = TrackScorer(self.settings)
         for batch, raw in self.outputs:
-            score_batch(scorer, batch, with_offsets(raw, offsets, self.temperatures),
-                        self.light_filter)
+            moved = with_offsets(raw, offsets, self.temperatures, shifts, self.on_off)
+            score_batch(scorer, batch, moved, self.light_filter)
         return scorer
 
 
@@ -268,7 +292,8 @@ def fit_unknown_margin(model: nn.Module, tracks: Sequence[TrackSequence],
     for margin in sorted({float(m) for m in grid}):
         by_offset: Dict[float, float] = {}
         for on in sorted({float(o) for o in on_grid}):
-            result = scorer_result(passed.scorer(head_offsets(model, margin, on)),
+            result = scorer_result(passed.scorer(head_offsets(model, margin),
+                                                 on_offsets(ON_HEADS, on)),
                                    passed.light_filter)
             by_offset[on] = score(result)
             fit.fit_frames = int(result["counts"]["scored"])
@@ -332,7 +357,8 @@ def calibrate_checkpoint(out: Path, inputs: Sequence[Path],
     tracks = load_labelled(inputs, loaded.config.crop_config())
     kept, held = split_by_track_id(tracks, holdout_fraction, seed)
     fit = fit_unknown_margin(loaded.model, kept, grid, on_grid)
-    apply_offsets(loaded.model, head_offsets(loaded.model, fit.margin, fit.on_offset))
+    apply_offsets(loaded.model, head_offsets(loaded.model, fit.margin))
+    add_on_offsets(loaded.model, on_offsets(ON_HEADS, fit.on_offset))
     extra = after_fit(loaded.model) if after_fit is not None else {}
     meta = {k: v for k, v in loaded.meta.items() if k not in FILE_META}
     meta[META_KEY] = {"margin": fit.margin, "on_offset": fit.on_offset,
@@ -348,7 +374,7 @@ def calibrate_checkpoint(out: Path, inputs: Sequence[Path],
     if held:
         original = load_checkpoint(source, map_location="cpu").model.eval()
         report = before_after(original, loaded.model.eval(), held, str(source), str(out))
-    save_checkpoint(out, loaded.model, loaded.config, meta)
+    save_checkpoint(out, loaded.model, loaded.model.config, meta)
     if report is not None:
         path_json, path_md = report_paths(Path(out))
         path_json.write_text(json.dumps(report, indent=2) + "\n")
@@ -362,8 +388,8 @@ def summary_lines(fit: MarginFit, out: Path, report: Optional[Dict[str, Any]]) -
     lines = [f"fitted on {fit.fit_frames} frames of {fit.fit_tracks} tracks; score (mean of "
              f"intent macro-F1 and brake F1, best blinker ON offset) per UNKNOWN margin: {grid}",
              f"UNKNOWN margin {fit.margin:g} (UNKNOWN logit of {', '.join(MARGIN_HEADS)} "
-             f"lowered by it); blinker ON offset {fit.on_offset:+g} (added to the ON logit "
-             f"of {', '.join(ON_HEADS)}); wrote {out}"]
+             f"lowered by it); blinker ON offset {fit.on_offset:+g} (ON against OFF of "
+             f"{', '.join(ON_HEADS)}, in log-odds); wrote {out}"]
     if fit.edges:
         lines.append(f"note: {'; '.join(fit.edges)}: a wider grid may score better")
     if report is not None:
