@@ -2,8 +2,8 @@
 UNKNOWN and ON, on your labelled recordings.
 
 Two numbers per checkpoint: the margin by which the UNKNOWN logit of the brake, left,
-right and intent heads is lowered, and the offset added to the ON logit of both blinkers
-(how readily the filter turns a blinker on), chosen on grids by the mean of intent macro-F1 and brake F1 through the
+right and intent heads is lowered, and the offset of both blinkers' ON against their OFF
+in log-odds, P(UNKNOWN) kept (how readily the filter turns a blinker on), chosen on grids by the mean of intent macro-F1 and brake F1 through the
 node's intent filter (:mod:`signal_light_node.training.unknown_bias`). ``--holdout-fraction`` keeps a share of
 the track IDs out of the fit and writes the before/after report beside the checkpoint.
 ``--night-negatives ... --max-false-brake X`` adds a third: the brake's ON offset nearest 0
@@ -54,8 +54,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--grid", type=_grid, default=DEFAULT_GRID, metavar="M,M,...",
                         help="UNKNOWN margins to try (logit units, >= 0)")
     parser.add_argument("--on-grid", type=_grid, default=DEFAULT_ON_GRID, metavar="O,O,...",
-                        help="blinker ON offsets to try (logit "
-                             "units; 0 alone keeps the ON logits; write --on-grid=-1,0,1)")
+                        help="blinker ON offsets to try (ON against OFF, in "
+                             "log-odds; 0 alone keeps them; write --on-grid=-1,0,1)")
     parser.add_argument("--night-negatives", type=Path, nargs="+", default=[],
                         metavar="LABELLED",
                         help="night tracks whose steady tail lamps glare as brakes do "
