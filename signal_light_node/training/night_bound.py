@@ -41,8 +41,9 @@ logger = logging.getLogger(__name__)
 #: ON offsets tried by default (log-odds; 0 = the lights as trained). Steps of 1/8 to -1:
 #: the offset nearest 0 within the bound is kept, and a coarse step overshoots it (a brake
 #: bound of 20 % got 16.9 % between 24.5 % at -0.25 and -0.5; docs/model.md).
-DEFAULT_OFFSET_GRID: Tuple[float, ...] = (0.0,) + tuple(-0.125 * i for i in range(1, 9)) + (-1.5, -2.0)
-#: The light groups a bound is for: name -> the heads whose ON logit it moves.
+DEFAULT_OFFSET_GRID: Tuple[float, ...] = ((0.0,) + tuple(-0.125 * i for i in range(1, 9))
+                                          + (-1.5, -2.0))
+#: The light groups a bound is for: name -> the heads whose ON it shifts against OFF.
 LIGHT_GROUPS: Dict[str, Tuple[str, ...]] = {"brake": ("brake",), "blinker": ON_HEADS}
 
 OFF, ON = int(LightStatus.OFF), int(LightStatus.ON)
