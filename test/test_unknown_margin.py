@@ -68,7 +68,6 @@ def test_offsets_applied_to_outputs_equal_the_offsets_in_the_biases() -> None:
     model.config = dataclasses.replace(model.config, temperatures={"left": 1.7, "brake": 0.6})
     crops = np.random.default_rng(1).integers(0, 255, (5, 64, 64, 3), dtype=np.uint8)
     offsets, shifts = head_offsets(model, 1.25), on_offsets(ON_HEADS, -0.5)
-    on_off = {t: (class_index(model, t, "ON"), class_index(model, t, "OFF")) for t in ON_HEADS}
     with torch.no_grad():
         p0, _ = model.step(to_input(crops), model.initial_state(5))
         apply_offsets(model, offsets)
@@ -76,7 +75,7 @@ def test_offsets_applied_to_outputs_equal_the_offsets_in_the_biases() -> None:
         add_on_offsets(model, shifts)
         p1, _ = model.step(to_input(crops), model.initial_state(5))
     moved = with_offsets({t: v.numpy() for t, v in p0.items()}, offsets,
-                         dict(model.config.temperatures), shifts, on_off)
+                         dict(model.config.temperatures), shifts)
     for task in p0:
         np.testing.assert_allclose(moved[task], p1[task].numpy(), atol=1e-5, err_msg=task)
     for task in ON_HEADS:  # the ON offset moves ON against OFF; UNKNOWN is the margin's

@@ -52,7 +52,7 @@ from torch import nn
 
 from signal_light_node.errors import ConfigError
 from signal_light_node.evaluation.tracks import TrackSequence
-from signal_light_node.labels import LIGHT_TASKS
+from signal_light_node.labels import LightStatus
 from signal_light_node.model.checkpoint import FILE_META
 from signal_light_node.runtime.crops import CropConfig
 
@@ -190,8 +190,7 @@ def score(result: Dict[str, Any]) -> float:
 
 
 def with_offsets(raw: Dict[str, np.ndarray], offsets: Dict[str, np.ndarray],
-                 temperatures: Dict[str, float], shifts: Optional[Mapping[str, float]] = None,
-                 on_off: Optional[Mapping[str, Tuple[int, int]]] = None
+                 temperatures: Dict[str, float], shifts: Optional[Mapping[str, float]] = None
                  ) -> Dict[str, np.ndarray]:
     """What a model would output after :func:`apply_offsets` and :func:`add_on_offsets`,
     from what it output before (exact, no second model pass): the heads' probabilities are
@@ -203,8 +202,8 @@ def with_offsets(raw: Dict[str, np.ndarray], offsets: Dict[str, np.ndarray],
         raw: Task -> probabilities ``[..., K]`` (``evaluation.streaming.model_track_probs``).
         offsets: :func:`head_offsets`.
         temperatures: The model config's temperatures (missing tasks 1.0).
-        shifts: :func:`on_offsets` (none by default).
-        on_off: Per task of ``shifts``, the indices of its ON and OFF classes.
+        shifts: :func:`on_offsets` (none by default); every light head's classes are
+            :class:`~signal_light_node.labels.LightStatus`'s (a checkpoint is refused otherwise).
     """
     out = dict(raw)
     for task, delta in offsets.items():
@@ -212,7 +211,7 @@ def with_offsets(raw: Dict[str, np.ndarray], offsets: Dict[str, np.ndarray],
         moved = out[task].astype(np.float64) * scale
         out[task] = (moved / moved.sum(axis=-1, keepdims=True)).astype(raw[task].dtype)
     for task, shift in (shifts or {}).items():
-        on, off = (on_off or {})[task]
+        on, off = int(LightStatus.ON), int(LightStatus.OFF)
         p = out[task].astype(np.float64)
         lit, dark = p[..., on] * math.exp(shift), p[..., off]
         total = p[..., on] + dark
@@ -246,8 +245,6 @@ class ModelPass:
         self.settings, self.light_filter = EvalSettings(), IntentFilterConfig()
         model = model.eval()
         self.temperatures = dict(model.config.temperatures)
-        self.on_off = {t: (class_index(model, t, "ON"), class_index(model, t, "OFF"))
-                       for t in LIGHT_TASKS}
         self.outputs = [(batch, model_track_probs(model, batch))
                         for batch in chunks(tracks, self.settings.batch_tracks)]
 
@@ -260,7 +257,7 @@ class ModelPass:
 
         scorer = TrackScorer(self.settings)
         for batch, raw in self.outputs:
-            moved = with_offsets(raw, offsets, self.temperatures, shifts, self.on_off)
+            moved = with_offsets(raw, offsets, self.temperatures, shifts)
             score_batch(scorer, batch, moved, self.light_filter)
         return scorer
 
