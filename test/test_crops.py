@@ -29,7 +29,43 @@ def test_config_defaults_and_validation():
             CropConfig(**bad)
     with pytest.raises(Exception):
         CropConfig().size = 32  # frozen
+    assert CropConfig(fill=np.bool_(True)).fill is True
+    with pytest.raises(ConfigError, match="fill"):
+        CropConfig(fill="yes")
 
+
+def test_fill_stretches_the_grown_box_to_the_square(image):
+    # 40 wide, 20 high, margin 0.25 -> 60x30 around the centre (100, 80), not squared.
+    box = TrackBox("a", 80, 70, 120, 90)
+    fill = CropConfig(size=60, margin=0.25, fill=True)
+    assert crop_region(box, 300, 200, fill) == (70, 65, 60, 30)
+    crop = crop_vehicle(image, box, fill)
+    assert crop.shape == (60, 60, 3)
+    # Every row of the 30 rows cut is stretched over two crop rows; columns are kept.
+    reference = cv2.resize(image[65:95, 70:130], (60, 60), interpolation=cv2.INTER_LINEAR)
+    np.testing.assert_array_equal(crop, reference)
+    # A square box is cut as without fill.
+    square = TrackBox("b", 40, 30, 72, 62)
+    np.testing.assert_array_equal(crop_vehicle(image, square, CropConfig(32, 0.0, True)),
+                                  crop_vehicle(image, square, CropConfig(32, 0.0)))
+
+
+def test_fill_halves_each_side_on_its_own():
+    smooth = cv2.GaussianBlur(np.random.default_rng(2).integers(0, 256, (720, 1280, 3),
+                                                                dtype=np.uint8), (0, 0), 4)
+    for w, h in ((520, 130), (130, 520), (300, 40), (700, 260)):
+        box = TrackBox("a", 50, 60, 50 + w, 60 + h)
+        crop = crop_vehicle(smooth, box, CropConfig(size=64, margin=0.0, fill=True))
+        _, _, cw, ch = crop_region(box, 1280, 720, CropConfig(64, 0.0, True))
+        # Each side rounded up on its own halving grid, by under 1/64 of it.
+        assert w <= cw < w * (1 + 1 / 64) + 1 and h <= ch < h * (1 + 1 / 64) + 1
+        reference = cv2.resize(smooth[60:60 + h, 50:50 + w], (64, 64),
+                               interpolation=cv2.INTER_AREA).astype(int)
+        assert np.abs(crop.astype(int) - reference).mean() < 3.0
+    # A region past the border is zero there, at both scales.
+    flat = np.full((200, 300, 3), 200, np.uint8)
+    crop = crop_vehicle(flat, TrackBox("b", 100, -100, 300, 100), CropConfig(32, 0.0, True))
+    assert not crop[:15].any() and (crop[17:] == 200).all()
 
 def test_interior_square_box_is_exact_slice(image):
     box = TrackBox("a", 40, 30, 72, 62)  # 32x32, no margin, size 32: no resampling
@@ -53,11 +89,11 @@ def test_margin_and_squareness(image):
 
 def test_crop_region_is_the_square_that_is_cut(image):
     box = TrackBox("a", 80, 70, 120, 90)
-    assert crop_region(box, 300, 200, CropConfig(size=60, margin=0.25)) == (70, 50, 60)
-    x0, y0, side = crop_region(TrackBox("b", -10, -20, 30, 20), 300, 200, CropConfig(40, 0.0))
-    assert (x0, y0, side) == (-10, -20, 40)
+    assert crop_region(box, 300, 200, CropConfig(size=60, margin=0.25)) == (70, 50, 60, 60)
+    region = crop_region(TrackBox("b", -10, -20, 30, 20), 300, 200, CropConfig(40, 0.0))
+    assert region == (-10, -20, 40, 40)
     # Large squares are rounded up so that they halve exactly down to [size, 2 size).
-    _, _, side = crop_region(TrackBox("c", 0, 0, 150, 150), 300, 200, CropConfig(32, 0.0))
+    _, _, side, _ = crop_region(TrackBox("c", 0, 0, 150, 150), 300, 200, CropConfig(32, 0.0))
     assert side >= 150 and side % 4 == 0 and 32 <= side // 4 < 64
     with pytest.raises(CropError):
         crop_region(TrackBox("d", 400, 0, 420, 20), 300, 200)

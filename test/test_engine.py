@@ -364,6 +364,19 @@ def test_attention_masks_land_inside_the_crops_and_leave_state_alone():
     assert len(engine.bank) == 0 and engine.model.calls == 0
 
 
+def test_fill_crops_follow_the_model_and_their_masks_fill_the_stretched_box():
+    model = FakeLightModel()
+    model.config = model.config.replace(crop_fill=True)
+    engine = LightStateEngine(model, EngineConfig(intent_filter=IntentFilterConfig(
+        flash_min_evidence=0.0)))
+    assert engine.crop.fill
+    # A wide box: the mask covers its width and height with their margins, no square.
+    heat = engine.attention_masks(_image(255), [TrackBox("a", 100, 60, 180, 80)])
+    ys, xs = np.nonzero(heat > 0.5)
+    assert 100 - 12 - 1 <= xs.min() <= 100 and 180 <= xs.max() <= 180 + 12 + 1
+    assert 60 - 3 - 1 <= ys.min() <= 60 and 80 <= ys.max() <= 80 + 3 + 1
+
+
 # ------------------------------------------------------------- with the real network
 TINY = dict(input_size=24, attention_channels=(4, 4, 4), backbone_channels=(6, 8, 8),
             lstm_hidden=(6, 5), head_channels=4, head_grid=2, fc_hidden=16)

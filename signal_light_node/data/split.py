@@ -155,7 +155,9 @@ def write_split(out_dir: "str | os.PathLike[str]", seed: int, n_sequences: int, 
         "full_tracks": bool(full_tracks),
         "n_sequences": int(n_sequences),
         "n_observations": int(n_observations),
-        "crop": {"size": crop.size, "margin": crop.margin},
+        # fill only when set, so that the manifests of square crops read as before.
+        "crop": dict({"size": crop.size, "margin": crop.margin},
+                     **({"fill": True} if crop.fill else {})),
         "stream": _json_ready({k: v for k, v in stream_kwargs.items()}),
         "tasks": list(TASKS),
         "label_histogram": {task: {name: int(histogram[task][i])
@@ -324,6 +326,9 @@ def main(argv: Optional[List[str]] = None) -> int:
                         help="whole tracks of each scene instead of windows")
     parser.add_argument("--crop-size", type=int, default=CropConfig.size)
     parser.add_argument("--crop-margin", type=float, default=CropConfig.margin)
+    parser.add_argument("--crop-fill", action="store_true",
+                        help="stretch each grown box to the square crop instead of squaring "
+                        "it (crops.CropConfig.fill)")
     parser.add_argument("--lighting", choices=("day", "dusk", "night"), default=None,
                         help="one lighting for every scene (default: drawn per scene)")
     parser.add_argument("--lit-maps", action="store_true",
@@ -343,7 +348,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
         path = write_split(args.out, args.seed, args.sequences, args.seq_len,
-                           CropConfig(args.crop_size, args.crop_margin),
+                           CropConfig(args.crop_size, args.crop_margin, args.crop_fill),
                            full_tracks=args.full_tracks, overwrite=args.overwrite,
                            lighting=args.lighting, lit_maps=args.lit_maps, **extra)
     except SignalLightError as exc:

@@ -71,6 +71,8 @@ class ModelConfig:
         std: Per-channel standard deviation dividing the input, in ``channel_order``.
         channel_order: Channel order of the input crops, always "bgr".
         crop_margin: Margin of the crops the model was trained on (``crops.CropConfig``).
+        crop_fill: Its crops stretch the grown box to the square instead of squaring it
+            (``crops.CropConfig.fill``).
         class_names: Class names per task, index i = class value i.
         light_codes: ``LightClassification`` code of each light head.
         temporal_input: Feed the backbone the crop's change against the track's
@@ -182,6 +184,7 @@ class ModelConfig:
     std: Tuple[float, float, float] = (0.25, 0.25, 0.25)
     channel_order: str = "bgr"
     crop_margin: float = CropConfig.margin
+    crop_fill: bool = CropConfig.fill
     # hash=False: dicts are unhashable, the other fields identify a config well enough.
     class_names: Mapping[str, Tuple[str, ...]] = field(
         default_factory=lambda: {t: tuple(CLASS_NAMES[t]) for t in TASKS}, hash=False)
@@ -236,7 +239,7 @@ class ModelConfig:
         for name in ("use_attention", "temporal_input", "relative_evidence", "frequency_evidence",
                      "lit_head", "lit_periods", "blink_levels", "cell_periods",
                      "cell_pooled", "lamp_area", "track_floor", "brake_expert",
-                     "expert_red", "high_lamp", "lit_map_head"):
+                     "expert_red", "high_lamp", "lit_map_head", "crop_fill"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"model config {name} must be true or false, got "
                                   f"{getattr(self, name)!r}")
@@ -312,7 +315,7 @@ class ModelConfig:
                               "it needs lamp_detail 1")
         if self.channel_order != "bgr":
             raise ConfigError(f"model config channel_order must be 'bgr', got {self.channel_order!r}")
-        CropConfig(size=self.input_size, margin=self.crop_margin)  # validates the margin
+        self.crop_config()  # validates the margin
         try:
             set_("class_names", {str(t): tuple(str(n) for n in names)
                                  for t, names in dict(self.class_names).items()})
@@ -350,7 +353,7 @@ class ModelConfig:
 
     def crop_config(self) -> CropConfig:
         """The crop settings that reproduce the training crops."""
-        return CropConfig(size=self.input_size, margin=self.crop_margin)
+        return CropConfig(size=self.input_size, margin=self.crop_margin, fill=self.crop_fill)
 
     def to_dict(self) -> Dict[str, Any]:
         """Plain dict (lists, not tuples) for the checkpoint and for JSON."""

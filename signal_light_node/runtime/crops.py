@@ -3,7 +3,9 @@
 This is the only crop code of the package: the training stream, the split writer and
 the online engine all call it, so the model sees the same crops in training and on
 the road. A crop is the box grown by a margin on each side, made square around its
-centre, cut from the image (zeros where it reaches past the border) and resized.
+centre, cut from the image (zeros where it reaches past the border) and resized. With
+``CropConfig.fill`` the grown box is not made square but stretched to the square crop:
+a vehicle seen from its side then fills the crop's height instead of a band of it.
 """
 
 from __future__ import annotations
@@ -30,10 +32,13 @@ class CropConfig:
         size: Side of the square crop in pixels (16..512).
         margin: Fraction of the box's width (height) added on the left and right (top and
             bottom) before squaring, 0..1.
+        fill: Stretch the grown box to the square crop instead of squaring it first
+            (its shorter side is not padded with the scene around it).
     """
 
     size: int = 64
     margin: float = 0.15
+    fill: bool = False
 
     def __post_init__(self) -> None:
         if isinstance(self.size, bool) or not isinstance(self.size, (int, np.integer)):
@@ -46,9 +51,12 @@ class CropConfig:
             raise ConfigError(f"crop margin must be a number, got {self.margin!r}") from None
         if not (math.isfinite(margin) and 0.0 <= margin <= 1.0):
             raise ConfigError(f"crop margin must be in 0..1, got {self.margin}")
+        if not isinstance(self.fill, (bool, np.bool_)):
+            raise ConfigError(f"crop fill must be true or false, got {self.fill!r}")
         # Normalise types so that equal configs compare and hash equal.
         object.__setattr__(self, "size", int(self.size))
         object.__setattr__(self, "margin", margin)
+        object.__setattr__(self, "fill", bool(self.fill))
 
 
 def _check_image(image: np.ndarray) -> None:
@@ -61,9 +69,8 @@ def _check_image(image: np.ndarray) -> None:
         raise CropError(f"image is empty ({image.shape[1]}x{image.shape[0]})")
 
 
-def _square_region(box: TrackBox, width: int, height: int, margin: float,
-                   size: int) -> Tuple[int, int, int]:
-    """Integer square ``(x0, y0, side)`` to cut for ``box``; raises CropError if none."""
+def _check_box(box: TrackBox, width: int, height: int, grow: float) -> None:
+    """Raise CropError for a box no crop can be cut for (``grow``: its sides' factor)."""
     if not box.is_finite:
         raise CropError(f"track {box.track_id!r}: box has non-finite coordinates "
                         f"({box.x0}, {box.y0}, {box.x1}, {box.y1})")
@@ -73,27 +80,44 @@ def _square_region(box: TrackBox, width: int, height: int, margin: float,
     if box.x1 <= 0 or box.y1 <= 0 or box.x0 >= width or box.y0 >= height:
         raise CropError(f"track {box.track_id!r}: box ({box.x0:g}, {box.y0:g}, {box.x1:g}, "
                         f"{box.y1:g}) lies entirely outside the {width}x{height} image")
-    side = max(w, h) * (1.0 + 2.0 * margin)
-    if side > 64 * max(width, height):
+    if max(w, h) * grow > 64 * max(width, height):
         # A box this large is a broken detection; cutting it would allocate gigabytes.
         raise CropError(f"track {box.track_id!r}: box of {w:g}x{h:g} is far larger than "
                         f"the {width}x{height} image")
+
+
+def _halving_side(side: float, size: int) -> int:
+    """A region side in whole pixels; from ``2 size`` on rounded up to a multiple of
+    ``2**j``, where ``2**j <= side / size``, so that it halves ``j`` times exactly (the
+    change is < 1/size of the side)."""
     side_px = max(1, int(round(side)))
     if side_px >= 2 * size:
-        # Round the side up to a multiple of 2**j, where 2**j <= side / size, so that
-        # _resize_square can halve it j times exactly (the change is < 1/size of the side).
         step = 1 << ((side_px // size).bit_length() - 1)
         side_px = step * -(-side_px // step)
+    return side_px
+
+
+def _region(box: TrackBox, width: int, height: int, config: CropConfig
+            ) -> Tuple[int, int, int, int]:
+    """Integer region ``(x0, y0, w, h)`` to cut for ``box`` (``w == h`` unless
+    ``config.fill``); raises CropError if none."""
+    grow = 1.0 + 2.0 * config.margin
+    _check_box(box, width, height, grow)
+    if config.fill:
+        w_px = _halving_side(box.width * grow, config.size)
+        h_px = _halving_side(box.height * grow, config.size)
+    else:
+        w_px = h_px = _halving_side(max(box.width, box.height) * grow, config.size)
     cx = 0.5 * (box.x0 + box.x1)
     cy = 0.5 * (box.y0 + box.y1)
-    x0 = int(math.floor(cx - 0.5 * side_px + 0.5))
-    y0 = int(math.floor(cy - 0.5 * side_px + 0.5))
-    return x0, y0, side_px
+    x0 = int(math.floor(cx - 0.5 * w_px + 0.5))
+    y0 = int(math.floor(cy - 0.5 * h_px + 0.5))
+    return x0, y0, w_px, h_px
 
 
 def crop_region(box: TrackBox, width: int, height: int,
-                config: CropConfig = CropConfig()) -> Tuple[int, int, int]:
-    """The square that :func:`crop_vehicle` cuts for ``box``, in image pixels.
+                config: CropConfig = CropConfig()) -> Tuple[int, int, int, int]:
+    """The region that :func:`crop_vehicle` cuts for ``box``, in image pixels.
 
     Useful to map something computed on the crop (an attention mask) back onto the frame.
 
@@ -101,62 +125,74 @@ def crop_region(box: TrackBox, width: int, height: int,
         box: The tracked box.
         width: Image width.
         height: Image height.
-        config: Crop size and margin.
+        config: Crop size, margin and fill.
 
     Returns:
-        ``(x0, y0, side)``; the square may reach past the image border.
+        ``(x0, y0, w, h)``, a square (``w == h``) unless ``config.fill``; it may reach past
+        the image border.
 
     Raises:
         CropError: For the boxes that :func:`crop_vehicle` rejects.
     """
-    return _square_region(box, width, height, config.margin, config.size)
+    return _region(box, width, height, config)
 
 
-def _cut(image: np.ndarray, x0: int, y0: int, side: int, size: int) -> np.ndarray:
-    """Cut the square ``(x0, y0, side)`` (zeros outside the image) and resize it to ``size``.
+def _halving_step(side: int, size: int) -> int:
+    """``2**j``: how much a region side is halved before the final resize (to below
+    ``2 size``; :func:`_halving_side` made the side divisible by it)."""
+    step = 1
+    while side // step >= 2 * size:
+        step *= 2
+    return step
 
-    Shrinking first halves the square with ``INTER_AREA`` (OpenCV's fast path; its general
-    area resize costs ~10x more) until its side is below ``2 size``. When the square reaches
-    past the border, only the part inside the image, widened to the halving grid, is halved
-    and the zeros are added afterwards at the reduced scale: the same pixels as padding
-    first, without halving large blocks of zeros.
+
+def _cut(image: np.ndarray, x0: int, y0: int, w: int, h: int, size: int) -> np.ndarray:
+    """Cut the region ``(x0, y0, w, h)`` (zeros outside the image) and resize it to
+    ``size x size``.
+
+    Shrinking first halves each side with ``INTER_AREA`` (OpenCV's fast path for whole
+    factors; its general area resize costs ~10x more) until it is below ``2 size``. When the
+    region reaches past the border, only the part inside the image, widened to the halving
+    grid, is halved and the zeros are added afterwards at the reduced scale: the same pixels
+    as padding first, without halving large blocks of zeros.
     """
     height, width = image.shape[:2]
-    step = 1
-    while side // step >= 2 * size:  # _square_region made the side divisible by this step
-        step *= 2
+    sx, sy = _halving_step(w, size), _halving_step(h, size)
     cx0, cy0 = max(x0, 0), max(y0, 0)
-    cx1, cy1 = min(x0 + side, width), min(y0 + side, height)
-    # The inside part relative to the square, widened outwards to multiples of step.
-    ax0, ay0 = (cx0 - x0) // step * step, (cy0 - y0) // step * step
-    ax1, ay1 = -(-(cx1 - x0) // step) * step, -(-(cy1 - y0) // step) * step
+    cx1, cy1 = min(x0 + w, width), min(y0 + h, height)
+    # The inside part relative to the region, widened outwards to multiples of the steps.
+    ax0, ay0 = (cx0 - x0) // sx * sx, (cy0 - y0) // sy * sy
+    ax1, ay1 = -(-(cx1 - x0) // sx) * sx, -(-(cy1 - y0) // sy) * sy
     patch = image[cy0:cy1, cx0:cx1]
     fine = (cy0 - y0 - ay0, ay1 - (cy1 - y0), cx0 - x0 - ax0, ax1 - (cx1 - x0))
     if any(fine):
         patch = cv2.copyMakeBorder(patch, *fine, cv2.BORDER_CONSTANT, value=(0, 0, 0))
-    halvings = step.bit_length() - 1
-    for _ in range(halvings):
-        h, w = patch.shape[:2]
-        patch = cv2.resize(patch, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
-    coarse = (ay0 // step, (side - ay1) // step, ax0 // step, (side - ax1) // step)
+    hx, hy = sx.bit_length() - 1, sy.bit_length() - 1
+    for i in range(max(hx, hy)):
+        ph, pw = patch.shape[:2]
+        patch = cv2.resize(patch, (pw // 2 if i < hx else pw, ph // 2 if i < hy else ph),
+                           interpolation=cv2.INTER_AREA)
+    coarse = (ay0 // sy, (h - ay1) // sy, ax0 // sx, (w - ax1) // sx)
     if any(coarse):
         patch = cv2.copyMakeBorder(patch, *coarse, cv2.BORDER_CONSTANT, value=(0, 0, 0))
     return _finish(patch, size)
 
 
 def _finish(patch: np.ndarray, size: int) -> np.ndarray:
-    """Resize a square patch of side below ``2 size`` to ``size``.
+    """Resize a patch whose sides are below ``2 size`` to ``size x size``.
 
     Enlarging is bilinear; shrinking is bilinear up to ``2 size`` followed by one area
     halving, which differs from a single ``INTER_AREA`` call by a few grey levels on fine
     texture (the model only ever sees crops made this way) at a fraction of its cost.
     """
-    side = patch.shape[0]
-    if side == size:
+    h, w = patch.shape[:2]
+    if h == size and w == size:
         return np.ascontiguousarray(patch)
-    if side < size:
+    if h <= size and w <= size:
         return cv2.resize(patch, (size, size), interpolation=cv2.INTER_LINEAR)
-    patch = cv2.resize(patch, (2 * size, 2 * size), interpolation=cv2.INTER_LINEAR)
+    # A side that shrinks goes to 2 size (then halves), one that does not to size.
+    patch = cv2.resize(patch, (2 * size if w > size else size, 2 * size if h > size else size),
+                       interpolation=cv2.INTER_LINEAR)
     return cv2.resize(patch, (size, size), interpolation=cv2.INTER_AREA)
 
 
@@ -177,8 +213,7 @@ def crop_vehicle(image: np.ndarray, box: TrackBox, config: CropConfig = CropConf
     """
     _check_image(image)
     height, width = image.shape[:2]
-    x0, y0, side = _square_region(box, width, height, config.margin, config.size)
-    return _cut(image, x0, y0, side, config.size)
+    return _cut(image, *_region(box, width, height, config), config.size)
 
 
 def crop_vehicles(image: np.ndarray, boxes: Sequence[TrackBox],
@@ -204,11 +239,11 @@ def crop_vehicles(image: np.ndarray, boxes: Sequence[TrackBox],
     reasons: List[Optional[str]] = [None] * len(boxes)
     for i, box in enumerate(boxes):
         try:
-            x0, y0, side = _square_region(box, width, height, config.margin, config.size)
+            region = _region(box, width, height, config)
         except CropError as exc:
             reasons[i] = str(exc)
             continue
-        crops[i] = _cut(image, x0, y0, side, size)
+        crops[i] = _cut(image, *region, size)
     return crops, reasons
 
 

@@ -336,21 +336,21 @@ class LightStateEngine:
         return np.clip(heat, 0.0, 1.0)
 
 
-def _paste_mask(heat: np.ndarray, mask: np.ndarray, x0: int, y0: int, side: int) -> None:
-    """Scale ``mask`` to the square ``(x0, y0, side)`` and max it into ``heat`` in place.
+def _paste_mask(heat: np.ndarray, mask: np.ndarray, x0: int, y0: int, w: int, h: int) -> None:
+    """Scale ``mask`` to the region ``(x0, y0, w, h)`` and max it into ``heat`` in place.
 
     Only the part of the square inside ``heat`` is computed (as ``cv2.resize`` would
     sample it), so memory stays bounded by the image whatever the box size.
     """
     height, width = heat.shape
     cx0, cy0 = max(x0, 0), max(y0, 0)
-    cx1, cy1 = min(x0 + side, width), min(y0 + side, height)
+    cx1, cy1 = min(x0 + w, width), min(y0 + h, height)
     if cx1 <= cx0 or cy1 <= cy0:
         return
-    scale = mask.shape[1] / side
+    scale_x, scale_y = mask.shape[1] / w, mask.shape[0] / h
     # Output pixel u of the visible part samples the mask at (u + offset + 0.5) * scale - 0.5.
-    affine = np.array([[scale, 0.0, (cx0 - x0 + 0.5) * scale - 0.5],
-                       [0.0, scale, (cy0 - y0 + 0.5) * scale - 0.5]])
+    affine = np.array([[scale_x, 0.0, (cx0 - x0 + 0.5) * scale_x - 0.5],
+                       [0.0, scale_y, (cy0 - y0 + 0.5) * scale_y - 0.5]])
     patch = cv2.warpAffine(mask, affine, (cx1 - cx0, cy1 - cy0),
                            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                            borderMode=cv2.BORDER_REPLICATE)
