@@ -377,6 +377,18 @@ def test_fill_crops_follow_the_model_and_their_masks_fill_the_stretched_box():
     assert 60 - 3 - 1 <= ys.min() <= 60 and 80 <= ys.max() <= 80 + 3 + 1
 
 
+def test_a_mask_is_scaled_to_its_rectangle_on_each_axis():
+    from signal_light_node.runtime.engine import _paste_mask
+
+    mask = np.zeros((16, 16), np.float32)
+    mask[8:, 8:] = 1.0  # the bottom-right quarter
+    heat = np.zeros((100, 200), np.float32)
+    _paste_mask(heat, mask, 20, 10, 160, 40)
+    ys, xs = np.nonzero(heat > 0.5)
+    assert abs(xs.min() - 100) <= 3 and xs.max() == 179
+    assert abs(ys.min() - 30) <= 2 and ys.max() == 49
+
+
 # ------------------------------------------------------------- with the real network
 TINY = dict(input_size=24, attention_channels=(4, 4, 4), backbone_channels=(6, 8, 8),
             lstm_hidden=(6, 5), head_channels=4, head_grid=2, fc_hidden=16)
