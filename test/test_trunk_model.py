@@ -470,6 +470,10 @@ def test_feature_cache_trains_the_model_that_runs_on_crops(tmp_path):
     other.trunk.stem[1].weight.data.normal_()
     with pytest.raises(ConfigError, match="another trunk"):
         FeatureCache.load(tmp_path / "cache", trunk_fingerprint(other))
+    # A model that crops otherwise (crop_fill) cannot be trained on these crops.
+    filling = _model(crop_fill=True)
+    with pytest.raises(ConfigError, match="cropped with"):
+        write_cache(split, filling, tmp_path / "cache_fill")
 
 
 def test_a_look_with_white_balance_is_cached_apart_and_reused(tmp_path):

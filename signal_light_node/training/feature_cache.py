@@ -89,6 +89,7 @@ def write_cache(split_dir: "str | os.PathLike[str]", model: torch.nn.Module,
     """Cache the per-frame features of every track of ``split_dir`` (see the module doc).
 
     Reuses an existing cache made from the same split, trunk, seed and white balance.
+    The split must have been cropped as the model crops (``ModelConfig.crop_config``).
 
     Args:
         white_balance: With ``augment_seed``, the random camera's per-channel gain range
@@ -96,8 +97,12 @@ def write_cache(split_dir: "str | os.PathLike[str]", model: torch.nn.Module,
 
     Returns:
         The cache directory.
+
+    Raises:
+        ConfigError: The split's crops are not the model's.
     """
     split_dir, out = Path(split_dir), Path(out_dir)
+    SequenceSplit(split_dir).require_crop(model.config.crop_config())
     if augment_seed is None:
         white_balance = 0.0  # the clean look draws no camera: one cache whatever is asked
     info = {"split": str(split_dir.resolve()), "trunk": trunk_fingerprint(model),
