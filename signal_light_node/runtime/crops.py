@@ -150,8 +150,9 @@ def _cut(image: np.ndarray, x0: int, y0: int, w: int, h: int, size: int) -> np.n
     """Cut the region ``(x0, y0, w, h)`` (zeros outside the image) and resize it to
     ``size x size``.
 
-    Shrinking first halves each side with ``INTER_AREA`` (OpenCV's fast path for whole
-    factors; its general area resize costs ~10x more) until it is below ``2 size``. When the
+    Shrinking first halves each side with ``INTER_AREA`` until it is below ``2 size``
+    (OpenCV's fast path when both sides halve; its general area resize costs ~10x more, and
+    a side halved alone, as a fill crop of a wide box needs, about 8x). When the
     region reaches past the border, only the part inside the image, widened to the halving
     grid, is halved and the zeros are added afterwards at the reduced scale: the same pixels
     as padding first, without halving large blocks of zeros.
