@@ -25,6 +25,9 @@
 # TRUTH_RULE (default lamp; synth.truth.TRUTH_RULES) labels every split, pools and evaluation
 # splits alike: data of another rule is another data version, and a model trained on it is
 # scored against models of the old one on this DATA's evaluation splits.
+# CROP_FILL=1 (default 0) cuts every split, pools and evaluation splits alike, with
+# crops.CropConfig.fill (the grown box stretched to the square): data for a model with
+# "crop_fill": true, another data version (docs/model.md, "Crops that fill the square").
 # POOL_NAME (default pool) names the pools DATA/POOL_NAME_SEED, so that pools of the same
 # seeds drawn with other settings (train_trunk.sh's glare pools) can sit beside them.
 # A split whose manifest exists is reused. Called by train_default.sh and train_trunk.sh
@@ -58,6 +61,9 @@ GLARE_TAIL_HOT=${GLARE_TAIL_HOT:-0}
 GLARE_TAIL_BRIGHT=${GLARE_TAIL_BRIGHT:-0}
 TRUTH_RULE=${TRUTH_RULE:-lamp}
 POOL_NAME=${POOL_NAME:-pool}
+CROP_FILL=${CROP_FILL:-0}
+fill=()
+[[ "$CROP_FILL" == 1 ]] && fill=(--crop-fill)
 
 mkdir -p "$DATA"
 pids=()
@@ -70,14 +76,14 @@ for seed in $POOL_SEEDS; do
       --wide-truck-lamps "$WIDE_TRUCK_LAMPS" --night-streak "$NIGHT_STREAK" \
       --night-clip "$NIGHT_CLIP" --night-bloom "$NIGHT_BLOOM" \
       --glare-tail-hot "$GLARE_TAIL_HOT" --glare-tail-bright "$GLARE_TAIL_BRIGHT" \
-      --truth-rule "$TRUTH_RULE" \
+      --truth-rule "$TRUTH_RULE" "${fill[@]}" \
       > "$pool.log" 2>&1 &
     pids+=($!)
   fi
 done
 python - "$DATA" "$VAL_SEED" "$VAL_SEQUENCES" "$VAL_LEN" "$TEST_SEED" "$FAMILY_SEED" \
   "$TEST_TRACKS" "$TEST_FRAMES" "$CAL_SEED" "$CAL_TRACKS" "$TRUTH_RULE" \
-  "$NIGHT_NEGATIVE_SEED" "$NIGHT_NEGATIVE_TRACKS" <<'PY'
+  "$NIGHT_NEGATIVE_SEED" "$NIGHT_NEGATIVE_TRACKS" "$CROP_FILL" <<'PY'
 import sys
 from pathlib import Path
 
@@ -86,8 +92,8 @@ from signal_light_node.model import ModelConfig
 from signal_light_node.synth.lamps import HELD_OUT_FAMILY
 
 (run, val_seed, val_n, val_len, test_seed, family_seed, test_n, test_len, cal_seed, cal_n, rule,
- neg_seed, neg_n) = sys.argv[1:]
-crop = ModelConfig().crop_config()
+ neg_seed, neg_n, crop_fill) = sys.argv[1:]
+crop = ModelConfig(crop_fill=crop_fill == "1").crop_config()
 # name, seed, items, length, whole tracks, renderer overrides, stream options
 held_out = {"family": HELD_OUT_FAMILY}
 splits = [("val_split", val_seed, val_n, val_len, False, {}, {}),

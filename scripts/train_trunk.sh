@@ -109,6 +109,15 @@ WIDE_TRUCK_LAMPS=${WIDE_TRUCK_LAMPS:-1}
 # maps, a non-linear lit head, blink evidence by period only").
 RECIPE_MODEL='{"frequency_evidence": false, "lamp_detail": 2, "lit_hidden": 128, "blink_levels": false}'
 MODEL=${MODEL:-$RECIPE_MODEL}
+# CROP_FILL=1 (default 0): every split of DATA cut with crops.CropConfig.fill (the grown box
+# stretched to the square; scripts/render_data.sh) and the model told so ("crop_fill": true;
+# docs/model.md, "Crops that fill the square"). Keep such a DATA apart from square data.
+CROP_FILL=${CROP_FILL:-0}
+export CROP_FILL
+if [[ "$CROP_FILL" == 1 ]]; then
+  MODEL=$(python -c 'import json, sys; m = json.loads(sys.argv[1]); m["crop_fill"] = True
+print(json.dumps(m))' "$MODEL")
+fi
 LOOKS=${LOOKS:-1}
 # The looks' camera also draws per-channel gains in exp(+-LOOK_WHITE_BALANCE) (0: none;
 # docs/model.md, "Orange blinkers by day").
