@@ -159,7 +159,9 @@ def test_annealing_lowers_the_steps_rate_and_leaves_the_plateau_schedule_alone(t
 
 # This 16 px model's loss falls more slowly under bf16 (0.42 against 0.03 at step 150,
 # both near 0 at 250); the 64 px default scores the same per step in either precision.
-@pytest.mark.parametrize("precision,steps", [("fp32", 150), ("bf16", 250)])
+# Where bfloat16 is emulated (an AVX-512 Xeon without BF16, 2026-11-28) 250 steps left
+# intent and right at 0.83 accuracy; 350 reach the bar there too.
+@pytest.mark.parametrize("precision,steps", [("fp32", 150), ("bf16", 350)])
 def test_tiny_model_overfits_fixed_sequences(tmp_path, precision, steps):
     # Steady lamps: this proves the loop learns, not that a blink can be read in 8 frames.
     ucm = tmp_path / "ucm"
