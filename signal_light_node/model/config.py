@@ -315,7 +315,7 @@ class ModelConfig:
                               "it needs lamp_detail 1")
         if self.channel_order != "bgr":
             raise ConfigError(f"model config channel_order must be 'bgr', got {self.channel_order!r}")
-        self.crop_config()  # validates the margin
+        self.crop_config()  # validates the margin and fill
         try:
             set_("class_names", {str(t): tuple(str(n) for n in names)
                                  for t, names in dict(self.class_names).items()})

@@ -339,7 +339,7 @@ class LightStateEngine:
 def _paste_mask(heat: np.ndarray, mask: np.ndarray, x0: int, y0: int, w: int, h: int) -> None:
     """Scale ``mask`` to the region ``(x0, y0, w, h)`` and max it into ``heat`` in place.
 
-    Only the part of the square inside ``heat`` is computed (as ``cv2.resize`` would
+    Only the part of the region inside ``heat`` is computed (as ``cv2.resize`` would
     sample it), so memory stays bounded by the image whatever the box size.
     """
     height, width = heat.shape
