@@ -87,14 +87,12 @@ def _check_box(box: TrackBox, width: int, height: int, grow: float) -> None:
 
 
 def _halving_side(side: float, size: int) -> int:
-    """A region side in whole pixels; from ``2 size`` on rounded up to a multiple of
-    ``2**j``, where ``2**j <= side / size``, so that it halves ``j`` times exactly (the
-    change is < 1/size of the side)."""
+    """A region side in whole pixels, rounded up to a multiple of its
+    :func:`_halving_step` so that :func:`_cut` halves it exactly (the change is < 1/size
+    of the side)."""
     side_px = max(1, int(round(side)))
-    if side_px >= 2 * size:
-        step = 1 << ((side_px // size).bit_length() - 1)
-        side_px = step * -(-side_px // step)
-    return side_px
+    step = _halving_step(side_px, size)
+    return step * -(-side_px // step)
 
 
 def _region(box: TrackBox, width: int, height: int, config: CropConfig
@@ -139,7 +137,7 @@ def crop_region(box: TrackBox, width: int, height: int,
 
 def _halving_step(side: int, size: int) -> int:
     """``2**j``: how much a region side is halved before the final resize (to below
-    ``2 size``; :func:`_halving_side` made the side divisible by it)."""
+    ``2 size``; the largest power of 2 at most ``side / size``, or 1)."""
     step = 1
     while side // step >= 2 * size:
         step *= 2
