@@ -8,7 +8,8 @@ cache's shapes (no data needed), so that the cost of a recipe member (``STEPS`` 
 can be read before it is trained and a change to the network's training path measured.
 
 Prints the mean and the fastest of ``--steps`` timed steps (after ``--warmup`` untimed
-ones) split into forward, backward and update, the thread count and the CPU.
+ones) split into forward, backward and update, the thread count and the CPU
+(``tools.benchmarking.isa_lines``).
 
 Usage::
 
@@ -22,7 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import platform
 import statistics
 import sys
 import time
@@ -34,6 +34,7 @@ from signal_light_node.errors import SignalLightError
 from signal_light_node.labels import TASKS
 from signal_light_node.model.config import trunk_config
 from signal_light_node.model.registry import build_model
+from signal_light_node.tools import benchmarking as bench
 from signal_light_node.training.trunk_recipe import step_loss
 
 logger = logging.getLogger("benchmark_training")
@@ -84,18 +85,6 @@ def time_steps(model: torch.nn.Module, batch: Dict[str, torch.Tensor], steps: in
     return out
 
 
-def cpu_name() -> str:
-    """The CPU's model name (``/proc/cpuinfo``), or the platform's processor string."""
-    try:
-        with open("/proc/cpuinfo") as info:
-            for line in info:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
 def main(argv: Optional[List[str]] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--model", default=json.dumps(RECIPE_MEMBER),
@@ -121,8 +110,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     model.freeze_encoder()
     batch = random_batch(model, args.batch, args.seq_len, args.seed)
     runs = time_steps(model, batch, args.steps, args.warmup)
-    print(f"cpu: {cpu_name()}; torch {torch.__version__}, {args.threads} thread(s), "
-          f"isa {torch.backends.cpu.get_cpu_capability()}")
+    print("\n".join(bench.isa_lines(["torch"])) + f"; {args.threads} thread(s)")
     print(f"batch {args.batch} x {args.seq_len} frames, {args.steps} timed steps")
     for part in ("forward", "backward", "update", "total"):
         values = [r[part] for r in runs]

@@ -117,6 +117,7 @@ def test_stage_table_and_isa_lines():
     assert float(frame[4]) == pytest.approx(15.0)
     text = "\n".join(bench.isa_lines(["torch", "onnxruntime"]))
     assert "CPU capability" in text and "ignores ONEDNN_MAX_CPU_ISA" in text
+    assert text.startswith(f"CPU: {bench.cpu_model()}, ") and bench.cpu_model()
     with pytest.raises(Exception, match="unknown backend"):
         bench.require_known(["torch", "tensorrt"])
     assert bench.require_known(["torch", "torch", "onnxruntime"]) == ["torch", "onnxruntime"]

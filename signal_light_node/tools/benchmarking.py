@@ -28,17 +28,27 @@ ONEDNN_ISA_VARIABLES = ("ONEDNN_MAX_CPU_ISA", "DNNL_MAX_CPU_ISA")
 _FLAGS = ("avx2", "fma", "f16c", "avx512f", "avx512_vnni", "avx_vnni", "avx512_bf16", "amx_tile")
 
 
-def cpu_flags() -> List[str]:
-    """The flags of :data:`_FLAGS` this CPU has (empty where ``/proc/cpuinfo`` is missing)."""
+def _cpuinfo(key: str) -> Optional[str]:
+    """The value of the first ``key`` line of ``/proc/cpuinfo`` (None where missing)."""
     try:
         text = Path("/proc/cpuinfo").read_text()
     except OSError:
-        return []
+        return None
     for line in text.splitlines():
-        if line.startswith("flags"):
-            have = set(line.split(":", 1)[1].split())
-            return [flag for flag in _FLAGS if flag in have]
-    return []
+        if line.startswith(key):
+            return line.split(":", 1)[1].strip()
+    return None
+
+
+def cpu_flags() -> List[str]:
+    """The flags of :data:`_FLAGS` this CPU has (empty where ``/proc/cpuinfo`` is missing)."""
+    have = set((_cpuinfo("flags") or "").split())
+    return [flag for flag in _FLAGS if flag in have]
+
+
+def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo``), else what ``platform`` knows."""
+    return _cpuinfo("model name") or platform.processor() or platform.machine()
 
 
 def isa_lines(backends: Sequence[str]) -> List[str]:
@@ -49,7 +59,7 @@ def isa_lines(backends: Sequence[str]) -> List[str]:
     picks its kernels from CPUID).
     """
     flags = cpu_flags()
-    lines = [f"CPU: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
+    lines = [f"CPU: {cpu_model()}, {os.cpu_count()} CPUs, "
              f"flags {' '.join(flags) or 'unknown'}"
              f"{'' if 'avx512f' in flags else ' (no AVX-512)'}"]
     caps = ", ".join(f"{name}={os.environ[name]}" for name in ONEDNN_ISA_VARIABLES
