@@ -11,6 +11,11 @@ the first file, the paired difference gets one (``evaluation.bootstrap``; docs/m
     python scripts/compare_checkpoints.py --data runs/streak/family_cal_split \\
         --checkpoint signal_light_node/weights/default.pt --checkpoint RUN/joined/calibrated.pt \\
         --json OUT.json
+
+Checkpoints that crop differently (``crop_fill``) read the same tracks from twin splits:
+give both (``--data runs/bright/family_test_split --data runs/fill/family_test_split``);
+each file reads the bags and the splits cut as it crops, and the tracks must pair with
+the first file's frame for frame.
 """
 
 from __future__ import annotations
@@ -23,9 +28,11 @@ from typing import List, Optional
 
 import torch
 
-from signal_light_node.evaluation.bootstrap import scene_bootstrap, scene_groups, track_confusions
+from signal_light_node.evaluation.bootstrap import (require_same_tracks, scene_bootstrap,
+                                                    scene_groups, track_confusions)
 from signal_light_node.evaluation.streaming import chunks, predict_track_probs
 from signal_light_node.model.checkpoint import load_checkpoint
+from signal_light_node.training.sources import paths_cut_with
 from signal_light_node.training.unknown_bias import load_labelled
 
 
@@ -43,16 +50,22 @@ def main(argv: Optional[List[str]] = None) -> int:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
 
-    tracks, files = None, []
+    reference, files, by_crop = None, [], {}
     for path in args.checkpoint:
         model = load_checkpoint(path, map_location="cpu").model.eval()
-        if tracks is None:  # the first checkpoint's crop settings read the data
-            tracks = load_labelled(args.data, model.config.crop_config())
+        crop = model.config.crop_config()
+        if crop not in by_crop:  # files that crop alike read the same tracks once
+            by_crop[crop] = load_labelled(paths_cut_with(args.data, crop), crop)
+        tracks = by_crop[crop]
+        if reference is None:
+            reference = tracks
+        require_same_tracks(reference, tracks, f"the data {path} reads")
         preds = []
         with torch.no_grad():
             for batch in chunks(tracks, args.batch_tracks):
                 preds += predict_track_probs(model, batch)[0]
         files.append(track_confusions(tracks, preds))
+    tracks = reference
     groups = scene_groups(tracks)
     rows = scene_bootstrap(files, groups, args.resamples, args.seed)
 

@@ -91,6 +91,23 @@ def scene_groups(tracks: Sequence[TrackSequence]) -> List[np.ndarray]:
     return [np.flatnonzero(np.asarray(keys) == key) for key in order]
 
 
+def require_same_tracks(reference: Sequence[TrackSequence], tracks: Sequence[TrackSequence],
+                        what: str) -> None:
+    """Raise ConfigError unless ``tracks`` are ``reference``'s tracks in the same order (the
+    same scenes and labels frame for frame), so that confusions of the two pair track by
+    track: twin splits cut with other crops are; two different splits are not.
+
+    Args:
+        what: Whose tracks ``tracks`` are, for the message.
+    """
+    if len(tracks) != len(reference):
+        raise ConfigError(f"{what}: {len(tracks)} tracks, the first file's data {len(reference)}")
+    for i, (a, b) in enumerate(zip(reference, tracks)):
+        if a.scene != b.scene or not np.array_equal(a.labels, b.labels):
+            raise ConfigError(f"{what}: track {i} ({b.track_id}) is not the first file's "
+                              f"{a.track_id} (other scene or labels)")
+
+
 def scene_bootstrap(files: Sequence[Mapping[str, np.ndarray]], groups: Sequence[np.ndarray],
                     resamples: int = 1000, seed: int = 0) -> List[FileInterval]:
     """Score every file on the same resamples of scenes; differences against ``files[0]``.

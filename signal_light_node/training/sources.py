@@ -348,6 +348,23 @@ def is_split_dir(path: Path) -> bool:
     return Path(path).is_dir() and (Path(path) / MANIFEST).is_file()
 
 
+def paths_cut_with(paths: Sequence[Path], crop: CropConfig) -> List[Path]:
+    """The data of ``paths`` a model that crops with ``crop`` reads: every bag (the model
+    crops it), and the splits cut with ``crop``. A split's twin cut the other way (the same
+    tracks with ``CropConfig.fill`` or without) is left for a model that crops that way.
+
+    Raises:
+        ConfigError: No path is a bag and no split was cut with ``crop``.
+    """
+    from signal_light_node.data.split import SequenceSplit
+
+    chosen = [Path(p) for p in paths if not is_split_dir(Path(p)) or SequenceSplit(p).crop == crop]
+    if not chosen:
+        raise ConfigError(f"no bag, and no split cut with {crop}, among "
+                          f"{', '.join(map(str, paths))}")
+    return chosen
+
+
 def tracks_from(paths: Sequence[Path], crop: CropConfig, role: str,
                 bag_tracks: Callable[[Path], List[TrackSequence]]) -> List[TrackSequence]:
     """Every track of the split directories and bags of ``paths``, in the order given.
