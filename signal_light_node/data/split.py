@@ -308,6 +308,8 @@ RENDERER_SHARES = {
     "glare_tail_bright": "tail_glare vehicles whose tail lamps shine over the clip as brightly "
                          "as another vehicle's brake, their brake brighter still "
                          "(synth.traffic.BRIGHT_TAIL_LEVEL)",
+    "foreign_lamp": "vehicles with a lamp beyond them, over the roof or beside, inside their "
+                    "crop (synth.foreign_lamps)",
 }
 
 

@@ -31,6 +31,7 @@ from signal_light_node.synth.camera import (Camera, CameraParams, sample_camera,
                                             sample_streak)
 from signal_light_node.synth.environment import (GLOW_SCALE, LIGHTINGS, Environment, Lighting, Occluder, StreetGeometry,
                                                  blur_glow, sample_lighting)
+from signal_light_node.synth.foreign_lamps import draw_foreign_lamp
 from signal_light_node.synth.lamps import STYLE_FAMILIES, TRAIN_FAMILIES
 from signal_light_node.synth.lit_maps import draw_lit_map
 from signal_light_node.synth.tracker import tracker_box
@@ -45,7 +46,7 @@ _MARGIN = 12
 _SCENE_KEYS = {"vehicles", "occluders", "poles", "distractors", "weather", "effects", "shake", "respawn", "horizon", "focal",
                "family", "oblique", "tail_glare", "rear_bar", "wide_truck_lamps", "night_streak",
                "night_clip", "night_bloom", "glare_tail_hot",
-               "glare_tail_bright", "truth_rule"}
+               "glare_tail_bright", "foreign_lamp", "truth_rule"}
 _VEHICLE_KEYS = {"view", "kind", "lamp_design", "tech", "chmsl", "intent", "brake", "colour", "lights_on", "center_x",
                  "width_px", "speed", "blink_hz", "duty", "phase", "shear", "roll", "specular", "yaw"}
 
@@ -98,6 +99,8 @@ class SceneRenderer:
             ``glare_tail_bright`` (share of the ``tail_glare`` vehicles whose tail lamps
             shine over the clip as brightly as another vehicle's brake, their own brake
             brighter still, ``synth.traffic.BRIGHT_TAIL_LEVEL``; default 0),
+            ``foreign_lamp`` (share of vehicles with a lamp beyond them, over the roof or
+            beside, inside their crop, ``synth.foreign_lamps``; default 0),
             ``truth_rule`` (how large the seen lamps of a light must be for it to be
             labelled, ``synth.truth.TRUTH_RULES``; default "lamp"). Vehicle keys:
             ``view`` (View), ``kind``, ``lamp_design``, ``tech`` ("led"/"bulb"), ``chmsl``,
@@ -161,6 +164,7 @@ class SceneRenderer:
         self.night_bloom = _share(overrides, "night_bloom")
         self.glare_tail_hot = _share(overrides, "glare_tail_hot")
         self.glare_tail_bright = _share(overrides, "glare_tail_bright")
+        self.foreign_lamp = _share(overrides, "foreign_lamp")
         self.truth_rule = checked_rule(str(overrides.get("truth_rule", "lamp")))
 
     # ------------------------------------------------------------------ setup
@@ -198,7 +202,7 @@ class SceneRenderer:
                   self.seed, W, H, self.fps, self.lighting, weather, f, hy, self.n_vehicles)
         self._traffic = Traffic(self.seed, rng, W, self._geo, self._light, self.lighting, self.family,
                                 self.oblique, self.tail_glare, self.rear_bar, self.wide_truck_lamps,
-                                self.glare_tail_hot, self.glare_tail_bright)
+                                self.glare_tail_hot, self.glare_tail_bright, self.foreign_lamp)
         vo = o.get("vehicles") or []
         for i in range(self.n_vehicles):
             self._traffic.vehicles.append(self._traffic.spawn(vo[i] if i < len(vo) else {}, entering=False))
@@ -279,6 +283,10 @@ class SceneRenderer:
         for o, x in zip(self._env.occluders, occ_x):
             o.draw(coverage, x - ddx, ddy, value=255)
         drawn.sort(key=lambda d: d.v.Z)
+        bodies = [(d.roi, d.alpha) for d in drawn]
+        for d in drawn:  # beyond every body: the composite below hides what they cover
+            if d.v.foreign is not None:
+                draw_foreign_lamp(d.v.foreign, d.box, t, img, layer, self._light, bodies)
         mark_visible(drawn, coverage)
         truths: List[VehicleTruth] = []
         for d in drawn:

@@ -22,6 +22,7 @@ from signal_light_node.errors import ConfigError
 from signal_light_node.labels import Intent, View
 from signal_light_node.synth import lamps as lamp_mod
 from signal_light_node.synth.environment import Lighting, StreetGeometry, shade
+from signal_light_node.synth.foreign_lamps import ForeignLamp, sample_foreign_lamp
 from signal_light_node.synth.lamps import Lamp, LampStyle, blinker_timeline, brake_timeline, lamp_outlines, sample_lamp_style
 from signal_light_node.synth.vehicles import (KIND_DIMS, KIND_WEIGHTS, KINDS, BodyShape, body_shape, face_size_m, sample_colour,
                                               sample_paints)
@@ -98,6 +99,9 @@ class Vehicle:
     #: colour and strength, so that only the glow's extent, the growth over the track's own
     #: level and the centre lamp tell a brake (``Traffic.glare_tail_hot``).
     tail_hot: bool = False
+    #: A lamp beyond the vehicle that falls inside its crop (``Traffic.foreign_lamp``;
+    #: ``synth.foreign_lamps``), or None.
+    foreign: Optional[ForeignLamp] = None
 
 
 class Traffic:
@@ -123,12 +127,14 @@ class Traffic:
             the clip (``BRIGHT_TAIL_LEVEL``) and whose brake is ``BRIGHT_BRAKE_RATIO`` times
             that: across vehicles no lamp size or glow tells a brake, only the vehicle's
             own step and its centre lamp.
+        foreign_lamp: Share of vehicles with a lamp beyond them, over the roof or beside,
+            inside their crop (``Vehicle.foreign``, ``synth.foreign_lamps``).
     """
 
     def __init__(self, seed: int, rng: np.random.Generator, width: int, geo: StreetGeometry, light: Lighting, lighting: str,
                  family: int, oblique: float = 0.0, tail_glare: float = 0.0, rear_bar: float = 0.0,
                  wide_truck_lamps: float = 0.0, glare_tail_hot: float = 0.0,
-                 glare_tail_bright: float = 0.0) -> None:
+                 glare_tail_bright: float = 0.0, foreign_lamp: float = 0.0) -> None:
         self.seed = seed
         self.width = width
         self._rng = rng
@@ -142,6 +148,7 @@ class Traffic:
         self.wide_truck_lamps = wide_truck_lamps
         self.glare_tail_hot = glare_tail_hot
         self.glare_tail_bright = glare_tail_bright
+        self.foreign_lamp = foreign_lamp
         self._next_id = int(rng.integers(1, 50))
         self.vehicles: List[Vehicle] = []
 
@@ -261,6 +268,7 @@ class Traffic:
         self._glare(v)
         self._wide_truck_lamps(v)
         self._rear_bar(v)
+        self._foreign(v)
         pts, splits, sil = [], [], []
         n = 0
         for key, poly in shape.parts:
@@ -404,6 +412,15 @@ class Traffic:
             smaller = min((a[2] - a[0]) * (a[3] - a[1]), (b[2] - b[0]) * (b[3] - b[1]))
             worst = max(worst, inter / max(smaller, 1e-6))
         return worst
+
+    def _foreign(self, v: Vehicle) -> None:
+        """With probability ``foreign_lamp``, a lamp beyond the vehicle inside its crop (a
+        stream of its own, as ``_yaw``'s)."""
+        if self.foreign_lamp <= 0:
+            return
+        frng = self._picked(v, 1000, self.foreign_lamp)
+        if frng is not None:
+            v.foreign = sample_foreign_lamp(frng)
 
     def _prepare_lamps(self, v: Vehicle) -> None:
         """Stack all lamp outlines so that one matrix product per frame maps them to pixels."""
