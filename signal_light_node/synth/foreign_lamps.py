@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence, Tuple
+from typing import Optional, Tuple
 
 import numpy as np
 
@@ -105,33 +105,27 @@ def lamp_centre(lamp: ForeignLamp, box: Tuple[float, float, float, float]
     return 0.5 * (x0 + x1) + lamp.u * w, y0 + lamp.v * h, max(0.7, lamp.radius * h)
 
 
-def visible_share(x: float, y: float, r: float,
-                  bodies: Sequence[Tuple[Tuple[int, int, int, int], np.ndarray]]) -> float:
-    """The share of the disc ``(x, y, r)`` that no body covers; ``bodies`` holds each
-    drawn vehicle's integer ROI ``(x0, y0, x1, y1)`` and its uint8 alpha over that ROI."""
-    x0, y0 = int(math.floor(x - r)), int(math.floor(y - r))
-    x1, y1 = int(math.ceil(x + r)) + 1, int(math.ceil(y + r)) + 1
+def visible_share(x: float, y: float, r: float, coverage: np.ndarray) -> float:
+    """The share of the disc ``(x, y, r)`` inside the image that ``coverage`` leaves free
+    (``uint8 [H, W]``, non-zero where a body or an occluder stands: what
+    ``truth.mark_visible`` leaves it holding); 1 where none of it is inside."""
+    height, width = coverage.shape
+    x0, y0 = max(int(math.floor(x - r)), 0), max(int(math.floor(y - r)), 0)
+    x1, y1 = min(int(math.ceil(x + r)) + 1, width), min(int(math.ceil(y + r)) + 1, height)
     yy, xx = np.mgrid[y0:y1, x0:x1]
     disc = (xx + 0.5 - x) ** 2 + (yy + 0.5 - y) ** 2 <= r * r
     if not disc.any():
         return 1.0
-    covered = np.zeros(disc.shape, np.float32)
-    for (rx0, ry0, rx1, ry1), alpha in bodies:
-        ax0, ay0, ax1, ay1 = max(x0, rx0), max(y0, ry0), min(x1, rx1), min(y1, ry1)
-        if ax0 < ax1 and ay0 < ay1:
-            part = alpha[ay0 - ry0:ay1 - ry0, ax0 - rx0:ax1 - rx0].astype(np.float32) / 255.0
-            view = covered[ay0 - y0:ay1 - y0, ax0 - x0:ax1 - x0]
-            np.maximum(view, part, out=view)
-    return float(1.0 - covered[disc].mean())
+    return float((coverage[y0:y1, x0:x1][disc] == 0).mean())
 
 
 def draw_foreign_lamp(lamp: ForeignLamp, box: Tuple[float, float, float, float], t: float,
                       img: np.ndarray, layer: np.ndarray, light: Lighting,
-                      bodies: Sequence[Tuple[Tuple[int, int, int, int], np.ndarray]] = ()) -> None:
+                      coverage: Optional[np.ndarray] = None) -> None:
     """Draw the lamp for the vehicle box ``box`` at time ``t``: its lens into ``img`` (before
     the bodies are composited, which hide it) and, when lit, its glow onto ``layer`` in
-    proportion to the share of it no body covers (``bodies``: :func:`visible_share`), as
-    no light of a lamp hidden behind a vehicle reaches the lens."""
+    proportion to the share of it ``coverage`` leaves free (:func:`visible_share`; None:
+    all of it), as no light of a lamp hidden behind a vehicle reaches the lens."""
     x, y, r = lamp_centre(lamp, box)
     height, width = img.shape[:2]
     if not (-4 * r < x < width + 4 * r and -4 * r < y < height + 4 * r):
@@ -146,6 +140,6 @@ def draw_foreign_lamp(lamp: ForeignLamp, box: Tuple[float, float, float, float],
     if night and k > 0.5:  # a bright lamp's centre clips towards white, as the own lamps'
         hot = 0.35 + 0.4 * k
         ellipse(img, x, y, 0.55 * r, 0.55 * r, tuple(c + (255.0 - c) * hot for c in emit))
-    seen = visible_share(x, y, r, bodies)
+    seen = 1.0 if coverage is None else visible_share(x, y, r, coverage)
     if seen > 0:
         add_glow(layer, x, y, r, emit, 0.5 * k * light.glow * seen)

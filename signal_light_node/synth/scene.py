@@ -283,11 +283,10 @@ class SceneRenderer:
         for o, x in zip(self._env.occluders, occ_x):
             o.draw(coverage, x - ddx, ddy, value=255)
         drawn.sort(key=lambda d: d.v.Z)
-        bodies = [(d.roi, d.alpha) for d in drawn]
+        mark_visible(drawn, coverage)  # coverage now holds every body and occluder
         for d in drawn:  # beyond every body: the composite below hides what they cover
             if d.v.foreign is not None:
-                draw_foreign_lamp(d.v.foreign, d.box, t, img, layer, self._light, bodies)
-        mark_visible(drawn, coverage)
+                draw_foreign_lamp(d.v.foreign, d.box, t, img, layer, self._light, coverage)
         truths: List[VehicleTruth] = []
         for d in drawn:
             tr = self._lamps_and_truth(d, t, layer, frng)
