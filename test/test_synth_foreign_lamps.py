@@ -12,7 +12,7 @@ from signal_light_node.errors import ConfigError
 from signal_light_node.labels import Intent, View
 from signal_light_node.synth import SceneRenderer
 from signal_light_node.synth.foreign_lamps import (FOREIGN_KINDS, ForeignLamp, lamp_centre,
-                                                   sample_foreign_lamp)
+                                                   sample_foreign_lamp, visible_share)
 
 from scene_helpers import CLEAN, first_frame_vehicles, split_overrides
 
@@ -105,3 +105,15 @@ def test_a_bad_share_is_refused_and_the_split_command_hands_it_on(monkeypatch, t
         SceneRenderer(seed=1, foreign_lamp=2.0)
     assert split_overrides(monkeypatch, tmp_path / "pool", ["--foreign-lamp", "0.3"]) == \
         {"foreign_lamp": 0.3}
+
+
+def test_the_visible_share_reads_the_coverage_inside_the_image_only():
+    coverage = np.zeros((40, 60), np.uint8)
+    coverage[:, :30] = 255
+    assert visible_share(15.0, 20.0, 4.0, coverage) == 0.0
+    assert visible_share(45.0, 20.0, 4.0, coverage) == 1.0
+    assert 0.3 < visible_share(30.0, 20.0, 4.0, coverage) < 0.7
+    # Partly or wholly past the border (a lamp beyond a vehicle leaving the image).
+    assert visible_share(-2.0, 20.0, 4.0, coverage) == 0.0
+    for x, y in ((-9.0, 20.0), (70.0, 20.0), (30.0, -9.0), (30.0, 50.0)):
+        assert visible_share(x, y, 4.0, coverage) == 1.0

@@ -112,6 +112,8 @@ def visible_share(x: float, y: float, r: float, coverage: np.ndarray) -> float:
     height, width = coverage.shape
     x0, y0 = max(int(math.floor(x - r)), 0), max(int(math.floor(y - r)), 0)
     x1, y1 = min(int(math.ceil(x + r)) + 1, width), min(int(math.ceil(y + r)) + 1, height)
+    if x1 <= x0 or y1 <= y0:  # wholly outside the image: nothing there covers it
+        return 1.0
     yy, xx = np.mgrid[y0:y1, x0:x1]
     disc = (xx + 0.5 - x) ** 2 + (yy + 0.5 - y) ** 2 <= r * r
     if not disc.any():
