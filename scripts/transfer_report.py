@@ -85,14 +85,33 @@ def evaluate(name: str, data: List[str], checkpoint: Path, out: Path,
     return json.loads((target / "metrics.json").read_text())
 
 
-def hard_negatives(checkpoint: Path, out: Path) -> Dict[str, Dict[str, float]]:
-    """Shares of judged vehicle-frames reporting a light ON in each hard-negative bag."""
+def hard_negatives(checkpoint: Path, out: Path,
+                   visibility_confirm_s: float = 0.0) -> Dict[str, Dict[str, float]]:
+    """Shares of judged vehicle-frames reporting a light ON in each hard-negative bag.
+
+    Args:
+        checkpoint: The model file.
+        out: Where each bag's replay lands.
+        visibility_confirm_s: The intent filter's hold on a light turning UNKNOWN or back,
+            as the evaluated sets get it (``--filter-visibility-confirm``).
+    """
     from signal_light_node.runtime.engine import engine_from_checkpoint
+    from signal_light_node.runtime.intent_filter import IntentFilterConfig
     from signal_light_node.tools.hard_negatives import HARD_NEGATIVE_BAGS, false_lights
 
-    return {bag: vars(false_lights(REPO / bag, engine_from_checkpoint(checkpoint),
+    held = IntentFilterConfig(visibility_confirm_s=visibility_confirm_s)
+    return {bag: vars(false_lights(REPO / bag, engine_from_checkpoint(checkpoint,
+                                                                      intent_filter=held),
                                    out / Path(bag).name))
             for bag in HARD_NEGATIVE_BAGS}
+
+
+def evaluate_options(args: argparse.Namespace) -> List[str]:
+    """The options every ``signal-light evaluate`` run of the report gets."""
+    extra = ["--threads", str(args.threads)]
+    if args.no_intent_filter:
+        return extra + ["--no-intent-filter"]
+    return extra + ["--filter-visibility-confirm", f"{args.filter_visibility_confirm:g}"]
 
 
 def _cell(key: str, value: Optional[float]) -> str:
@@ -111,9 +130,8 @@ def markdown(rows: Dict[str, Dict[str, Optional[float]]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
-    from signal_light_node.evaluation.metrics import unknown_by_view_markdown
-
+def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
+    """The report's command line."""
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--checkpoint", type=Path, default=REPO / "signal_light_node/weights/default.pt")
     p.add_argument("--data", type=Path, default=REPO / "runs/default",
@@ -121,11 +139,20 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--no-intent-filter", action="store_true", help="score the raw model")
     p.add_argument("--threads", default="2")
+    p.add_argument("--filter-visibility-confirm", type=float, default=0.0, metavar="S",
+                   help="the intent filter's visibility hold for every set, hard negatives "
+                        "included (the node's filter_visibility_confirm_s; 0: none)")
     p.add_argument("--independent-renders", nargs="*", type=Path, default=[], metavar="BAG",
                    help="more bags of the independent generator (scripts/render_independent.sh),"
                         " scored as one more row")
-    args = p.parse_args(argv)
-    extra = ["--threads", args.threads] + (["--no-intent-filter"] if args.no_intent_filter else [])
+    return p.parse_args(argv)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    from signal_light_node.evaluation.metrics import unknown_by_view_markdown
+
+    args = parse_args(argv)
+    extra = evaluate_options(args)
     # (report directory, row name, data)
     sets = (("own", "own test split (families 0-1)", ["--split", str(args.data / "test_split")]),
             ("family", "held-out style family 2",
@@ -144,7 +171,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     for name in [n for n in by_view if n.startswith("independent")]:
         table += (f"\nWhere the UNKNOWNs come from, {name} (brake, left and right where the "
                   f"truth is OFF or ON):\n\n{unknown_by_view_markdown(by_view[name])}")
-    negatives = hard_negatives(args.checkpoint, args.out)
+    negatives = hard_negatives(args.checkpoint, args.out, args.filter_visibility_confirm)
     table += ("\nHard negatives (no signal at all; share of judged vehicle-frames reporting "
               "a light ON; target for blinkers < 5 %):\n\n| bag | blinker ON | brake ON | "
               "judged |\n|---|---:|---:|---:|\n")
@@ -154,6 +181,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     (args.out / "transfer.md").write_text(table)
     (args.out / "transfer.json").write_text(json.dumps(
         {"checkpoint": str(args.checkpoint), "intent_filter": not args.no_intent_filter,
+         "visibility_confirm_s": args.filter_visibility_confirm,
          "sets": rows, "unknown_by_view": by_view, "hard_negatives": negatives},
         indent=2) + "\n")
     print(table)
