@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from signal_light_node.boxes import TrackBox
-from signal_light_node.runtime.crops import CropConfig, clip_roi, crop_region, crop_vehicle, crop_vehicles
+from signal_light_node.runtime.crops import (CropConfig, _halve_alone, clip_roi, crop_region,
+                                             crop_vehicle, crop_vehicles)
 from signal_light_node.errors import ConfigError, CropError
 
 
@@ -66,6 +67,33 @@ def test_fill_halves_each_side_on_its_own():
     flat = np.full((200, 300, 3), 200, np.uint8)
     crop = crop_vehicle(flat, TrackBox("b", 100, -100, 300, 100), CropConfig(32, 0.0, True))
     assert not crop[:15].any() and (crop[17:] == 200).all()
+
+def _area_halvings(patch, times_x, times_y):
+    for _ in range(times_x + times_y):
+        h, w = patch.shape[:2]
+        size = (w // 2, h) if times_x else (w, h // 2)
+        patch = cv2.resize(patch, size, interpolation=cv2.INTER_AREA)
+    return patch
+
+
+@pytest.mark.parametrize("shape", [(96, 256, 3), (40, 130, 3), (64, 64, 1), (97, 255, 3), (2, 2, 3)])
+@pytest.mark.parametrize("times", [(1, 0), (0, 1), (2, 0), (0, 3)])
+def test_a_side_halved_alone_is_the_area_resize_pixel_for_pixel(shape, times):
+    # The crops the data were cut with come from cv2's area resize: the faster form must
+    # not move a single grey level (odd sides included, which fall back to cv2).
+    patch = np.random.default_rng(sum(shape)).integers(0, 256, shape, dtype=np.uint8).squeeze()
+    if min(patch.shape[:2]) < 2 ** max(times):
+        pytest.skip("too small to halve that often")
+    assert np.array_equal(_halve_alone(patch, *times), _area_halvings(patch, *times))
+
+
+def test_a_side_halved_alone_rounds_every_pair_of_grey_levels_as_the_area_resize():
+    levels = np.arange(256, dtype=np.uint8)
+    pairs = np.stack(np.meshgrid(levels, levels), -1).reshape(-1, 2, 1).repeat(3, 2)
+    assert np.array_equal(_halve_alone(pairs, 1, 0), _area_halvings(pairs, 1, 0))
+    rows = np.ascontiguousarray(pairs.transpose(1, 0, 2))
+    assert np.array_equal(_halve_alone(rows, 0, 1), _area_halvings(rows, 0, 1))
+
 
 def test_interior_square_box_is_exact_slice(image):
     box = TrackBox("a", 40, 30, 72, 62)  # 32x32, no margin, size 32: no resampling
