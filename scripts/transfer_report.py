@@ -86,7 +86,7 @@ def evaluate(name: str, data: List[str], checkpoint: Path, out: Path,
 
 
 def hard_negatives(checkpoint: Path, out: Path,
-                   visibility_confirm_s: float = 0.0) -> Dict[str, Dict[str, float]]:
+                   visibility_confirm_s: float) -> Dict[str, Dict[str, float]]:
     """Shares of judged vehicle-frames reporting a light ON in each hard-negative bag.
 
     Args:
@@ -132,6 +132,8 @@ def markdown(rows: Dict[str, Dict[str, Optional[float]]]) -> str:
 
 def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     """The report's command line."""
+    from signal_light_node.runtime.intent_filter import IntentFilterConfig
+
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--checkpoint", type=Path, default=REPO / "signal_light_node/weights/default.pt")
     p.add_argument("--data", type=Path, default=REPO / "runs/default",
@@ -139,7 +141,8 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--no-intent-filter", action="store_true", help="score the raw model")
     p.add_argument("--threads", default="2")
-    p.add_argument("--filter-visibility-confirm", type=float, default=0.0, metavar="S",
+    p.add_argument("--filter-visibility-confirm", type=float,
+                   default=IntentFilterConfig.visibility_confirm_s, metavar="S",
                    help="the intent filter's visibility hold for every set, hard negatives "
                         "included (the node's filter_visibility_confirm_s; 0: none)")
     p.add_argument("--independent-renders", nargs="*", type=Path, default=[], metavar="BAG",

@@ -8,6 +8,7 @@ from types import SimpleNamespace
 
 import signal_light_node.runtime.engine as engine_module
 import signal_light_node.tools.hard_negatives as negatives_module
+from signal_light_node.runtime.intent_filter import IntentFilterConfig
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "transfer_report.py"
 
@@ -25,7 +26,8 @@ def test_visibility_hold_reaches_every_evaluate_run(tmp_path):
         ["--out", str(tmp_path), "--filter-visibility-confirm", "0.2", "--threads", "1"]))
     assert held == ["--threads", "1", "--filter-visibility-confirm", "0.2"]
     plain = report.evaluate_options(report.parse_args(["--out", str(tmp_path)]))
-    assert plain[-2:] == ["--filter-visibility-confirm", "0"]
+    default = IntentFilterConfig.visibility_confirm_s  # the node's, unless told otherwise
+    assert plain[-2:] == ["--filter-visibility-confirm", f"{default:g}"]
     raw = report.evaluate_options(report.parse_args(["--out", str(tmp_path),
                                                      "--no-intent-filter"]))
     assert raw[-1] == "--no-intent-filter"
