@@ -61,7 +61,7 @@
 #      independent generator's two committed bags and its 12 larger renders
 #      (scripts/render_independent.sh into INDEPENDENT, default DATA/independent, once) and
 #      the hard negatives (RUN/transfer), every set under the intent filter's visibility
-#      hold FILTER_VISIBILITY_CONFIRM (seconds, default 0: the node's default, none).
+#      hold FILTER_VISIBILITY_CONFIRM (seconds; default empty: the node's default).
 #
 # Every setting can be overridden from the environment; a few-minute smoke run:
 #   RUN=runs/smoke POOL_SEEDS=31 POOL_TRACKS=24 VAL_SEQUENCES=16 TEST_TRACKS=12 \
@@ -157,7 +157,7 @@ VAL_EVERY=${VAL_EVERY:-250}
 DEVICE=${DEVICE:-cpu}
 THREADS=${THREADS:-2}
 EVAL=${EVAL:-1}
-FILTER_VISIBILITY_CONFIRM=${FILTER_VISIBILITY_CONFIRM:-0}
+FILTER_VISIBILITY_CONFIRM=${FILTER_VISIBILITY_CONFIRM:-}
 # The per-frame stage (training/trunk_finetune.py): FRAME_STEPS > 0 fine-tunes the trunk's
 # blocks from TRAIN_FROM on (-1: all, the stem too) before the temporal part; TRUNK_WEIGHTS
 # names a finished one instead (its best.pt), or a model file whose trunk to take (the
@@ -292,7 +292,8 @@ fi
 echo "== 5/5 evaluation: own test split, held-out style family, independent generator, hard negatives"
 INDEPENDENT=${INDEPENDENT:-$DATA/independent}   # the larger independent set, rendered once
 bash scripts/render_independent.sh "$INDEPENDENT"
+hold=()
+[[ -n "$FILTER_VISIBILITY_CONFIRM" ]] && hold=(--filter-visibility-confirm "$FILTER_VISIBILITY_CONFIRM")
 python scripts/transfer_report.py --checkpoint "$WEIGHTS" --data "$DATA" --out "$RUN/transfer" \
-  --threads "$THREADS" --filter-visibility-confirm "$FILTER_VISIBILITY_CONFIRM" \
-  --independent-renders "$INDEPENDENT"/day_* "$INDEPENDENT"/night_*
+  --threads "$THREADS" "${hold[@]}" --independent-renders "$INDEPENDENT"/day_* "$INDEPENDENT"/night_*
 echo "== done in $(( ($(date +%s) - start) / 60 )) minutes; reports: $RUN/transfer/transfer.md"
