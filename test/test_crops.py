@@ -68,6 +68,7 @@ def test_fill_halves_each_side_on_its_own():
     crop = crop_vehicle(flat, TrackBox("b", 100, -100, 300, 100), CropConfig(32, 0.0, True))
     assert not crop[:15].any() and (crop[17:] == 200).all()
 
+
 def _area_halvings(patch, times_x, times_y):
     for _ in range(times_x + times_y):
         h, w = patch.shape[:2]

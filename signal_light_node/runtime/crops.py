@@ -167,10 +167,11 @@ def _cut(image: np.ndarray, x0: int, y0: int, w: int, h: int, size: int) -> np.n
     if any(fine):
         patch = cv2.copyMakeBorder(patch, *fine, cv2.BORDER_CONSTANT, value=(0, 0, 0))
     hx, hy = sx.bit_length() - 1, sy.bit_length() - 1
-    for _ in range(min(hx, hy)):
+    both = min(hx, hy)
+    for _ in range(both):
         ph, pw = patch.shape[:2]
         patch = cv2.resize(patch, (pw // 2, ph // 2), interpolation=cv2.INTER_AREA)
-    patch = _halve_alone(patch, hx - min(hx, hy), hy - min(hx, hy))
+    patch = _halve_alone(patch, hx - both, hy - both)
     coarse = (ay0 // sy, (h - ay1) // sy, ax0 // sx, (w - ax1) // sx)
     if any(coarse):
         patch = cv2.copyMakeBorder(patch, *coarse, cv2.BORDER_CONSTANT, value=(0, 0, 0))
@@ -202,17 +203,16 @@ _NEXT_ROW = np.array([[0.5], [0.5]], np.float32)
 
 
 def _halve_alone(patch: np.ndarray, times_x: int, times_y: int) -> np.ndarray:
-    """Halve one side of ``patch`` ``times_x`` (or ``times_y``) times, pixel for pixel as
-    ``cv2.resize(..., INTER_AREA)`` would.
+    """Halve the width of ``patch`` ``times_x`` times, then its height ``times_y`` times,
+    one side at a time, pixel for pixel as ``cv2.resize(..., INTER_AREA)`` would.
 
     OpenCV's area resize takes a slow general path when only one side halves; the mean of
     each row and the next, rounded half to even as that path rounds, is the same result at
     a fraction of the cost, and a width is halved as the height of the transposed patch.
-    Only one of ``times_x`` and ``times_y`` may be non-zero; a side of odd length is left
-    to ``cv2.resize``.
+    A side of odd length is left to ``cv2.resize``.
     """
     if times_x:
-        return cv2.transpose(_halve_rows(cv2.transpose(patch), times_x))
+        patch = cv2.transpose(_halve_rows(cv2.transpose(patch), times_x))
     return _halve_rows(patch, times_y)
 
 
