@@ -11,7 +11,8 @@ import pytest
 from signal_light_node.errors import ConfigError
 from signal_light_node.labels import Intent, View
 from signal_light_node.synth import SceneRenderer
-from signal_light_node.synth.foreign_lamps import (FOREIGN_KINDS, ForeignLamp, lamp_centre,
+from signal_light_node.synth.foreign_lamps import (FOREIGN_KINDS, ForeignLamp,
+                                                   high_foreign_lamp, lamp_centre,
                                                    sample_foreign_lamp, visible_share)
 
 from scene_helpers import CLEAN, first_frame_vehicles, split_overrides
@@ -94,6 +95,37 @@ def test_the_share_picks_vehicles_and_keeps_the_scene():
     assert 0.25 < np.mean([v.foreign is not None for v in half]) < 0.75
 
 
+def test_high_lamps_sit_red_over_the_middle_of_the_roof_inside_the_crop():
+    rng = np.random.default_rng(4)
+    lamps = [high_foreign_lamp(sample_foreign_lamp(rng), rng) for _ in range(200)]
+    assert {lamp.kind for lamp in lamps} == {"red_steady", "red_switching"}
+    assert all(abs(lamp.u) <= 0.08 and -0.15 < lamp.v < 0 for lamp in lamps)  # crop margin 0.15
+    assert all(2.0 <= lamp.aspect <= 4.0 for lamp in lamps)
+
+
+def test_a_high_lamp_is_drawn_wide():
+    wide = replace(OVER_THE_ROOF, v=-0.06, radius=0.04, aspect=3.0)
+    (plain,) = _frames(None)
+    (round_,) = _frames(replace(wide, aspect=1.0))
+    (with_wide,) = _frames(wide)
+    x, y, r = lamp_centre(wide, with_wide.vehicles[0].box)
+    off = 2.0 * r  # beside the round lens, inside the wide one
+    assert _red(with_wide, x + off, y, r / 2) > _red(round_, x + off, y, r / 2) + 40
+    assert abs(_red(round_, x + off, y, r / 2) - _red(plain, x + off, y, r / 2)) < 40
+
+
+def test_the_high_share_moves_picked_lamps_and_keeps_the_others():
+    some = first_frame_vehicles(13, "night", foreign_lamp=0.8)
+    high = first_frame_vehicles(13, "night", foreign_lamp=0.8, foreign_high=0.5)
+    pairs = [(a.foreign, b.foreign) for a, b in zip(some, high) if a.foreign is not None]
+    assert [b is not None for _, b in pairs] == [True] * len(pairs)
+    moved = [a != b for a, b in pairs]
+    assert any(moved) and not all(moved)
+    for a, b in pairs:
+        if a != b:
+            assert (b.level, b.hz, b.seed, b.radius) == (a.level, a.hz, a.seed, a.radius)
+
+
 def test_without_the_share_frames_are_as_before():
     a = next(iter(SceneRenderer(seed=21, lighting="dusk", n_vehicles=5).frames(1)))
     b = next(iter(SceneRenderer(seed=21, lighting="dusk", n_vehicles=5, foreign_lamp=0.0).frames(1)))
@@ -105,6 +137,10 @@ def test_a_bad_share_is_refused_and_the_split_command_hands_it_on(monkeypatch, t
         SceneRenderer(seed=1, foreign_lamp=2.0)
     assert split_overrides(monkeypatch, tmp_path / "pool", ["--foreign-lamp", "0.3"]) == \
         {"foreign_lamp": 0.3}
+    with pytest.raises(ConfigError, match="foreign_high"):
+        SceneRenderer(seed=1, foreign_high=-0.1)
+    assert split_overrides(monkeypatch, tmp_path / "pool2", ["--foreign-high", "0.5"]) == \
+        {"foreign_high": 0.5}
 
 
 def test_the_visible_share_reads_the_coverage_inside_the_image_only():

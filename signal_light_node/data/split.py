@@ -310,6 +310,8 @@ RENDERER_SHARES = {
                          "(synth.traffic.BRIGHT_TAIL_LEVEL)",
     "foreign_lamp": "vehicles with a lamp beyond them, over the roof or beside, inside their "
                     "crop (synth.foreign_lamps)",
+    "foreign_high": "foreign_lamp lamps drawn red over the middle of the roof, where a centre "
+                    "high-mounted stop lamp would be (synth.foreign_lamps.high_foreign_lamp)",
 }
 
 

@@ -19,7 +19,7 @@ steady white head lamps. The truth does not change: the labels are the vehicle's
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Optional, Tuple
 
 import numpy as np
@@ -41,6 +41,12 @@ ABOVE_U = (-0.35, 0.35)
 BESIDE_U = (0.47, 0.62)
 BESIDE_V = (0.3, 0.7)
 RADIUS = (0.03, 0.07)
+#: Where a lamp beyond sits when it is drawn as a high one (``foreign_high``): over the
+#: middle of the roof, just above it (inside a crop's 0.15 margin), as wide as a centre
+#: high-mounted stop lamp, so only the vehicle's own lamps tell it from a brake.
+HIGH_U = (-0.08, 0.08)
+HIGH_V = (-0.09, -0.02)
+HIGH_ASPECT = (2.0, 4.0)
 
 
 @dataclass(frozen=True)
@@ -58,6 +64,7 @@ class ForeignLamp:
         phase: Offset of the flashes, or of the switching pattern, in seconds.
         spell_s: Length of each on or off spell of ``red_switching``.
         seed: Which spells of ``red_switching`` are on.
+        aspect: Width over height of the lens (1: round).
     """
 
     kind: str
@@ -70,6 +77,7 @@ class ForeignLamp:
     phase: float
     spell_s: float
     seed: int
+    aspect: float = 1.0
 
     def lit(self, t: float) -> bool:
         """Whether the lamp is lit at scene time ``t`` seconds."""
@@ -95,6 +103,14 @@ def sample_foreign_lamp(rng: np.random.Generator) -> ForeignLamp:
                        duty=float(rng.uniform(0.4, 0.6)), phase=float(rng.uniform(0.0, 3.0)),
                        spell_s=float(rng.uniform(*SWITCH_SPELL_S)),
                        seed=int(rng.integers(0, 1 << 30)))
+
+
+def high_foreign_lamp(lamp: ForeignLamp, rng: np.random.Generator) -> ForeignLamp:
+    """``lamp`` moved to where a centre high-mounted stop lamp would be seen over the roof
+    and drawn red, steady or switching like a brake; its level and timing are kept."""
+    kind = "red_steady" if rng.random() < 0.5 else "red_switching"
+    return replace(lamp, kind=kind, u=float(rng.uniform(*HIGH_U)), v=float(rng.uniform(*HIGH_V)),
+                   aspect=float(rng.uniform(*HIGH_ASPECT)))
 
 
 def lamp_centre(lamp: ForeignLamp, box: Tuple[float, float, float, float]
@@ -133,15 +149,16 @@ def draw_foreign_lamp(lamp: ForeignLamp, box: Tuple[float, float, float, float],
     if not (-4 * r < x < width + 4 * r and -4 * r < y < height + 4 * r):
         return
     emit = _COLOUR[lamp.kind]
+    rx = r * lamp.aspect
     if not lamp.lit(t):
-        ellipse(img, x, y, r, r, tuple(0.2 * c * light.ambient for c in emit))
+        ellipse(img, x, y, rx, r, tuple(0.2 * c * light.ambient for c in emit))
         return
     night = light.name != "day"
     k = min(1.0, lamp.level * light.lamp_gain * (1.25 if night else 1.0))
-    ellipse(img, x, y, r, r, tuple(k * c for c in emit))
+    ellipse(img, x, y, rx, r, tuple(k * c for c in emit))
     if night and k > 0.5:  # a bright lamp's centre clips towards white, as the own lamps'
         hot = 0.35 + 0.4 * k
-        ellipse(img, x, y, 0.55 * r, 0.55 * r, tuple(c + (255.0 - c) * hot for c in emit))
+        ellipse(img, x, y, 0.55 * rx, 0.55 * r, tuple(c + (255.0 - c) * hot for c in emit))
     seen = 1.0 if coverage is None else visible_share(x, y, r, coverage)
     if seen > 0:
         add_glow(layer, x, y, r, emit, 0.5 * k * light.glow * seen)

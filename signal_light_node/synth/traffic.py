@@ -22,7 +22,8 @@ from signal_light_node.errors import ConfigError
 from signal_light_node.labels import Intent, View
 from signal_light_node.synth import lamps as lamp_mod
 from signal_light_node.synth.environment import Lighting, StreetGeometry, shade
-from signal_light_node.synth.foreign_lamps import ForeignLamp, sample_foreign_lamp
+from signal_light_node.synth.foreign_lamps import (ForeignLamp, high_foreign_lamp,
+                                                   sample_foreign_lamp)
 from signal_light_node.synth.lamps import Lamp, LampStyle, blinker_timeline, brake_timeline, lamp_outlines, sample_lamp_style
 from signal_light_node.synth.vehicles import (KIND_DIMS, KIND_WEIGHTS, KINDS, BodyShape, body_shape, face_size_m, sample_colour,
                                               sample_paints)
@@ -129,12 +130,15 @@ class Traffic:
             own step and its centre lamp.
         foreign_lamp: Share of vehicles with a lamp beyond them, over the roof or beside,
             inside their crop (``Vehicle.foreign``, ``synth.foreign_lamps``).
+        foreign_high: Share of those lamps drawn red over the middle of the roof, where the
+            vehicle's own centre high-mounted stop lamp would be (``high_foreign_lamp``).
     """
 
     def __init__(self, seed: int, rng: np.random.Generator, width: int, geo: StreetGeometry, light: Lighting, lighting: str,
                  family: int, oblique: float = 0.0, tail_glare: float = 0.0, rear_bar: float = 0.0,
                  wide_truck_lamps: float = 0.0, glare_tail_hot: float = 0.0,
-                 glare_tail_bright: float = 0.0, foreign_lamp: float = 0.0) -> None:
+                 glare_tail_bright: float = 0.0, foreign_lamp: float = 0.0,
+                 foreign_high: float = 0.0) -> None:
         self.seed = seed
         self.width = width
         self._rng = rng
@@ -149,6 +153,7 @@ class Traffic:
         self.glare_tail_hot = glare_tail_hot
         self.glare_tail_bright = glare_tail_bright
         self.foreign_lamp = foreign_lamp
+        self.foreign_high = foreign_high
         self._next_id = int(rng.integers(1, 50))
         self.vehicles: List[Vehicle] = []
 
@@ -415,12 +420,17 @@ class Traffic:
 
     def _foreign(self, v: Vehicle) -> None:
         """With probability ``foreign_lamp``, a lamp beyond the vehicle inside its crop (a
-        stream of its own, as ``_yaw``'s)."""
+        stream of its own, as ``_yaw``'s); with probability ``foreign_high`` it is moved
+        over the middle of the roof (another stream of its own)."""
         if self.foreign_lamp <= 0:
             return
         frng = self._picked(v, 1000, self.foreign_lamp)
-        if frng is not None:
-            v.foreign = sample_foreign_lamp(frng)
+        if frng is None:
+            return
+        v.foreign = sample_foreign_lamp(frng)
+        hrng = self._picked(v, 1100, self.foreign_high)
+        if hrng is not None:
+            v.foreign = high_foreign_lamp(v.foreign, hrng)
 
     def _prepare_lamps(self, v: Vehicle) -> None:
         """Stack all lamp outlines so that one matrix product per frame maps them to pixels."""
