@@ -312,6 +312,8 @@ RENDERER_SHARES = {
                     "crop (synth.foreign_lamps)",
     "foreign_high": "foreign_lamp lamps drawn red over the middle of the roof, where a centre "
                     "high-mounted stop lamp would be (synth.foreign_lamps.high_foreign_lamp)",
+    "brake_share": "the time a brake is pressed and tracks first seen braking (0: the "
+                   "renderer's own, about 40 %; synth.lamps.brake_timeline)",
 }
 
 

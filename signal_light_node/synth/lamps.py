@@ -471,10 +471,28 @@ def blinker_timeline(rng: np.random.Generator, fixed: Optional[Intent] = None, h
     return Timeline(rng, states, weights, durations, None if fixed is None else int(fixed))
 
 
-def brake_timeline(rng: np.random.Generator, fixed: Optional[bool] = None) -> Timeline:
-    """Brake pressed (1) or released (0) over time (~40 % of time pressed)."""
-    return Timeline(rng, [0, 1], [1.0, 1.0], [(3.0, 0.5, 10.0), (2.2, 0.5, 8.0)],
-                    None if fixed is None else int(bool(fixed)))
+#: A brake press: (mean, min, max) seconds.
+BRAKE_PRESS_S = (2.2, 0.5, 8.0)
+
+
+def brake_timeline(rng: np.random.Generator, fixed: Optional[bool] = None,
+                   share: float = 0.0) -> Timeline:
+    """Brake pressed (1) or released (0) over time.
+
+    Args:
+        rng: The timeline's own generator.
+        fixed: When given, the brake holds this state forever.
+        share: 0: the renderer's own timeline (releases of about 3 s, about 40 % of the
+            time pressed, a track as likely to start pressed as not). Above 0: releases
+            long enough for about that share of the time to be pressed, and a track starts
+            pressed with that probability.
+    """
+    held = None if fixed is None else int(bool(fixed))
+    if share <= 0:
+        return Timeline(rng, [0, 1], [1.0, 1.0], [(3.0, 0.5, 10.0), BRAKE_PRESS_S], held)
+    release = BRAKE_PRESS_S[0] * (1.0 - share) / share
+    return Timeline(rng, [0, 1], [1.0 - share, share], [(release, 0.5, 4.0 * release), BRAKE_PRESS_S],
+                    held)
 
 
 def flasher_level(t_active: float, style: LampStyle, exposure_s: float, delay: float = 0.0) -> float:

@@ -132,13 +132,15 @@ class Traffic:
             inside their crop (``Vehicle.foreign``, ``synth.foreign_lamps``).
         foreign_high: Share of those lamps drawn red over the middle of the roof, where the
             vehicle's own centre high-mounted stop lamp would be (``high_foreign_lamp``).
+        brake_share: Share of the time a brake is pressed, and of tracks first seen
+            braking (``lamps.brake_timeline``; 0: the timeline's own, about 40 % and half).
     """
 
     def __init__(self, seed: int, rng: np.random.Generator, width: int, geo: StreetGeometry, light: Lighting, lighting: str,
                  family: int, oblique: float = 0.0, tail_glare: float = 0.0, rear_bar: float = 0.0,
                  wide_truck_lamps: float = 0.0, glare_tail_hot: float = 0.0,
                  glare_tail_bright: float = 0.0, foreign_lamp: float = 0.0,
-                 foreign_high: float = 0.0) -> None:
+                 foreign_high: float = 0.0, brake_share: float = 0.0) -> None:
         self.seed = seed
         self.width = width
         self._rng = rng
@@ -154,6 +156,7 @@ class Traffic:
         self.glare_tail_bright = glare_tail_bright
         self.foreign_lamp = foreign_lamp
         self.foreign_high = foreign_high
+        self.brake_share = brake_share
         self._next_id = int(rng.integers(1, 50))
         self.vehicles: List[Vehicle] = []
 
@@ -263,7 +266,8 @@ class Traffic:
                     blinker=blinker_timeline(np.random.default_rng([self.seed, 200 + int(track_id)]),
                                              None if fixed_intent is None else Intent(fixed_intent)),
                     brake=brake_timeline(np.random.default_rng([self.seed, 300 + int(track_id)]),
-                                         None if vo.get("brake") is None else bool(vo["brake"])),
+                                         None if vo.get("brake") is None else bool(vo["brake"]),
+                                         self.brake_share),
                     phase=float(vo["phase"]) if "phase" in vo else float(vrng.uniform(0, 1.0 / style.blink_hz)),
                     shear=float(vo.get("shear", vrng.uniform(-0.05, 0.05))),
                     roll=float(vo.get("roll", vrng.uniform(-1.5, 1.5))), spots=spots, paints=paints,
