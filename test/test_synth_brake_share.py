@@ -36,6 +36,12 @@ def test_a_share_sets_how_often_a_brake_is_pressed_and_first_seen(share):
     assert abs(pressed - share) < 0.07
 
 
+@pytest.mark.parametrize("share", [-0.1, 1.0])
+def test_a_share_that_leaves_no_release_is_refused(share):
+    with pytest.raises(ConfigError, match="brake_share"):
+        brake_timeline(np.random.default_rng(1), share=share)
+
+
 def test_a_held_brake_ignores_the_share():
     timeline = brake_timeline(np.random.default_rng(1), fixed=True, share=0.1)
     assert all(timeline.segment(t)[0] == 1 for t in (0.0, 5.0, 50.0))
@@ -47,8 +53,9 @@ def test_the_scene_hands_the_share_to_its_traffic(monkeypatch, tmp_path):
         return np.mean([v.brake.segment(0.0)[0] for v in vehicles])
 
     assert braking() > 0.3 and braking(brake_share=0.1) < 0.2
-    with pytest.raises(ConfigError, match="brake_share"):
-        SceneRenderer(seed=1, brake_share=1.5)
+    for bad in (1.5, 1.0):
+        with pytest.raises(ConfigError, match="brake_share"):
+            SceneRenderer(seed=1, brake_share=bad)
     assert split_overrides(monkeypatch, tmp_path / "pool", ["--brake-share", "0.2"]) == \
         {"brake_share": 0.2}
 

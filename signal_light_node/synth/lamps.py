@@ -14,6 +14,7 @@ from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from signal_light_node.errors import ConfigError
 from signal_light_node.labels import Intent, View
 
 #: Style families: disjoint ranges of lamp colours (and, in ``synth.camera``, of camera
@@ -486,13 +487,18 @@ def brake_timeline(rng: np.random.Generator, fixed: Optional[bool] = None,
             time pressed, a track as likely to start pressed as not). Above 0: releases
             long enough for about that share of the time to be pressed, and a track starts
             pressed with that probability.
+
+    Raises:
+        ConfigError: ``share`` is not in [0, 1) (a brake never released has no timeline).
     """
+    if not 0.0 <= share < 1.0:
+        raise ConfigError(f"brake_share must be in [0, 1), got {share!r}")
     held = None if fixed is None else int(bool(fixed))
-    if share <= 0:
+    if share == 0.0:
         return Timeline(rng, [0, 1], [1.0, 1.0], [(3.0, 0.5, 10.0), BRAKE_PRESS_S], held)
     release = BRAKE_PRESS_S[0] * (1.0 - share) / share
-    return Timeline(rng, [0, 1], [1.0 - share, share], [(release, 0.5, 4.0 * release), BRAKE_PRESS_S],
-                    held)
+    return Timeline(rng, [0, 1], [1.0 - share, share],
+                    [(release, 0.5, 4.0 * release), BRAKE_PRESS_S], held)
 
 
 def flasher_level(t_active: float, style: LampStyle, exposure_s: float, delay: float = 0.0) -> float:

@@ -171,6 +171,8 @@ class SceneRenderer:
         self.foreign_lamp = _share(overrides, "foreign_lamp")
         self.foreign_high = _share(overrides, "foreign_high")
         self.brake_share = _share(overrides, "brake_share")
+        if self.brake_share == 1.0:
+            raise ConfigError("brake_share must be below 1: a brake is released at times")
         self.truth_rule = checked_rule(str(overrides.get("truth_rule", "lamp")))
 
     # ------------------------------------------------------------------ setup
