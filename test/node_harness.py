@@ -135,7 +135,9 @@ class DetectorProcess:
                  executable: str = "detector") -> None:
         self.log = log
         self._file = open(log, "w")
-        self.proc = subprocess.Popen([executable, "--ros-args", *args], env=env, cwd=REPO,
+        # faulthandler: a node that hangs at stop writes every thread's stack on SIGABRT.
+        self.proc = subprocess.Popen([executable, "--ros-args", *args],
+                                     env={**env, "PYTHONFAULTHANDLER": "1"}, cwd=REPO,
                                      stdout=self._file, stderr=subprocess.STDOUT)
 
     def text(self) -> str:
@@ -154,14 +156,19 @@ class DetectorProcess:
             time.sleep(0.05)
 
     def stop(self, timeout: float = 20.0) -> int:
-        """SIGINT, then wait; SIGKILL if it does not end. Returns the exit code."""
+        """SIGINT, then wait; if it does not end, SIGABRT (its log then holds where every
+        thread hung), then SIGKILL. Returns the exit code."""
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGINT)
             try:
                 self.proc.wait(timeout)
             except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(10)
+                self.proc.send_signal(signal.SIGABRT)
+                try:
+                    self.proc.wait(10)
+                except subprocess.TimeoutExpired:
+                    self.proc.kill()
+                    self.proc.wait(10)
         if not self._file.closed:
             self._file.close()
         return self.proc.returncode
