@@ -476,6 +476,17 @@ def blinker_timeline(rng: np.random.Generator, fixed: Optional[Intent] = None, h
 BRAKE_PRESS_S = (2.2, 0.5, 8.0)
 
 
+def checked_brake_share(share: float) -> float:
+    """``share`` if a brake timeline can be drawn with it.
+
+    Raises:
+        ConfigError: ``share`` is not in [0, 1) (a brake never released has no timeline).
+    """
+    if not 0.0 <= share < 1.0:
+        raise ConfigError(f"brake_share must be in [0, 1), got {share!r}")
+    return share
+
+
 def brake_timeline(rng: np.random.Generator, fixed: Optional[bool] = None,
                    share: float = 0.0) -> Timeline:
     """Brake pressed (1) or released (0) over time.
@@ -491,8 +502,7 @@ def brake_timeline(rng: np.random.Generator, fixed: Optional[bool] = None,
     Raises:
         ConfigError: ``share`` is not in [0, 1) (a brake never released has no timeline).
     """
-    if not 0.0 <= share < 1.0:
-        raise ConfigError(f"brake_share must be in [0, 1), got {share!r}")
+    share = checked_brake_share(share)
     held = None if fixed is None else int(bool(fixed))
     if share == 0.0:
         return Timeline(rng, [0, 1], [1.0, 1.0], [(3.0, 0.5, 10.0), BRAKE_PRESS_S], held)

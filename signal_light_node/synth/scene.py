@@ -32,7 +32,7 @@ from signal_light_node.synth.camera import (Camera, CameraParams, sample_camera,
 from signal_light_node.synth.environment import (GLOW_SCALE, LIGHTINGS, Environment, Lighting, Occluder, StreetGeometry,
                                                  blur_glow, sample_lighting)
 from signal_light_node.synth.foreign_lamps import draw_foreign_lamp
-from signal_light_node.synth.lamps import STYLE_FAMILIES, TRAIN_FAMILIES
+from signal_light_node.synth.lamps import STYLE_FAMILIES, TRAIN_FAMILIES, checked_brake_share
 from signal_light_node.synth.lit_maps import draw_lit_map
 from signal_light_node.synth.tracker import tracker_box
 from signal_light_node.synth.traffic import Traffic
@@ -170,9 +170,7 @@ class SceneRenderer:
         self.glare_tail_bright = _share(overrides, "glare_tail_bright")
         self.foreign_lamp = _share(overrides, "foreign_lamp")
         self.foreign_high = _share(overrides, "foreign_high")
-        self.brake_share = _share(overrides, "brake_share")
-        if self.brake_share == 1.0:
-            raise ConfigError("brake_share must be below 1: a brake is released at times")
+        self.brake_share = checked_brake_share(_share(overrides, "brake_share"))
         self.truth_rule = checked_rule(str(overrides.get("truth_rule", "lamp")))
 
     # ------------------------------------------------------------------ setup
