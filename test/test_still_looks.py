@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from signal_light_node.errors import ConfigError
 from signal_light_node.evaluation.still_looks import held_still, on_share, still_look_reads
 from signal_light_node.labels import LightStatus
 from signal_light_node.model import load_checkpoint
@@ -57,5 +58,5 @@ def test_each_look_is_read_as_the_model_moved_by_an_offset_publishes(offset: flo
 
 
 def test_every_must_be_positive() -> None:
-    with pytest.raises(ValueError, match="every"):
+    with pytest.raises(ConfigError, match="every"):
         still_look_reads(None, None, every=0)  # type: ignore[arg-type]

@@ -15,6 +15,7 @@ from typing import Any, List
 
 import numpy as np
 
+from signal_light_node.errors import ConfigError
 from signal_light_node.evaluation.streaming import predict_track_probs
 from signal_light_node.evaluation.tracks import TrackSequence
 from signal_light_node.labels import TASKS, LightStatus
@@ -24,9 +25,13 @@ _ON, _OFF = int(LightStatus.ON), int(LightStatus.OFF)
 
 def held_still(track: TrackSequence, index: int) -> TrackSequence:
     """The track with every crop replaced by its crop at ``index`` (stamps, mask and
-    labels kept, so the filter and the scorer see the same timing)."""
+    labels kept, so the filter and the scorer see the same timing).
+
+    Raises:
+        ConfigError: The track carries no crops (a split read without them).
+    """
     if track.crops is None:
-        raise ValueError(f"track {track.track_id} carries no crops")
+        raise ConfigError(f"track {track.track_id} carries no crops")
     return replace(track, crops=np.repeat(track.crops[index:index + 1], len(track), axis=0))
 
 
@@ -47,9 +52,15 @@ def still_look_reads(model: Any, track: TrackSequence, task: str = "brake",
         track: A track with crops.
         task: A light task of ``labels.TASKS`` (``brake``, ``left``, ``right``).
         every: Take every ``every``-th look (all looks cost the track's length squared).
+
+    Returns:
+        One bool per look taken, in frame order.
+
+    Raises:
+        ConfigError: ``every`` is below 1, or the track carries no crops.
     """
     if every < 1:
-        raise ValueError(f"every must be >= 1, got {every}")
+        raise ConfigError(f"every must be >= 1, got {every}")
     column = TASKS.index(task)
     stills = [held_still(track, i) for i in range(0, len(track), every)]
     published = predict_track_probs(model, stills)[0]
