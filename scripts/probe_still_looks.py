@@ -43,9 +43,10 @@ def main() -> None:
             with torch.no_grad():
                 recorded = predict_track_probs(model, [track])[0][0][:, column]
                 reads = still_look_reads(model, track, args.task, args.every)
+            marks = "".join("1" if r else "0" for r in reads)
             print(f"  {track.track_id:24s} {args.task} ON as recorded "
                   f"{100 * on_share(recorded):5.1f} % of judged frames; looks read ON held "
-                  f"still {sum(reads):3d} of {len(reads):3d}: {''.join('1' if r else '0' for r in reads)}")
+                  f"still {sum(reads):3d} of {len(reads):3d}: {marks}")
 
 
 if __name__ == "__main__":

@@ -57,6 +57,8 @@ def test_each_look_is_read_as_the_model_moved_by_an_offset_publishes(offset: flo
     assert reads == [expected] * len(reads)
 
 
-def test_every_must_be_positive() -> None:
+def test_a_task_that_is_not_a_light_and_a_step_below_1_are_refused() -> None:
     with pytest.raises(ConfigError, match="every"):
         still_look_reads(None, None, every=0)  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="task must be one of brake, left, right"):
+        still_look_reads(None, None, task="intent")  # type: ignore[arg-type]

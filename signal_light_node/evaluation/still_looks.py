@@ -18,7 +18,7 @@ import numpy as np
 from signal_light_node.errors import ConfigError
 from signal_light_node.evaluation.streaming import predict_track_probs
 from signal_light_node.evaluation.tracks import TrackSequence
-from signal_light_node.labels import TASKS, LightStatus
+from signal_light_node.labels import LIGHT_TASKS, TASKS, LightStatus
 
 _ON, _OFF = int(LightStatus.ON), int(LightStatus.OFF)
 
@@ -50,15 +50,18 @@ def still_look_reads(model: Any, track: TrackSequence, task: str = "brake",
     Args:
         model: A checkpoint's model or a backend (as :func:`predict_track_probs` takes).
         track: A track with crops.
-        task: A light task of ``labels.TASKS`` (``brake``, ``left``, ``right``).
+        task: A light task (``labels.LIGHT_TASKS``: ``brake``, ``left``, ``right``).
         every: Take every ``every``-th look (all looks cost the track's length squared).
 
     Returns:
         One bool per look taken, in frame order.
 
     Raises:
-        ConfigError: ``every`` is below 1, or the track carries no crops.
+        ConfigError: ``task`` is not a light, ``every`` is below 1, or the track carries
+            no crops.
     """
+    if task not in LIGHT_TASKS:
+        raise ConfigError(f"task must be one of {', '.join(LIGHT_TASKS)}, got {task!r}")
     if every < 1:
         raise ConfigError(f"every must be >= 1, got {every}")
     column = TASKS.index(task)
