@@ -25,14 +25,16 @@ _ON, _OFF = int(LightStatus.ON), int(LightStatus.OFF)
 
 def held_still(track: TrackSequence, index: int) -> TrackSequence:
     """The track with every crop replaced by its crop at ``index`` (stamps, mask and
-    labels kept, so the filter and the scorer see the same timing).
+    labels kept, so the filter and the scorer see the same timing). The crops are a
+    read-only view of that one crop: all looks of a long track held still at once cost
+    one crop each, not the track's length.
 
     Raises:
-        ConfigError: The track carries no crops (a split read without them).
+        ConfigError: ``index`` is outside the track.
+        CropError: A lazily read frame cannot be read.
     """
-    if track.crops is None:
-        raise ConfigError(f"track {track.track_id} carries no crops")
-    return replace(track, crops=np.repeat(track.crops[index:index + 1], len(track), axis=0))
+    look = track.crop_window(index, index + 1)[0]
+    return replace(track, crops=np.broadcast_to(look, (len(track), *look.shape)))
 
 
 def on_share(published: np.ndarray) -> float:
@@ -49,7 +51,7 @@ def still_look_reads(model: Any, track: TrackSequence, task: str = "brake",
 
     Args:
         model: A checkpoint's model or a backend (as :func:`predict_track_probs` takes).
-        track: A track with crops.
+        track: A track (its crops in memory or read from its frame files).
         task: A light task (``labels.LIGHT_TASKS``: ``brake``, ``left``, ``right``).
         every: Take every ``every``-th look (all looks cost the track's length squared).
 
@@ -57,8 +59,8 @@ def still_look_reads(model: Any, track: TrackSequence, task: str = "brake",
         One bool per look taken, in frame order.
 
     Raises:
-        ConfigError: ``task`` is not a light, ``every`` is below 1, or the track carries
-            no crops.
+        ConfigError: ``task`` is not a light or ``every`` is below 1.
+        CropError: A lazily read frame cannot be read.
     """
     if task not in LIGHT_TASKS:
         raise ConfigError(f"task must be one of {', '.join(LIGHT_TASKS)}, got {task!r}")
