@@ -96,15 +96,36 @@ def test_the_brake_is_judged_from_behind_hidden_from_the_front_the_model_s_from_
     np.testing.assert_allclose(covered[:, BRAKE], p[:2, BRAKE])
 
 
+def test_with_rear_sight_a_side_hides_the_brake_and_the_rear_still_judges_it():
+    """``brake_sight: rear``: P(UNKNOWN) = 1 - P(BEHIND), where the model's own would
+    have decided from a side (the test above)."""
+    p = np.array([[UNSURE, UNSURE, UNSURE], [[0.7, 0.25, 0.05]] * 3, [UNSURE] * 3])
+    view = np.stack([_view(View.BEHIND), _view(View.LEFT), _mixed_view(0.5, 0.3, 0.2)])
+    out = box_sight.judge_brake(p, view, np.zeros(3), 0.1, BRAKE, side_hides=True)
+    unknown = out[:, BRAKE, 2]
+    assert unknown == pytest.approx([0.03, 0.99, 0.5])
+    assert out[0, BRAKE].argmax() == int(LightStatus.ON)
+    # A model sure it sees a side view's brake OFF is overruled: its lamps face away.
+    assert out[1, BRAKE].argmax() == int(LightStatus.UNKNOWN)
+    assert out[1, BRAKE, 0] / out[1, BRAKE, 1] == pytest.approx(0.7 / 0.25)
+    default = box_sight.judge_brake(p, view, np.zeros(3), 0.1, BRAKE)
+    assert default[1, BRAKE].argmax() == int(LightStatus.OFF)
+
+
 def test_config_checks_the_sight_and_the_cover():
     assert IntentFilterConfig().blinker_sight == "model"
     assert IntentFilterConfig().brake_sight == "model"
     for name in ("blinker_sight", "brake_sight"):
         with pytest.raises(ConfigError, match=name):
             IntentFilterConfig(**{name: "eyes"})
+    with pytest.raises(ConfigError, match="blinker_sight"):
+        IntentFilterConfig(blinker_sight="rear")  # a blinker has no rear-only sight
     brake = IntentFilterConfig(brake_sight="geometry")
     assert IntentFilter(brake).uses_cover
     assert "brake UNKNOWN from the view" in brake.describe()
+    rear = IntentFilterConfig(brake_sight="rear")
+    assert IntentFilter(rear).uses_cover
+    assert "brake (hidden from a side too) UNKNOWN" in rear.describe()
     for bad in (-0.1, 1.5, math.nan, True):
         with pytest.raises(ConfigError, match="cover_max"):
             IntentFilterConfig(cover_max=bad)
@@ -134,7 +155,8 @@ def test_filter_publishes_what_geometry_says_only_with_a_cover(sight, cover, sta
 
 
 @pytest.mark.parametrize("sight, state", [("model", LightStatus.UNKNOWN),
-                                          ("geometry", LightStatus.ON)])
+                                          ("geometry", LightStatus.ON),
+                                          ("rear", LightStatus.ON)])
 def test_filter_judges_the_brake_with_its_own_sight(sight, state):
     """The brake's sight is set apart from the blinkers': only ``brake_sight`` moves it,
     and the brake is published as judged from its first frame (no hold)."""

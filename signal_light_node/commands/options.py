@@ -73,7 +73,7 @@ def add_intent_filter_options(group: ArgumentContainer) -> None:
 
     Defaults come from ``intent_filter.IntentFilterConfig`` (as the node's parameters do).
     """
-    from signal_light_node.runtime.intent_filter import SIGHTS, IntentFilterConfig
+    from signal_light_node.runtime.intent_filter import BRAKE_SIGHTS, SIGHTS, IntentFilterConfig
 
     d = IntentFilterConfig()
     group.add_argument("--intent-filter", action=argparse.BooleanOptionalAction,
@@ -104,10 +104,11 @@ def add_intent_filter_options(group: ArgumentContainer) -> None:
                        help="where a blinker's UNKNOWN comes from: the model's own, or the "
                             "view head and how much of the box the image edge and nearer "
                             "boxes cover (bags only: splits keep no other boxes)")
-    group.add_argument("--filter-brake-sight", choices=SIGHTS, default=d.brake_sight,
-                       help="where the brake's UNKNOWN comes from: the model's own, or "
-                            "judged where the view head sees the rear, hidden where it sees "
-                            "the front, the model's own from a side (bags only, as above)")
+    group.add_argument("--filter-brake-sight", choices=BRAKE_SIGHTS, default=d.brake_sight,
+                       help="where the brake's UNKNOWN comes from: the model's own; "
+                            "geometry: judged where the view head sees the rear, hidden "
+                            "where it sees the front, the model's own from a side; rear: "
+                            "hidden from a side too (bags only, as above)")
     group.add_argument("--filter-cover-max", type=float, default=d.cover_max, metavar="C",
                        help="with a sight of geometry: the share of a box that "
                             "may be covered before the model's own UNKNOWN counts again")

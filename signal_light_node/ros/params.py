@@ -25,7 +25,7 @@ from signal_light_node.io.topics import camera_name_problem
 from signal_light_node.model.backends.registry import known_backends
 from signal_light_node.runtime.backend import (AUTO_BACKEND, DEFAULT_BACKEND, DEFAULT_PRECISION,
                                                PRECISIONS)
-from signal_light_node.runtime.intent_filter import SIGHTS, IntentFilterConfig
+from signal_light_node.runtime.intent_filter import BRAKE_SIGHTS, SIGHTS, IntentFilterConfig
 from signal_light_node.labels import LIGHT_CODES
 
 LOG = logging.getLogger(__name__)
@@ -271,7 +271,8 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
                                     "model's own) or geometry (judged where the view head "
                                     "sees the rear, hidden where it sees the front, the "
                                     "model's own from a side; the cover as for the "
-                                    "blinkers).", choices=SIGHTS),
+                                    "blinkers) or rear (as geometry, and hidden from a "
+                                    "side too).", choices=BRAKE_SIGHTS),
     "filter_cover_max": ParamSpec("With a sight of geometry: the share of a box "
                                   "that may be covered (image edge, nearer boxes) before "
                                   "the model's own UNKNOWN counts again.", low=0.0,

@@ -15,7 +15,7 @@ nearer box) is at most ``cover_max``; where more of it is covered, the larger of
 the model's own P(UNKNOWN). ON and OFF share the rest in the model's proportions. A track
 whose cover is not known (NaN) keeps the model's UNKNOWN. With ``brake_sight: geometry``
 the brake is judged the same way from the faces that hide the rear lamps
-(:func:`judge_brake`).
+(:func:`judge_brake`); with ``brake_sight: rear`` a side view hides them too.
 
 Measured (docs/model.md, "Visibility from geometry"; the shipped model as the node runs
 it): intent macro-F1 on the independent renders rose from 30.5 to 43.9 %, UNKNOWN where a
@@ -104,7 +104,7 @@ def judge_blinkers(p: np.ndarray, view: np.ndarray, cover: np.ndarray, cover_max
 
 
 def judge_brake(p: np.ndarray, view: np.ndarray, cover: np.ndarray, cover_max: float,
-                column: int) -> np.ndarray:
+                column: int, side_hides: bool = False) -> np.ndarray:
     """The lights' probabilities with the brake's UNKNOWN from geometry.
 
     The rear lamps face away from a camera that sees the FRONT, and are in plain sight of
@@ -112,15 +112,16 @@ def judge_brake(p: np.ndarray, view: np.ndarray, cover: np.ndarray, cover_max: f
     sight or still show (a three-quarter view), which the view head cannot tell: there the
     model's own UNKNOWN decides. So P(UNKNOWN) = P(FRONT) + P(LEFT or RIGHT) * the model's
     P(UNKNOWN); where the box's cover exceeds ``cover_max``, the larger of that and the
-    model's. Arguments and return as :func:`judge_blinkers`, with ``column`` the brake's
-    light column of ``p``.
+    model's. With ``side_hides`` (``brake_sight: rear``) a side hides the brake too:
+    P(UNKNOWN) = 1 - P(BEHIND). Arguments and return as :func:`judge_blinkers`, with
+    ``column`` the brake's light column of ``p``.
     """
     out = p.copy()
     view = np.asarray(view, np.float64)
     q = p[:, column]
     side = view[:, int(View.LEFT)] + view[:, int(View.RIGHT)]
-    out[:, column] = _judged(q, view[:, int(View.FRONT)] + side * q[:, _UNKNOWN], cover,
-                             cover_max)
+    from_side = side if side_hides else side * q[:, _UNKNOWN]
+    out[:, column] = _judged(q, view[:, int(View.FRONT)] + from_side, cover, cover_max)
     return out
 
 

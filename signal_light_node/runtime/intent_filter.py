@@ -69,6 +69,8 @@ ROW_WIDTH = _HOLD_WIDTH + _VISIBILITY_WIDTH + flash_gate.WIDTH
 #: Where a light's UNKNOWN comes from (``IntentFilterConfig.blinker_sight``,
 #: ``brake_sight``).
 SIGHTS = ("model", "geometry")
+#: ... and for the brake also ``rear``: judged only where the view head sees the rear.
+BRAKE_SIGHTS = SIGHTS + ("rear",)
 
 _OFF, _ON, _UNKNOWN = int(LightStatus.OFF), int(LightStatus.ON), int(LightStatus.UNKNOWN)
 _LEFT, _RIGHT = LIGHT_TASKS.index("left"), LIGHT_TASKS.index("right")
@@ -126,9 +128,11 @@ class IntentFilterConfig:
             UNKNOWN) or ``geometry`` (:mod:`box_sight`: the view head and how much of
             the box is covered by the image edge or nearer boxes; for cameras unlike the
             training renderer, where the model says UNKNOWN on lamps in plain sight).
-        brake_sight: Where the brake's UNKNOWN comes from: ``model`` or ``geometry``
+        brake_sight: Where the brake's UNKNOWN comes from: ``model``, ``geometry``
             (:func:`box_sight.judge_brake`: judged where the view head sees the rear,
-            hidden where it sees the front, the model's own UNKNOWN from a side).
+            hidden where it sees the front, the model's own UNKNOWN from a side) or
+            ``rear`` (as ``geometry``, and hidden from a side too: a side view's brake
+            lamps are slivers no crop resolves; docs/model.md, "A side view's brake").
         cover_max: With ``geometry``: the share of a box that may be covered before the
             model's own UNKNOWN counts again.
     """
@@ -164,9 +168,9 @@ class IntentFilterConfig:
         if self.flash_min_evidence > 0 and self.flash_window_s <= 0:
             raise ConfigError("flash_window_s must be > 0 while the flash gate is on "
                               "(flash_min_evidence > 0)")
-        for name in ("blinker_sight", "brake_sight"):
-            if getattr(self, name) not in SIGHTS:
-                raise ConfigError(f"{name} must be one of {', '.join(SIGHTS)}, got "
+        for name, allowed in (("blinker_sight", SIGHTS), ("brake_sight", BRAKE_SIGHTS)):
+            if getattr(self, name) not in allowed:
+                raise ConfigError(f"{name} must be one of {', '.join(allowed)}, got "
                                   f"{getattr(self, name)!r}")
         value = self.cover_max
         if not _is_finite_number(value) or not 0.0 <= value <= 1.0:
@@ -184,7 +188,9 @@ class IntentFilterConfig:
         seen = (f"; visibility changes after {self.visibility_confirm_s:g} s"
                 if self.visibility_confirm_s > 0 else "")
         geometry = [name for name, sight in (("blinkers", self.blinker_sight),
-                                             ("brake", self.brake_sight)) if sight == "geometry"]
+                                             ("brake", self.brake_sight)) if sight != "model"]
+        if self.brake_sight == "rear":
+            geometry[-1] = "brake (hidden from a side too)"
         if geometry:
             seen += (f"; {' and '.join(geometry)} UNKNOWN from the view and boxes covered "
                      f"over {self.cover_max:g}")
@@ -241,8 +247,8 @@ class IntentFilter:
     @property
     def uses_cover(self) -> bool:
         """Whether :meth:`step` uses box covers (callers compute them only then)."""
-        return self.config.enabled and "geometry" in (self.config.blinker_sight,
-                                                      self.config.brake_sight)
+        return self.config.enabled and (self.config.blinker_sight, self.config.brake_sight) \
+            != ("model", "model")
 
     @staticmethod
     def initial_rows(n: int) -> np.ndarray:
@@ -311,8 +317,9 @@ class IntentFilter:
         c = self.config
         if c.blinker_sight == "geometry":
             p = box_sight.judge_blinkers(p, view, cover, c.cover_max, self._hiding)
-        if c.brake_sight == "geometry":
-            p = box_sight.judge_brake(p, view, cover, c.cover_max, LIGHT_TASKS.index("brake"))
+        if c.brake_sight != "model":
+            p = box_sight.judge_brake(p, view, cover, c.cover_max, LIGHT_TASKS.index("brake"),
+                                      side_hides=c.brake_sight == "rear")
         return p
 
     def _advance(self, state: np.ndarray, p: np.ndarray, now: np.ndarray) -> np.ndarray:
