@@ -59,9 +59,10 @@
 #      bags/day_street and bags/night_street);
 #   5. scores it with scripts/transfer_report.py: own split, held-out family, the
 #      independent generator's two committed bags and its 12 larger renders
-#      (scripts/render_independent.sh into INDEPENDENT, default DATA/independent, once) and
-#      the hard negatives (RUN/transfer), every set under the intent filter's visibility
-#      hold FILTER_VISIBILITY_CONFIRM (seconds; default empty: the node's default).
+#      (scripts/render_independent.sh into INDEPENDENT, default DATA/independent, once),
+#      the training renderer's committed bags and the hard negatives (RUN/transfer), every
+#      set under the intent filter's visibility hold FILTER_VISIBILITY_CONFIRM (seconds) and
+#      brake sight FILTER_BRAKE_SIGHT (default empty: the node's defaults).
 #
 # Every setting can be overridden from the environment; a few-minute smoke run:
 #   RUN=runs/smoke POOL_SEEDS=31 POOL_TRACKS=24 VAL_SEQUENCES=16 TEST_TRACKS=12 \
@@ -158,6 +159,7 @@ DEVICE=${DEVICE:-cpu}
 THREADS=${THREADS:-2}
 EVAL=${EVAL:-1}
 FILTER_VISIBILITY_CONFIRM=${FILTER_VISIBILITY_CONFIRM:-}
+FILTER_BRAKE_SIGHT=${FILTER_BRAKE_SIGHT:-}
 # The per-frame stage (training/trunk_finetune.py): FRAME_STEPS > 0 fine-tunes the trunk's
 # blocks from TRAIN_FROM on (-1: all, the stem too) before the temporal part; TRUNK_WEIGHTS
 # names a finished one instead (its best.pt), or a model file whose trunk to take (the
@@ -294,6 +296,7 @@ INDEPENDENT=${INDEPENDENT:-$DATA/independent}   # the larger independent set, re
 bash scripts/render_independent.sh "$INDEPENDENT"
 hold=()
 [[ -n "$FILTER_VISIBILITY_CONFIRM" ]] && hold=(--filter-visibility-confirm "$FILTER_VISIBILITY_CONFIRM")
+[[ -n "$FILTER_BRAKE_SIGHT" ]] && hold+=(--filter-brake-sight "$FILTER_BRAKE_SIGHT")
 python scripts/transfer_report.py --checkpoint "$WEIGHTS" --data "$DATA" --out "$RUN/transfer" \
   --threads "$THREADS" "${hold[@]}" --independent-renders "$INDEPENDENT"/day_* "$INDEPENDENT"/night_*
 echo "== done in $(( ($(date +%s) - start) / 60 )) minutes; reports: $RUN/transfer/transfer.md"

@@ -8,7 +8,10 @@ asks for into one table (Markdown and JSON):
 * ``family``: the same renderer's held-out style family 2 (lamp colours and camera tone
   curves never rendered for training);
 * ``independent``: the committed bags of the second, independent generator
-  (``signal_light_node.evalgen``: its own geometry, lamps and sensor model).
+  (``signal_light_node.evalgen``: its own geometry, lamps and sensor model);
+* ``day_street`` and ``night_street``: the committed bags of the training renderer
+  (``scripts/make_bags.sh``, truth by the ``lamp`` rule), which ``test/test_replay.py``
+  holds the shipped file to (``COMMITTED_BAG_BOUNDS``).
 
 Every set is scored after the warm-up, without a grace window, as the node publishes it
 (intent filter on unless ``--no-intent-filter``). Brake, left and right F1 are the F1 of
@@ -32,6 +35,10 @@ from typing import Any, Dict, List, Optional, Sequence
 
 REPO = Path(__file__).resolve().parents[1]
 INDEPENDENT_BAGS = ("bags/independent_day", "bags/independent_night")
+#: The training renderer's committed bags and the replay test's bounds on them (brake
+#: accuracy, intent macro-F1; test/test_replay.py): a candidate must hold them to ship.
+COMMITTED_BAGS = ("bags/day_street", "bags/night_street")
+COMMITTED_BAG_BOUNDS = {"brake_acc": 0.93, "intent_f1": 0.65}
 COLUMNS = (("intent macro-F1", "intent_f1"), ("intent FP", "intent_fp"),
            ("intent FN", "intent_fn"), ("brake acc.", "brake_acc"), ("brake F1", "brake_f1"),
            ("brake recall", "brake_recall"), ("left F1", "left_f1"), ("right F1", "right_f1"),
@@ -85,8 +92,8 @@ def evaluate(name: str, data: List[str], checkpoint: Path, out: Path,
     return json.loads((target / "metrics.json").read_text())
 
 
-def hard_negatives(checkpoint: Path, out: Path,
-                   visibility_confirm_s: float) -> Dict[str, Dict[str, float]]:
+def hard_negatives(checkpoint: Path, out: Path, visibility_confirm_s: float,
+                   brake_sight: str = "model") -> Dict[str, Dict[str, float]]:
     """Shares of judged vehicle-frames reporting a light ON in each hard-negative bag.
 
     Args:
@@ -94,12 +101,13 @@ def hard_negatives(checkpoint: Path, out: Path,
         out: Where each bag's replay lands.
         visibility_confirm_s: The intent filter's hold on a light turning UNKNOWN or back,
             as the evaluated sets get it (``--filter-visibility-confirm``).
+        brake_sight: The filter's ``brake_sight``, as the evaluated sets get it.
     """
     from signal_light_node.runtime.engine import engine_from_checkpoint
     from signal_light_node.runtime.intent_filter import IntentFilterConfig
     from signal_light_node.tools.hard_negatives import HARD_NEGATIVE_BAGS, false_lights
 
-    held = IntentFilterConfig(visibility_confirm_s=visibility_confirm_s)
+    held = IntentFilterConfig(visibility_confirm_s=visibility_confirm_s, brake_sight=brake_sight)
     return {bag: vars(false_lights(REPO / bag, engine_from_checkpoint(checkpoint,
                                                                       intent_filter=held),
                                    out / Path(bag).name))
@@ -111,7 +119,8 @@ def evaluate_options(args: argparse.Namespace) -> List[str]:
     extra = ["--threads", str(args.threads)]
     if args.no_intent_filter:
         return extra + ["--no-intent-filter"]
-    return extra + ["--filter-visibility-confirm", f"{args.filter_visibility_confirm:g}"]
+    return extra + ["--filter-visibility-confirm", f"{args.filter_visibility_confirm:g}",
+                    "--filter-brake-sight", args.filter_brake_sight]
 
 
 def _cell(key: str, value: Optional[float]) -> str:
@@ -132,7 +141,7 @@ def markdown(rows: Dict[str, Dict[str, Optional[float]]]) -> str:
 
 def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     """The report's command line."""
-    from signal_light_node.runtime.intent_filter import IntentFilterConfig
+    from signal_light_node.runtime.intent_filter import BRAKE_SIGHTS, IntentFilterConfig
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--checkpoint", type=Path, default=REPO / "signal_light_node/weights/default.pt")
@@ -145,6 +154,10 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
                    default=IntentFilterConfig.visibility_confirm_s, metavar="S",
                    help="the intent filter's visibility hold for every set, hard negatives "
                         "included (the node's filter_visibility_confirm_s; 0: none)")
+    p.add_argument("--filter-brake-sight", choices=BRAKE_SIGHTS,
+                   default=IntentFilterConfig.brake_sight,
+                   help="the intent filter's brake sight for every set, hard negatives "
+                        "included (the node's filter_brake_sight)")
     p.add_argument("--independent-renders", nargs="*", type=Path, default=[], metavar="BAG",
                    help="more bags of the independent generator (scripts/render_independent.sh),"
                         " scored as one more row")
@@ -165,6 +178,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         bags = [str(b) for b in args.independent_renders]
         sets += (("independent_renders", f"independent renders ({len(bags)} scenes)",
                   ["--bags", *bags]),)
+    sets += tuple((Path(bag).name, f"committed bag {Path(bag).name} (lamp rule)", ["--bags", bag])
+                  for bag in COMMITTED_BAGS)
     metrics = {name: evaluate(folder, data, args.checkpoint, args.out, extra)
                for folder, name, data in sets}
     rows = {name: figures(m) for name, m in metrics.items()}
@@ -174,7 +189,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     for name in [n for n in by_view if n.startswith("independent")]:
         table += (f"\nWhere the UNKNOWNs come from, {name} (brake, left and right where the "
                   f"truth is OFF or ON):\n\n{unknown_by_view_markdown(by_view[name])}")
-    negatives = hard_negatives(args.checkpoint, args.out, args.filter_visibility_confirm)
+    held = [f"{name}: brake {100 * rows[name]['brake_acc']:.1f} %, intent "
+            f"{100 * rows[name]['intent_f1']:.1f} %" for name in rows if name.startswith("committed")]
+    table += ("\nCommitted bags of the training renderer, as the replay test bounds them (brake "
+              f"accuracy >= {100 * COMMITTED_BAG_BOUNDS['brake_acc']:.0f} %, intent macro-F1 >= "
+              f"{100 * COMMITTED_BAG_BOUNDS['intent_f1']:.0f} %): " + "; ".join(held) + "\n")
+    negatives = hard_negatives(args.checkpoint, args.out, args.filter_visibility_confirm,
+                               "model" if args.no_intent_filter else args.filter_brake_sight)
     table += ("\nHard negatives (no signal at all; share of judged vehicle-frames reporting "
               "a light ON; target for blinkers < 5 %):\n\n| bag | blinker ON | brake ON | "
               "judged |\n|---|---:|---:|---:|\n")
@@ -185,6 +206,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     (args.out / "transfer.json").write_text(json.dumps(
         {"checkpoint": str(args.checkpoint), "intent_filter": not args.no_intent_filter,
          "visibility_confirm_s": args.filter_visibility_confirm,
+         "brake_sight": args.filter_brake_sight,
          "sets": rows, "unknown_by_view": by_view, "hard_negatives": negatives},
         indent=2) + "\n")
     print(table)
