@@ -38,7 +38,7 @@ INDEPENDENT_BAGS = ("bags/independent_day", "bags/independent_night")
 #: The training renderer's committed bags and the replay test's bounds on them (brake
 #: accuracy, intent macro-F1; test/test_replay.py): a candidate must hold them to ship.
 COMMITTED_BAGS = ("bags/day_street", "bags/night_street")
-COMMITTED_BAG_BOUNDS = {"brake_acc": 0.93, "intent_f1": 0.65}
+COMMITTED_BAG_BOUNDS = {"brake_acc": 0.93, "intent_f1": 0.60}
 COLUMNS = (("intent macro-F1", "intent_f1"), ("intent FP", "intent_fp"),
            ("intent FN", "intent_fn"), ("brake acc.", "brake_acc"), ("brake F1", "brake_f1"),
            ("brake recall", "brake_recall"), ("left F1", "left_f1"), ("right F1", "right_f1"),

@@ -335,7 +335,9 @@ def test_shipped_onnx_is_the_export_of_the_shipped_weights():
 
     if not fmt.DEFAULT_ONNX.is_file() or not DEFAULT_WEIGHTS.is_file():
         pytest.skip("no shipped weights in this checkout")
-    assert fmt.DEFAULT_ONNX.stat().st_size <= 10 * 1024 * 1024
+    # The model issue allows 20 MB; the float export of the file shipped 2026-11-29 is
+    # 10.6 MB (its filled-crop members' lamp-detail heads), so 12 MiB keeps it in check.
+    assert fmt.DEFAULT_ONNX.stat().st_size <= 12 * 1024 * 1024
     props = {p.key: p.value for p in onnx.load(str(fmt.DEFAULT_ONNX)).metadata_props}
     with open(DEFAULT_WEIGHTS, "rb") as stream:
         assert props[fmt.KEY_SOURCE_SHA256] == hashlib.sha256(stream.read()).hexdigest(), (

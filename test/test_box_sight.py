@@ -114,7 +114,8 @@ def test_with_rear_sight_a_side_hides_the_brake_and_the_rear_still_judges_it():
 
 def test_config_checks_the_sight_and_the_cover():
     assert IntentFilterConfig().blinker_sight == "model"
-    assert IntentFilterConfig().brake_sight == "model"
+    # The shipped weights' setting (2026-11-29): a side view hides the brake.
+    assert IntentFilterConfig().brake_sight == "rear"
     for name in ("blinker_sight", "brake_sight"):
         with pytest.raises(ConfigError, match=name):
             IntentFilterConfig(**{name: "eyes"})
@@ -130,7 +131,9 @@ def test_config_checks_the_sight_and_the_cover():
         with pytest.raises(ConfigError, match="cover_max"):
             IntentFilterConfig(cover_max=bad)
     geometry = IntentFilterConfig(blinker_sight="geometry")
-    assert IntentFilter(geometry).uses_cover and not IntentFilter().uses_cover
+    model = IntentFilterConfig(brake_sight="model")
+    assert IntentFilter(geometry).uses_cover and not IntentFilter(model).uses_cover
+    assert IntentFilter().uses_cover  # the default brake sight, rear, needs the covers
     assert not IntentFilter(IntentFilterConfig(enabled=False, blinker_sight="geometry")).uses_cover
     assert "from the view and boxes" in geometry.describe()
 

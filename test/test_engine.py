@@ -32,8 +32,11 @@ def _box(tid: str, x: float = 20.0, y: float = 30.0, size: float = 40.0) -> Trac
 
 
 def _engine(**kwargs) -> LightStateEngine:
-    # The fake model's blinker outputs count steps, not lamps: no flash gate unless asked.
-    kwargs.setdefault("intent_filter", IntentFilterConfig(flash_min_evidence=0.0))
+    # The fake model's blinker outputs count steps, not lamps: no flash gate unless asked;
+    # its view head sees no rear, so the brake keeps the model's sight (test_box_sight
+    # tests the node's default, ``rear``).
+    kwargs.setdefault("intent_filter", IntentFilterConfig(flash_min_evidence=0.0,
+                                                          brake_sight="model"))
     return LightStateEngine(FakeLightModel(), EngineConfig(**kwargs))
 
 
@@ -239,7 +242,8 @@ def _blink_frames(n=40, fps=10.0, hz=1.5, stop_s=2.5):
 
 
 def test_engine_publishes_the_filtered_lights_and_intent():
-    config = IntentFilterConfig()
+    # The filter stepped by hand below gets no box cover: the brake keeps the model's sight.
+    config = IntentFilterConfig(brake_sight="model")
     on = LightStateEngine(_BlinkModel(), EngineConfig(intent_filter=config))
     raw = LightStateEngine(_BlinkModel(), EngineConfig(
         intent_filter=IntentFilterConfig(enabled=False)))

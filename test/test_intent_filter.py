@@ -12,7 +12,10 @@ from signal_light_node.runtime.intent_filter import (INTENT_OF, ROW_WIDTH, Inten
 from signal_light_node.labels import LIGHT_TASKS, TASKS, Intent, LightStatus, intent_from_lights
 
 ON, OFF, UNKNOWN = LightStatus.ON, LightStatus.OFF, LightStatus.UNKNOWN
-CONFIG = IntentFilterConfig(on_threshold=0.5, hold_s=0.8, confirm_s=0.15, brake_hold_s=0.0)
+#: No visibility hold (the node's default holds 0.2 s; test_visibility_hold tests it), so a
+#: model's UNKNOWN shows at once.
+CONFIG = IntentFilterConfig(on_threshold=0.5, hold_s=0.8, confirm_s=0.15, brake_hold_s=0.0,
+                            visibility_confirm_s=0.0)
 
 
 def _light(p_on: float, p_unknown: float = 0.02) -> np.ndarray:

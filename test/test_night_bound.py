@@ -100,14 +100,16 @@ def test_calibrate_writes_each_offset_into_its_heads(tmp_path: Path, capsys) -> 
                  "--threads", "1"]) == 0
     printed = capsys.readouterr().out
     loaded = load_checkpoint(out)
-    shipped = load_checkpoint(DEFAULT_WEIGHTS).model
+    shipped_file = load_checkpoint(DEFAULT_WEIGHTS)
+    shipped, before = shipped_file.model, shipped_file.config.on_offsets
     for group, low in (("brake", -4.0), ("blinker", -3.0)):
         info = loaded.meta[meta_key(group)]
         assert set(info["false_on"]) == {"0", f"{low:g}"} and info["data"] == [str(NIGHT)]
         offset = info["offset"]
         assert offset == (0.0 if info["false_on"]["0"] == 0.0 else low)
-        for task in LIGHT_GROUPS[group]:  # in the config's ON offsets, not in the biases
-            assert loaded.config.on_offsets.get(task, 0.0) == pytest.approx(offset)
+        for task in LIGHT_GROUPS[group]:  # added to the config's ON offsets, not the biases
+            assert loaded.config.on_offsets.get(task, 0.0) == pytest.approx(
+                before.get(task, 0.0) + offset)
             for new, old in zip(task_heads(loaded.model, task), task_heads(shipped, task)):
                 assert torch.equal(new.bias, old.bias)
         assert f"{group} ON offset {offset:+g}" in printed

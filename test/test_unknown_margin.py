@@ -65,6 +65,7 @@ def test_offsets_applied_to_outputs_equal_the_offsets_in_the_biases() -> None:
 
     loaded = load_checkpoint(DEFAULT_WEIGHTS)
     model = loaded.model.eval()
+    before = dict(model.config.on_offsets)  # the shipped file's own (its calibration)
     model.config = dataclasses.replace(model.config, temperatures={"left": 1.7, "brake": 0.6})
     crops = np.random.default_rng(1).integers(0, 255, (5, 64, 64, 3), dtype=np.uint8)
     offsets, shifts = head_offsets(model, 1.25), on_offsets(ON_HEADS, -0.5)
@@ -84,7 +85,13 @@ def test_offsets_applied_to_outputs_equal_the_offsets_in_the_biases() -> None:
         assert bool((p1[task][:, on] < margin_only[task][:, on]).all()), task
     assert offsets["left"].tolist() == [0.0, 0.0, -1.25]  # OFF, ON, UNKNOWN
     assert offsets["brake"].tolist() == [0.0, 0.0, -1.25] and ON_HEADS == ("left", "right")
-    assert model.config.on_offsets == {"left": -0.5, "right": -0.5}
+    assert model.config.on_offsets == _summed(before, {"left": -0.5, "right": -0.5})
+
+
+def _summed(before: dict, shifts: dict) -> dict:
+    """ON offsets after ``shifts`` are added to ``before`` (sums of 0 dropped)."""
+    total = {t: before.get(t, 0.0) + shifts.get(t, 0.0) for t in {*before, *shifts}}
+    return {t: v for t, v in total.items() if v != 0.0}
 
 
 @needs_bag
@@ -138,10 +145,11 @@ def test_calibrate_writes_the_margin_and_a_held_out_report(tmp_path: Path, capsy
     assert info["held_out_tracks"] > 0 and info["fit_tracks"] > 0
     on = info["on_offset"]
     assert on in (-1.0, 0.0, 1.0) and info["on_heads"] == list(ON_HEADS)
-    shipped = load_checkpoint(DEFAULT_WEIGHTS).model
+    shipped_file = load_checkpoint(DEFAULT_WEIGHTS)
+    shipped = shipped_file.model
     expected = head_offsets(shipped, margin)
-    shifted = {t: v for t, v in on_offsets(ON_HEADS, on).items() if v != 0.0}
-    assert loaded.config.on_offsets == shifted
+    assert loaded.config.on_offsets == _summed(shipped_file.config.on_offsets,
+                                               on_offsets(ON_HEADS, on))
     for task in MARGIN_HEADS:
         for new, old in zip(task_heads(loaded.model, task), task_heads(shipped, task)):
             moved = (new.bias - old.bias).detach()

@@ -144,9 +144,9 @@ class IntentFilterConfig:
     brake_hold_s: float = 0.0
     flash_min_evidence: float = 0.1
     flash_window_s: float = 1.5
-    visibility_confirm_s: float = 0.0
+    visibility_confirm_s: float = 0.2
     blinker_sight: str = "model"
-    brake_sight: str = "model"
+    brake_sight: str = "rear"
     cover_max: float = 0.1
 
     def __post_init__(self) -> None:
