@@ -199,3 +199,20 @@ def test_synth_command_turns_front_and_rear_views_with_oblique(tmp_path, capsys)
     assert main(["synth", "-o", str(tmp_path / "bad"), "--frames", "2", "--oblique", "1.5",
                  "--no-progress"]) == 2
     assert "oblique must be a share" in capsys.readouterr().err
+
+
+def test_synth_command_labels_by_the_truth_rule_it_is_given(tmp_path):
+    """--truth-rule reaches the renderer's truth only: the same seed draws the same frames,
+    and the function rule judges at least every light the lamp rule judges, more here."""
+    bags = {}
+    for rule in ("lamp", "function"):
+        bags[rule] = tmp_path / rule
+        assert main(["synth", "-o", str(bags[rule]), "--seed", "22", "--frames", "12", "--fps",
+                     "12", "--vehicles", "6", "--lighting", "night", "--truth-rule", rule,
+                     "--raw", "--no-progress"]) == 0
+    frames = {r: [m.msg.data.tobytes() for m in read_by_topic(b)[IMAGE_TOPIC]]
+              for r, b in bags.items()}
+    assert frames["lamp"] == frames["function"]
+    unknown = {r: sum(ground_truth_coverage(b)[light].get("UNKNOWN", 0)
+                      for light in ("brake", "left", "right")) for r, b in bags.items()}
+    assert unknown["function"] < unknown["lamp"], unknown

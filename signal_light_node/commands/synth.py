@@ -42,6 +42,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--oblique", type=float, default=0.0, metavar="SHARE",
                         help="share of front and rear views drawn turned by 10-40 degrees "
                              "(foreshortened, flank in view; default 0)")
+    parser.add_argument("--truth-rule", choices=("lamp", "function"), default="lamp",
+                        help="how large a light's seen lamps must be for its ground truth to "
+                             "be ON/OFF rather than UNKNOWN (synth.truth.TRUTH_RULES): each "
+                             "lamp on its own (lamp, the committed bags') or the lamps of one "
+                             "function together (function, the training splits'); default "
+                             "%(default)s")
     parser.add_argument("--raw", action="store_true",
                         help="write sensor_msgs/Image bgr8 on /camera/image_raw instead of "
                              "JPEG CompressedImage on /camera/image_raw/compressed")
@@ -69,7 +75,8 @@ def run(args: argparse.Namespace) -> int:
         night_fraction=args.night_fraction, raw=args.raw, jpeg_quality=args.jpeg_quality,
         frame_id=args.frame_id, overwrite=args.overwrite, progress=not args.no_progress,
         **({} if args.family is None else {"family": args.family}),
-        **({"oblique": args.oblique} if args.oblique else {}))
+        **({"oblique": args.oblique} if args.oblique else {}),
+        **({"truth_rule": args.truth_rule} if args.truth_rule != "lamp" else {}))
     print(f"wrote {summary.path}: {summary.frames} frames at {summary.fps:g} Hz, "
           f"{summary.width}x{summary.height}, {summary.lighting}, "
           f"{len(summary.track_ids)} tracks, {summary.detections} detections")
