@@ -26,7 +26,9 @@
 # (default 0) that of those lamps drawn red over the middle of the roof, where a centre
 # high-mounted stop lamp would be, BRAKE_SHARE (default 0: the renderer's own, about 40 %)
 # the share of the time a brake is pressed and of tracks first seen braking
-# (synth.lamps.brake_timeline); the evaluation splits never have any
+# (synth.lamps.brake_timeline), TURN_HUE (default 0) that of their vehicles whose blinkers,
+# and the amber markers that match them, shine in a random hue
+# (synth.lamps.recolour_turn_lamps); the evaluation splits never have any
 # of them, so that they stay comparable across data versions.
 # TRUTH_RULE (default lamp; synth.truth.TRUTH_RULES) labels every split, pools and evaluation
 # splits alike: data of another rule is another data version, and a model trained on it is
@@ -68,6 +70,7 @@ GLARE_TAIL_BRIGHT=${GLARE_TAIL_BRIGHT:-0}
 FOREIGN_LAMP=${FOREIGN_LAMP:-0}
 FOREIGN_HIGH=${FOREIGN_HIGH:-0}
 BRAKE_SHARE=${BRAKE_SHARE:-0}
+TURN_HUE=${TURN_HUE:-0}
 TRUTH_RULE=${TRUTH_RULE:-lamp}
 POOL_NAME=${POOL_NAME:-pool}
 CROP_FILL=${CROP_FILL:-0}
@@ -87,6 +90,7 @@ for seed in $POOL_SEEDS; do
       --glare-tail-hot "$GLARE_TAIL_HOT" --glare-tail-bright "$GLARE_TAIL_BRIGHT" \
       --foreign-lamp "$FOREIGN_LAMP" --foreign-high "$FOREIGN_HIGH" \
       --brake-share "$BRAKE_SHARE" \
+      --turn-hue "$TURN_HUE" \
       --truth-rule "$TRUTH_RULE" "${fill[@]}" \
       > "$pool.log" 2>&1 &
     pids+=($!)

@@ -314,6 +314,8 @@ RENDERER_SHARES = {
                     "high-mounted stop lamp would be (synth.foreign_lamps.high_foreign_lamp)",
     "brake_share": "the time a brake is pressed and tracks first seen braking (0: the "
                    "renderer's own, about 40 %; synth.lamps.brake_timeline)",
+    "turn_hue": "vehicles whose blinkers, and the amber markers that match them, shine in a "
+                "random hue (synth.lamps.recolour_turn_lamps)",
 }
 
 

@@ -9,7 +9,7 @@ label code never has to reason about mirroring again.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -271,6 +271,45 @@ def widen_clusters(lamps: Sequence[Lamp], factor: float, limit: float = 0.42) ->
             lamp.rect = (u0 * f, v0, u1 * f, v1)
         else:
             lamp.rect = (1.0 - (1.0 - u0) * f, v0, 1.0 - (1.0 - u1) * f, v1)
+
+
+#: Saturation range of a recoloured blinker (``recolour_turn_lamps``): from pastel to pure.
+TURN_HUE_SATURATION = (0.55, 1.0)
+
+
+def random_hue_colour(rng: np.random.Generator) -> Colour:
+    """A lamp colour of any hue (BGR, full value, saturation in ``TURN_HUE_SATURATION``)."""
+    hue = rng.uniform(0.0, 1.0)
+    sat = rng.uniform(*TURN_HUE_SATURATION)
+    sector = int(hue * 6.0) % 6
+    frac = hue * 6.0 - int(hue * 6.0)
+    lo, down, up = 1.0 - sat, 1.0 - sat * frac, 1.0 - sat * (1.0 - frac)
+    r, g, b = ((1.0, up, lo), (down, 1.0, lo), (lo, 1.0, up),
+               (lo, down, 1.0), (up, lo, 1.0), (1.0, lo, down))[sector]
+    return (255.0 * b, 255.0 * g, 255.0 * r)
+
+
+def recolour_turn_lamps(lamps: Sequence[Lamp], style: LampStyle, rng: np.random.Generator
+                        ) -> Tuple[List[Lamp], LampStyle]:
+    """The vehicle's amber lamps (blinkers, and the steady side markers drawn in the same
+    amber) shining in one random hue instead, and its style with that ``amber``.
+
+    A blinker is a lamp that flashes on one side of the vehicle, whatever its colour; drawn
+    in every hue, it can only be learnt by its flashing. Red combined lamps (``turn_tail``,
+    which are also the tail and brake lamps) keep their red; lenses keep their colour.
+
+    Args:
+        lamps: The vehicle's lamps (not modified).
+        style: Its lamp style.
+        rng: The vehicle's own stream for this option.
+
+    Returns:
+        ``(lamps, style)``: new lamps, recoloured where they shone amber, and the style.
+    """
+    colour = random_hue_colour(rng)
+    out = [replace(lamp, emit=colour) if lamp.role == "turn" or lamp.emit == style.amber
+           else lamp for lamp in lamps]
+    return out, replace(style, amber=colour)
 
 
 def tail_bar(lamps: Sequence[Lamp], style: LampStyle, rng: np.random.Generator) -> Optional[Lamp]:

@@ -46,7 +46,8 @@ _MARGIN = 12
 _SCENE_KEYS = {"vehicles", "occluders", "poles", "distractors", "weather", "effects", "shake", "respawn", "horizon", "focal",
                "family", "oblique", "tail_glare", "rear_bar", "wide_truck_lamps", "night_streak",
                "night_clip", "night_bloom", "glare_tail_hot",
-               "glare_tail_bright", "foreign_lamp", "foreign_high", "brake_share", "truth_rule"}
+               "glare_tail_bright", "foreign_lamp", "foreign_high", "brake_share", "turn_hue",
+               "truth_rule"}
 _VEHICLE_KEYS = {"view", "kind", "lamp_design", "tech", "chmsl", "intent", "brake", "colour", "lights_on", "center_x",
                  "width_px", "speed", "blink_hz", "duty", "phase", "shear", "roll", "specular", "yaw"}
 
@@ -105,6 +106,9 @@ class SceneRenderer:
             ``synth.foreign_lamps.high_foreign_lamp``; default 0), ``brake_share`` (share
             of the time a brake is pressed and of tracks first seen braking,
             ``synth.lamps.brake_timeline``; default 0: the timeline's own, about 40 %),
+            ``turn_hue`` (share of vehicles whose blinkers, and the amber markers that
+            match them, shine in a random hue, ``synth.lamps.recolour_turn_lamps``;
+            default 0),
             ``truth_rule`` (how large the seen lamps of a light must be for it to be
             labelled, ``synth.truth.TRUTH_RULES``; default "lamp"). Vehicle keys:
             ``view`` (View), ``kind``, ``lamp_design``, ``tech`` ("led"/"bulb"), ``chmsl``,
@@ -171,6 +175,7 @@ class SceneRenderer:
         self.foreign_lamp = _share(overrides, "foreign_lamp")
         self.foreign_high = _share(overrides, "foreign_high")
         self.brake_share = checked_brake_share(_share(overrides, "brake_share"))
+        self.turn_hue = _share(overrides, "turn_hue")
         self.truth_rule = checked_rule(str(overrides.get("truth_rule", "lamp")))
 
     # ------------------------------------------------------------------ setup
@@ -209,7 +214,7 @@ class SceneRenderer:
         self._traffic = Traffic(self.seed, rng, W, self._geo, self._light, self.lighting, self.family,
                                 self.oblique, self.tail_glare, self.rear_bar, self.wide_truck_lamps,
                                 self.glare_tail_hot, self.glare_tail_bright, self.foreign_lamp,
-                                self.foreign_high, self.brake_share)
+                                self.foreign_high, self.brake_share, self.turn_hue)
         vo = o.get("vehicles") or []
         for i in range(self.n_vehicles):
             self._traffic.vehicles.append(self._traffic.spawn(vo[i] if i < len(vo) else {}, entering=False))

@@ -134,13 +134,16 @@ class Traffic:
             vehicle's own centre high-mounted stop lamp would be (``high_foreign_lamp``).
         brake_share: Share of the time a brake is pressed, and of tracks first seen
             braking (``lamps.brake_timeline``; 0: the timeline's own, about 40 % and half).
+        turn_hue: Share of vehicles whose blinkers (and the amber markers that match them)
+            shine in a random hue (``lamps.recolour_turn_lamps``).
     """
 
     def __init__(self, seed: int, rng: np.random.Generator, width: int, geo: StreetGeometry, light: Lighting, lighting: str,
                  family: int, oblique: float = 0.0, tail_glare: float = 0.0, rear_bar: float = 0.0,
                  wide_truck_lamps: float = 0.0, glare_tail_hot: float = 0.0,
                  glare_tail_bright: float = 0.0, foreign_lamp: float = 0.0,
-                 foreign_high: float = 0.0, brake_share: float = 0.0) -> None:
+                 foreign_high: float = 0.0, brake_share: float = 0.0,
+                 turn_hue: float = 0.0) -> None:
         self.seed = seed
         self.width = width
         self._rng = rng
@@ -157,6 +160,7 @@ class Traffic:
         self.foreign_lamp = foreign_lamp
         self.foreign_high = foreign_high
         self.brake_share = brake_share
+        self.turn_hue = turn_hue
         self._next_id = int(rng.integers(1, 50))
         self.vehicles: List[Vehicle] = []
 
@@ -278,6 +282,7 @@ class Traffic:
         self._wide_truck_lamps(v)
         self._rear_bar(v)
         self._foreign(v)
+        self._turn_hue(v)
         pts, splits, sil = [], [], []
         n = 0
         for key, poly in shape.parts:
@@ -435,6 +440,15 @@ class Traffic:
         hrng = self._picked(v, 1100, self.foreign_high)
         if hrng is not None:
             v.foreign = high_foreign_lamp(v.foreign, hrng)
+
+    def _turn_hue(self, v: Vehicle) -> None:
+        """With probability ``turn_hue``, the vehicle's blinkers and matching markers shine
+        in a random hue (a stream of its own, as ``_yaw``'s)."""
+        if self.turn_hue <= 0:
+            return
+        hrng = self._picked(v, 1200, self.turn_hue)
+        if hrng is not None:
+            v.lamps, v.style = lamp_mod.recolour_turn_lamps(v.lamps, v.style, hrng)
 
     def _prepare_lamps(self, v: Vehicle) -> None:
         """Stack all lamp outlines so that one matrix product per frame maps them to pixels."""
