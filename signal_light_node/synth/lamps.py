@@ -8,6 +8,7 @@ label code never has to reason about mirroring again.
 
 from __future__ import annotations
 
+import colorsys
 import math
 from dataclasses import dataclass, replace
 from typing import List, Optional, Sequence, Tuple
@@ -281,11 +282,7 @@ def random_hue_colour(rng: np.random.Generator) -> Colour:
     """A lamp colour of any hue (BGR, full value, saturation in ``TURN_HUE_SATURATION``)."""
     hue = rng.uniform(0.0, 1.0)
     sat = rng.uniform(*TURN_HUE_SATURATION)
-    sector = int(hue * 6.0) % 6
-    frac = hue * 6.0 - int(hue * 6.0)
-    lo, down, up = 1.0 - sat, 1.0 - sat * frac, 1.0 - sat * (1.0 - frac)
-    r, g, b = ((1.0, up, lo), (down, 1.0, lo), (lo, 1.0, up),
-               (lo, down, 1.0), (up, lo, 1.0), (1.0, lo, down))[sector]
+    r, g, b = colorsys.hsv_to_rgb(hue, sat, 1.0)
     return (255.0 * b, 255.0 * g, 255.0 * r)
 
 
