@@ -70,6 +70,10 @@ def test_trunk_config_is_validated():
         trunk_config(lamp_detail=2)  # frequency evidence reads whole lamp-map halves
     with pytest.raises(ConfigError, match="lit_hidden"):
         trunk_config(lit_hidden=-1)
+    with pytest.raises(ConfigError, match="lit_cells must be an integer"):
+        trunk_config(lit_cells=-2)
+    with pytest.raises(ConfigError, match="lit_cells .* needs lit_periods"):
+        trunk_config(lit_periods=False, lit_cells=4)
     with pytest.raises(ConfigError, match="lamp_area"):
         ModelConfig(lamp_area=True)  # the CNN has no lamp maps
     with pytest.raises(ConfigError, match="lamp_area must be true or false"):
@@ -89,6 +93,8 @@ def test_trunk_config_is_validated():
                                      {"lit_periods": False},
                                      {"frequency_evidence": False, "lamp_detail": 2,
                                       "lit_hidden": 16},
+                                     {"frequency_evidence": False, "lamp_detail": 2,
+                                      "lit_hidden": 16, "lit_cells": 4},
                                      {"blink_levels": False},
                                      {"frequency_evidence": False, "lamp_detail": 2,
                                       "cell_periods": True},
@@ -110,6 +116,22 @@ def test_stepping_frame_by_frame_equals_the_sequence(changes):
     assert torch.allclose(torch.stack(steps, 1), seq["intent"], atol=1e-5)
     for (a, b), (c, d) in zip(state, seq_state):
         assert torch.allclose(a, c, atol=1e-5) and torch.allclose(b, d, atol=1e-5)
+
+
+def test_cell_lit_head_judges_every_place_with_the_same_weights():
+    from signal_light_node.model.trunk_network import CellLitHead
+
+    head = CellLitHead(channels=5, hidden=8, cells=3, grid=4, outputs=9)
+    assert isinstance(_model(frequency_evidence=False, lamp_detail=2, lit_cells=3).lit_head,
+                      CellLitHead)
+    lamp = torch.zeros(2, 5, 4, 4)
+    lamp[0, :, 0, 0] = 1.0  # the same lamp, top left in one crop, bottom right in the other
+    lamp[1, :, 3, 3] = 1.0
+    cells = head.cell(lamp)
+    assert torch.allclose(cells[0, :, 0, 0], cells[1, :, 3, 3])
+    # The place layer is what tells them apart: fewer weights than one dense layer's.
+    assert head(lamp).shape == (2, 9)
+    assert sum(p.numel() for p in head.place.parameters()) == 3 * 16 * 9 + 9
 
 
 def test_state_layers_follow_the_options():
@@ -427,6 +449,8 @@ def test_checkpoint_round_trip_needs_no_wheel(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("changes", [{}, {"frequency_evidence": False, "lamp_detail": 2,
                                           "lit_hidden": 16, "blink_levels": False},
+                                     {"frequency_evidence": False, "lamp_detail": 2,
+                                      "lit_hidden": 16, "lit_cells": 4},
                                      {"frequency_evidence": False, "lamp_detail": 2,
                                       "cell_periods": True, "cell_pooled": True},
                                      {"frequency_evidence": False, "lamp_detail": 2,

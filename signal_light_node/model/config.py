@@ -42,6 +42,7 @@ _NEEDS = (
     ("brake_expert", "track_floor", "judges the lit area against the track's floor"),
     ("high_lamp", "track_floor", "adds a region to the track's floor"),
     ("expert_red", "brake_expert", "chooses the brake judge's inputs"),
+    ("lit_cells", "lit_periods", "shapes the per-frame lit head"),
 )
 
 
@@ -103,6 +104,12 @@ class ModelConfig:
             only the amplitudes for the blinkers (a blinker is a lamp that flashes: a
             steady lit lamp gives no blink evidence), the brake's level stays.
         lit_hidden: Width of the lit head's hidden layer (ReLU); 0 keeps it linear.
+        lit_cells: With ``lit_periods``, judge lamps cell by cell: the lit head's layers
+            (``lit_hidden`` wide, then this many channels) run on every cell of the
+            evidence map with the same weights, and only a small linear layer over those
+            cells' outputs knows where in the crop they are. 0 keeps one dense layer over
+            the whole flattened map, which can learn a lamp per place and vehicle instead
+            of what a lit lamp looks like.
         cell_periods: Give the trunk network blink periods per cell of the fine lamp grid
             (``model.lamp_evidence.cell_blink_step``): each cell's peak brightness and warm
             excess drive resonators, read raw and over the cell's own broadband change;
@@ -202,6 +209,7 @@ class ModelConfig:
     lit_periods: bool = False
     blink_levels: bool = True
     lit_hidden: int = 0
+    lit_cells: int = 0
     lamp_detail: int = 1
     cell_periods: bool = False
     cell_pooled: bool = False
@@ -294,7 +302,8 @@ class ModelConfig:
                 or self.feature_channels < 1:
             raise ConfigError(f"model config feature_channels must be a positive integer, "
                               f"got {self.feature_channels!r}")
-        for name, low in (("lit_hidden", 0), ("lamp_detail", 1), ("members", 1)):
+        for name, low in (("lit_hidden", 0), ("lit_cells", 0), ("lamp_detail", 1),
+                          ("members", 1)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ConfigError(f"model config {name} must be an integer >= {low}, got {value!r}")

@@ -199,6 +199,38 @@ class TrunkFront(nn.Module):
         return self.forward_sequence(crops, state)
 
 
+class CellLitHead(nn.Module):
+    """The per-frame lit head judged cell by cell (``ModelConfig.lit_cells``).
+
+    1x1 convolutions (``hidden`` wide with ReLU, then ``cells`` channels with ReLU) read
+    every cell of the evidence map with the same weights, so a lamp is judged by how it
+    looks against its own past, wherever the vehicle's shape puts it; one linear layer
+    over the ``cells x grid x grid`` outputs maps them to the lamps (left and right are
+    places in the crop, and which is which depends on the view).
+
+    Args:
+        channels: Evidence channels per cell.
+        hidden: Width of the hidden 1x1 layer; 0: none.
+        cells: Channels per cell that the positional layer reads.
+        grid: Cells per side of the evidence map.
+        outputs: Logits out (every lit lamp's classes).
+    """
+
+    def __init__(self, channels: int, hidden: int, cells: int, grid: int, outputs: int) -> None:
+        super().__init__()
+        layers: List[nn.Module] = []
+        if hidden:
+            layers += [nn.Conv2d(channels, hidden, 1), nn.ReLU(inplace=True)]
+            channels = hidden
+        layers += [nn.Conv2d(channels, cells, 1), nn.ReLU(inplace=True)]
+        self.cell = nn.Sequential(*layers)
+        self.place = nn.Linear(cells * grid * grid, outputs)
+
+    def forward(self, evidence: Tensor) -> Tensor:
+        """``[N, C, G, G]`` evidence -> ``[N, outputs]`` logits."""
+        return self.place(self.cell(evidence).flatten(1))
+
+
 class TrunkLightNet(TrunkFront):
     """Pretrained trunk + relative and frequency evidence + ConvLSTM + heads (module doc).
 
@@ -252,11 +284,15 @@ class TrunkLightNet(TrunkFront):
         if config.lit_head:
             # With lit_periods it judges the per-frame evidence and feeds the track's
             # vector; without, it is a training-only head on the fused map.
-            lit_in = (evidence_channels if config.lit_periods else width) * self.grid ** 2
             n_lit = sum(self.lit_sizes)
-            self.lit_head = nn.Linear(lit_in, n_lit) if not config.lit_hidden else \
-                nn.Sequential(nn.Linear(lit_in, config.lit_hidden), nn.ReLU(inplace=True),
-                              nn.Linear(config.lit_hidden, n_lit))
+            if config.lit_cells:
+                self.lit_head = CellLitHead(evidence_channels, config.lit_hidden,
+                                            config.lit_cells, self.grid, n_lit)
+            else:
+                lit_in = (evidence_channels if config.lit_periods else width) * self.grid ** 2
+                self.lit_head = nn.Linear(lit_in, n_lit) if not config.lit_hidden else \
+                    nn.Sequential(nn.Linear(lit_in, config.lit_hidden), nn.ReLU(inplace=True),
+                                  nn.Linear(config.lit_hidden, n_lit))
         self.brake_expert: Optional[nn.Linear] = None
         if config.brake_expert:
             self.brake_expert = nn.Linear(
@@ -337,7 +373,7 @@ class TrunkLightNet(TrunkFront):
             vector.append(freq)
         lit_logits = None
         if cfg.lit_periods:
-            lit_logits = self.lit_head(evidence.flatten(1))
+            lit_logits = self.lit_head(evidence if cfg.lit_cells else evidence.flatten(1))
             lit_vector, lit_history = self._lit_periods(lit_logits, rest.pop(0), seen.reshape(n, 1))
             vector.append(lit_vector)
             new_history.append(lit_history)
