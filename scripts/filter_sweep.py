@@ -1,0 +1,151 @@
+#!/usr/bin/env python3
+"""One model pass per data set, then the node's filter under many settings.
+
+The model is stepped over every track once (``evaluation.streaming.model_track_probs``,
+cached in ``--cache`` as one pickle per data set and checkpoint), and each filter setting
+(``--config``, a JSON object of ``IntentFilterConfig`` fields; ``{}`` is the node's
+defaults) and each shift of the brake's ON logit (``--brake-shift``, on top of the file's
+own ``on_offsets``) is scored on that pass as ``signal-light evaluate`` scores it (no
+grace). Besides the headline it prints brake F1 on rear views alone, the one face from
+which a brake is always in sight, and the share of judged frames published braking (on a
+bag whose vehicles never brake, the false brakes). Usage::
+
+    python scripts/filter_sweep.py --checkpoint signal_light_node/weights/default.pt \\
+        --data cal=runs/fillf/family_cal_split --data night=bags/night_tail_lamps \\
+        --config '{}' --config '{"hold_s": 0.3}' --brake-shift 0 --brake-shift 0.5 \\
+        --cache runs/sweep --json OUT.json
+
+A data set is a split directory or a directory of recorded bags with ground truth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import pickle
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Tuple
+
+import numpy as np
+
+from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
+from signal_light_node.evaluation.streaming import chunks, filter_track_probs, model_track_probs
+from signal_light_node.labels import TASKS
+from signal_light_node.model.backends.registry import create_backend
+from signal_light_node.runtime.intent_filter import IntentFilterConfig
+from signal_light_node.training import sources
+
+Pass = List[Tuple[list, Dict[str, np.ndarray]]]
+_ON = 1
+
+
+def load_tracks(path: Path, crop: Any) -> list:
+    """The tracks of a split directory, or of every bag under (or at) ``path``."""
+    if sources.is_split_dir(path):
+        return sources.split_tracks(path, crop)
+    bags = [path] if list(path.glob("*.mcap")) else sorted(p for p in path.iterdir() if p.is_dir())
+    tracks: list = []
+    for bag in bags:
+        tracks += sources.load_bag_tracks(bag, crop, lighting="unknown")
+    return tracks
+
+
+def model_pass(backend: Any, path: Path, cache: Optional[Path], checkpoint: Path) -> Pass:
+    """``(tracks, raw outputs)`` per batch of 32 tracks, read from ``cache`` when there."""
+    key = hashlib.sha1(f"{checkpoint.resolve()}:{checkpoint.stat().st_mtime_ns}:"
+                       f"{path.resolve()}".encode()).hexdigest()[:16]
+    file = cache / f"{path.name}_{key}.pkl" if cache else None
+    if file is not None and file.is_file():
+        return pickle.loads(file.read_bytes())
+    tracks = load_tracks(path, backend.config.crop_config())
+    batches = [(batch, model_track_probs(backend, batch)) for batch in chunks(tracks, 32)]
+    if file is not None:
+        file.parent.mkdir(parents=True, exist_ok=True)
+        file.write_bytes(pickle.dumps(batches))
+    return batches
+
+
+def shift_brake(raw: Dict[str, np.ndarray], shift: float) -> Dict[str, np.ndarray]:
+    """``raw`` with the brake's ON logit moved by ``shift`` (its UNKNOWN kept)."""
+    if shift == 0.0:
+        return raw
+    p = raw["brake"].copy()
+    p[..., _ON] *= np.exp(shift)
+    judged = p[..., :2].sum(-1, keepdims=True)
+    p[..., :2] *= (1.0 - raw["brake"][..., 2:3]) / np.where(judged > 0, judged, 1.0)
+    return dict(raw, brake=p)
+
+
+def _on_f1(report: Dict[str, Any]) -> Optional[float]:
+    per_class = report.get("per_class") if report else None
+    return per_class["f1"][_ON] if per_class and len(per_class["f1"]) > _ON else None
+
+
+def score(batches: Pass, config: IntentFilterConfig, shift: float) -> Dict[str, Any]:
+    """Intent and brake figures of one pass under one setting (no grace)."""
+    scorer = TrackScorer(EvalSettings())
+    brake_on = judged = 0
+    column = TASKS.index("brake")
+    for tracks, raw in batches:
+        preds, probs = filter_track_probs(shift_brake(raw, shift), tracks, config)
+        for track, pred, prob in zip(tracks, preds, probs):
+            scorer.add(track, pred, probs=prob)
+            brake = pred[pred[:, column] >= 0, column]
+            brake_on += int((brake == _ON).sum())
+            judged += int((brake != 2).sum())
+    result = scorer.result()
+    report, switches = result["no_grace"], result["switches"]
+    summary = report["summary"]
+    rear = report["groups"].get("view", {}).get("BEHIND", {}).get("brake")
+    return {"intent_macro_f1": summary["intent_macro_f1"], "intent_fp": summary["intent_fp_rate"],
+            "intent_fn": summary["intent_fn_rate"],
+            "brake_f1": _on_f1(report["overall"].get("brake")), "brake_f1_rear": _on_f1(rear),
+            "brake_on_of_judged": brake_on / judged if judged else None,
+            "intent_switches": switches["intent"].get("ratio"),
+            "brake_switches": switches["brake"].get("ratio")}
+
+
+def _pct(value: Optional[float]) -> str:
+    return "  -  " if value is None else f"{100 * value:5.1f}"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--checkpoint", type=Path, required=True)
+    parser.add_argument("--backend", default="torch")
+    parser.add_argument("--data", action="append", required=True, help="NAME=PATH")
+    parser.add_argument("--config", action="append", default=None, help="JSON (default {})")
+    parser.add_argument("--brake-shift", type=float, action="append", default=None)
+    parser.add_argument("--cache", type=Path, default=None)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--json", type=Path, default=None)
+    args = parser.parse_args()
+    data = [tuple(d.split("=", 1)) for d in args.data]
+    if any(len(d) != 2 for d in data):
+        parser.error("--data takes NAME=PATH")
+    configs = args.config or ["{}"]
+    shifts = args.brake_shift or [0.0]
+    backend = create_backend(args.backend, str(args.checkpoint), threads=args.threads)
+    rows = []
+    print("data        config                                   shift  intent  FP    FN   "
+          "brake F1 (rear)  brake ON  switches intent / brake")
+    for name, path in data:
+        batches = model_pass(backend, Path(path), args.cache, args.checkpoint)
+        for text in configs:
+            config = IntentFilterConfig(**json.loads(text))
+            for shift in shifts:
+                r = score(batches, config, shift)
+                rows.append({"data": name, "config": json.loads(text), "brake_shift": shift, **r})
+                ratio = lambda v: "-" if v is None else f"{v:.2f}x"  # noqa: E731
+                print(f"{name:11s} {text[:40]:40s} {shift:+5.2f} {_pct(r['intent_macro_f1'])} "
+                      f"{_pct(r['intent_fp'])} {_pct(r['intent_fn'])}  {_pct(r['brake_f1'])} "
+                      f"({_pct(r['brake_f1_rear'])})  {_pct(r['brake_on_of_judged'])}  {ratio(r['intent_switches'])} / "
+                      f"{ratio(r['brake_switches'])}", flush=True)
+    if args.json:
+        args.json.write_text(json.dumps({"checkpoint": str(args.checkpoint), "rows": rows},
+                                        indent=1))
+
+
+if __name__ == "__main__":
+    main()
