@@ -1,0 +1,61 @@
+"""``scripts/filter_sweep.py`` scores one model pass under many settings: a brake shift moves
+only the brake's ON against its OFF, and what the node publishes follows it."""
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from signal_light_node.labels import CLASS_NAMES, TASKS
+from signal_light_node.model.config import trunk_config
+from signal_light_node.runtime.intent_filter import IntentFilterConfig
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "filter_sweep.py"
+
+
+def _script():
+    spec = importlib.util.spec_from_file_location("filter_sweep", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_brake_shift_moves_on_against_off_and_keeps_unknown():
+    sweep = _script()
+    brake = np.array([[[0.6, 0.3, 0.1], [np.nan, np.nan, np.nan]]])
+    raw = {"brake": brake, "left": np.zeros((1, 2, 3))}
+    assert sweep.shift_brake(raw, 0.0) is raw
+    shifted = sweep.shift_brake(raw, 1.0)["brake"]
+    assert shifted[0, 0, 2] == pytest.approx(0.1)
+    assert shifted[0, 0, :2].sum() == pytest.approx(0.9)
+    assert shifted[0, 0, 1] / shifted[0, 0, 0] == pytest.approx(0.5 * np.e)
+    assert np.isnan(shifted[0, 1]).all()
+    assert np.array_equal(brake[0, 0], [0.6, 0.3, 0.1])  # the pass itself is not changed
+
+
+def _uncertain_pass(tracks):
+    """Every head OFF, the brake at P(ON) 0.4 against P(OFF) 0.6 on every frame."""
+    n, length = len(tracks), max(len(t) for t in tracks)
+    raw = {}
+    for task in TASKS:
+        p = np.zeros((n, length, len(CLASS_NAMES[task])), np.float32)
+        p[..., 0] = 1.0
+        raw[task] = p
+    raw["brake"][..., :2] = (0.6, 0.4)
+    return raw
+
+
+def test_a_brake_shift_changes_what_is_published(tmp_path):
+    from signal_light_node.data.split import write_split
+    from signal_light_node.training.sources import split_tracks
+
+    crop = trunk_config().crop_config()
+    write_split(tmp_path / "split", seed=3, n_sequences=3, seq_len=12, crop=crop,
+                full_tracks=True, progress=False)
+    tracks = split_tracks(tmp_path / "split", crop)
+    sweep = _script()
+    batches = [(tracks, _uncertain_pass(tracks))]
+    config = IntentFilterConfig(brake_sight="model")
+    assert sweep.score(batches, config, 0.0)["brake_on_of_judged"] == 0.0
+    assert sweep.score(batches, config, 1.0)["brake_on_of_judged"] == 1.0
