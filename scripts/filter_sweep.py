@@ -110,6 +110,10 @@ def _pct(value: Optional[float]) -> str:
     return "  -  " if value is None else f"{100 * value:5.1f}"
 
 
+def _ratio(value: Optional[float]) -> str:
+    return "-" if value is None else f"{value:.2f}x"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--checkpoint", type=Path, required=True)
@@ -137,11 +141,10 @@ def main() -> None:
             for shift in shifts:
                 r = score(batches, config, shift)
                 rows.append({"data": name, "config": json.loads(text), "brake_shift": shift, **r})
-                ratio = lambda v: "-" if v is None else f"{v:.2f}x"  # noqa: E731
                 print(f"{name:11s} {text[:40]:40s} {shift:+5.2f} {_pct(r['intent_macro_f1'])} "
                       f"{_pct(r['intent_fp'])} {_pct(r['intent_fn'])}  {_pct(r['brake_f1'])} "
-                      f"({_pct(r['brake_f1_rear'])})  {_pct(r['brake_on_of_judged'])}  {ratio(r['intent_switches'])} / "
-                      f"{ratio(r['brake_switches'])}", flush=True)
+                      f"({_pct(r['brake_f1_rear'])})  {_pct(r['brake_on_of_judged'])}  "
+                      f"{_ratio(r['intent_switches'])} / {_ratio(r['brake_switches'])}", flush=True)
     if args.json:
         args.json.write_text(json.dumps({"checkpoint": str(args.checkpoint), "rows": rows},
                                         indent=1))
