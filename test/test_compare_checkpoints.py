@@ -2,7 +2,6 @@
 reads the splits cut as it crops (``sources.paths_cut_with``), and the tracks must be the
 same (``bootstrap.require_same_tracks``)."""
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -17,17 +16,14 @@ from signal_light_node.model.config import ModelConfig
 from signal_light_node.model.registry import build_model
 from signal_light_node.runtime.crops import CropConfig
 from signal_light_node.training.sources import paths_cut_with, split_tracks
+from script_loader import load_script
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "compare_checkpoints.py"
 SMALL = dict(input_size=32, attention_channels=(4, 4, 4), backbone_channels=(8, 8),
              lstm_hidden=(8, 8), head_channels=4, fc_hidden=16)
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("compare_checkpoints", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("compare_checkpoints")
 
 
 def _twins(root: Path, seed: int = 3):

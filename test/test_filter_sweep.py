@@ -1,24 +1,17 @@
 """``scripts/filter_sweep.py`` scores one model pass under many settings: a brake shift moves
 only the brake's ON against its OFF, and what the node publishes follows it."""
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from signal_light_node.labels import CLASS_NAMES, TASKS
 from signal_light_node.model.config import trunk_config
 from signal_light_node.runtime.intent_filter import IntentFilterConfig
-
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "filter_sweep.py"
+from script_loader import load_script
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("filter_sweep", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("filter_sweep")
 
 
 def test_brake_shift_moves_on_against_off_and_keeps_unknown():

@@ -2,22 +2,16 @@
 intent filter it is given: a candidate's visibility hold and brake sight reach each evaluate
 run and the engine that replays the hard negatives."""
 
-import importlib.util
-from pathlib import Path
 from types import SimpleNamespace
 
 import signal_light_node.runtime.engine as engine_module
 import signal_light_node.tools.hard_negatives as negatives_module
 from signal_light_node.runtime.intent_filter import IntentFilterConfig
-
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "transfer_report.py"
+from script_loader import SCRIPTS, load_script
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("transfer_report", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("transfer_report")
 
 
 def test_visibility_hold_reaches_every_evaluate_run(tmp_path):
@@ -65,4 +59,4 @@ def test_the_committed_bags_are_scored_as_the_replay_test_bounds_them():
 
     assert report.COMMITTED_BAG_BOUNDS == {"brake_acc": test_replay.MIN_BRAKE_ACCURACY,
                                            "intent_f1": test_replay.MIN_INTENT_MACRO_F1}
-    assert all((SCRIPT.parents[1] / bag).is_dir() for bag in report.COMMITTED_BAGS)
+    assert all((SCRIPTS.parent / bag).is_dir() for bag in report.COMMITTED_BAGS)
