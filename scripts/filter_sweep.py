@@ -33,6 +33,7 @@ from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
 from signal_light_node.evaluation.streaming import chunks, filter_track_probs, model_track_probs
 from signal_light_node.labels import TASKS
 from signal_light_node.model.backends.registry import create_backend
+from signal_light_node.runtime import brake_onset
 from signal_light_node.runtime.intent_filter import IntentFilterConfig
 from signal_light_node.training import sources
 
@@ -70,11 +71,8 @@ def shift_brake(raw: Dict[str, np.ndarray], shift: float) -> Dict[str, np.ndarra
     """``raw`` with the brake's ON logit moved by ``shift`` (its UNKNOWN kept)."""
     if shift == 0.0:
         return raw
-    p = raw["brake"].copy()
-    p[..., _ON] *= np.exp(shift)
-    judged = p[..., :2].sum(-1, keepdims=True)
-    p[..., :2] *= (1.0 - raw["brake"][..., 2:3]) / np.where(judged > 0, judged, 1.0)
-    return dict(raw, brake=p)
+    with np.errstate(invalid="ignore"):  # the NaN rows of frames a track lacks stay NaN
+        return dict(raw, brake=brake_onset.shift_on(raw["brake"], shift))
 
 
 def _on_f1(report: Dict[str, Any]) -> Optional[float]:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.runtime import flash_gate, visibility_hold
+from signal_light_node.runtime import brake_onset, flash_gate, visibility_hold
 from signal_light_node.runtime.intent_filter import (INTENT_OF, ROW_WIDTH, IntentFilter,
                                              IntentFilterConfig)
 from signal_light_node.labels import LIGHT_TASKS, TASKS, Intent, LightStatus, intent_from_lights
@@ -202,7 +202,8 @@ def test_disabled_filter_is_the_raw_model():
 def test_rows_are_fixed_size_and_not_modified_in_place():
     rows = IntentFilter.initial_rows(3)
     assert rows.shape == (3, ROW_WIDTH)
-    assert ROW_WIDTH == (3 + visibility_hold.FIELDS) * len(LIGHT_TASKS) + flash_gate.WIDTH
+    assert ROW_WIDTH == (3 + visibility_hold.FIELDS) * len(LIGHT_TASKS) + flash_gate.WIDTH \
+        + brake_onset.FIELDS
     before = rows.copy()
     probs = {t: np.repeat(p, 3, axis=0) for t, p in _probs(0.9, 0.9).items()}
     out = IntentFilter(CONFIG).step(probs, 0, rows, np.full((3, 2), 50.0))
@@ -216,6 +217,8 @@ def test_rows_are_fixed_size_and_not_modified_in_place():
     ({"brake_hold_s": "x"}, "brake_hold_s"), ({"enabled": "yes"}, "enabled"),
     ({"flash_min_evidence": 1.0}, "flash_min_evidence"),
     ({"flash_min_evidence": -0.1}, "flash_min_evidence"),
+    ({"brake_released_below": 1.0}, "brake_released_below"),
+    ({"brake_onset_shift": -1.0}, "brake_onset_shift"),
     ({"flash_window_s": 0.0}, "flash_window_s"), ({"flash_window_s": -1.0}, "flash_window_s"),
 ])
 def test_bad_settings_are_config_errors(kwargs, word):

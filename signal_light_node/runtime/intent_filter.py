@@ -26,7 +26,9 @@ stamps (scenes run at 10-30 fps, so frame counts mean nothing):
   :func:`~signal_light_node.labels.intent_from_lights` (HAZARD only when both sides are
   ON), its probability from the two published distributions taken as independent;
 * the brake is held the same way over ``brake_hold_s`` (without confirmation), or
-  passed through as the model says it when that is 0.
+  passed through as the model says it when that is 0; with ``brake_released_below``, a
+  track whose brake has been seen released gets ``brake_onset_shift`` more ON log-odds
+  from then on (:mod:`~signal_light_node.runtime.brake_onset`).
 * before all of that, a blinker must flash
   (:mod:`~signal_light_node.runtime.flash_gate`): where the engine gives each crop's lamp
   levels, a blinker whose side showed no dark-to-lit change over the last
@@ -38,7 +40,7 @@ stamps (scenes run at 10-30 fps, so frame counts mean nothing):
 Everything is vectorised over the tracks of a frame. The per-track state is a fixed
 row of :data:`ROW_WIDTH` floats (per light: stamp of the last strong frame, stamp of
 the episode's first strong frame, last strong P(ON); then the flash gate's ring of lamp
-levels), owned by the caller: the
+levels; then whether the brake has been seen released), owned by the caller: the
 :class:`~signal_light_node.runtime.state_bank.StateBank` in the engine, the evaluation's own
 array per batch of tracks. The filter itself keeps no per-track state.
 """
@@ -52,7 +54,7 @@ from typing import Dict, Mapping, Optional, Union
 import numpy as np
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.runtime import box_sight, flash_gate, visibility_hold
+from signal_light_node.runtime import brake_onset, box_sight, flash_gate, visibility_hold
 from signal_light_node.labels import (CLASS_NAMES, LIGHT_TASKS, TASKS, Intent, LightStatus,
                                       intent_from_lights)
 
@@ -63,8 +65,10 @@ _FIELDS = 3
 _HOLD_WIDTH = _FIELDS * len(LIGHT_TASKS)
 #: Floats of the visibility hold, all lights.
 _VISIBILITY_WIDTH = visibility_hold.FIELDS * len(LIGHT_TASKS)
-#: Floats per track: the hold's, the visibility hold's, then the flash gate's ring.
-ROW_WIDTH = _HOLD_WIDTH + _VISIBILITY_WIDTH + flash_gate.WIDTH
+#: Floats per track: the hold's, the visibility hold's, the flash gate's ring, then the
+#: brake onset's.
+ROW_WIDTH = _HOLD_WIDTH + _VISIBILITY_WIDTH + flash_gate.WIDTH + brake_onset.FIELDS
+_RING_END = ROW_WIDTH - brake_onset.FIELDS
 
 #: Where a light's UNKNOWN comes from (``IntentFilterConfig.blinker_sight``,
 #: ``brake_sight``).
@@ -133,6 +137,11 @@ class IntentFilterConfig:
             hidden where it sees the front, the model's own UNKNOWN from a side) or
             ``rear`` (as ``geometry``, and hidden from a side too: a side view's brake
             lamps are slivers no crop resolves; docs/model.md, "A side view's brake").
+        brake_released_below: Once a track's brake has been judged with P(ON | judged)
+            under this, it has been seen released, and its brake's ON gets
+            ``brake_onset_shift`` more log-odds from then on (:mod:`brake_onset`); 0
+            turns this off.
+        brake_onset_shift: The log-odds added to a seen-released brake's ON.
         cover_max: With ``geometry``: the share of a box that may be covered before the
             model's own UNKNOWN counts again.
     """
@@ -148,6 +157,8 @@ class IntentFilterConfig:
     blinker_sight: str = "model"
     brake_sight: str = "rear"
     cover_max: float = 0.1
+    brake_released_below: float = 0.0
+    brake_onset_shift: float = 1.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, (bool, np.bool_)):
@@ -176,6 +187,14 @@ class IntentFilterConfig:
         if not _is_finite_number(value) or not 0.0 <= value <= 1.0:
             raise ConfigError(f"cover_max must be a share in [0, 1], got {value!r}")
         object.__setattr__(self, "cover_max", float(value))
+        value = self.brake_released_below
+        if not _is_finite_number(value) or not 0.0 <= value < 1.0:
+            raise ConfigError(f"brake_released_below must be in [0, 1) (0: off), got {value!r}")
+        object.__setattr__(self, "brake_released_below", float(value))
+        value = self.brake_onset_shift
+        if not _is_finite_number(value) or value < 0.0:
+            raise ConfigError(f"brake_onset_shift must be a number >= 0, got {value!r}")
+        object.__setattr__(self, "brake_onset_shift", float(value))
 
     def describe(self) -> str:
         """One line for reports: what is published."""
@@ -183,6 +202,9 @@ class IntentFilterConfig:
             return "off (the raw model: argmax of every head, the intent head's intent)"
         brake = f"brake held {self.brake_hold_s:g} s" if self.brake_hold_s > 0 \
             else "brake as the model says"
+        if self.brake_released_below > 0:
+            brake += (f", ON +{self.brake_onset_shift:g} log-odds once seen released "
+                      f"(P(ON) < {self.brake_released_below:g})")
         gate = (f"a blinker must flash (evidence >= {self.flash_min_evidence:g} over "
                 f"{self.flash_window_s:g} s)" if self.flash_min_evidence > 0 else "no flash gate")
         seen = (f"; visibility changes after {self.visibility_confirm_s:g} s"
@@ -257,7 +279,8 @@ class IntentFilter:
         rows[:, :, (_LAST, _START)] = np.nan
         return np.concatenate([rows.reshape(n, _HOLD_WIDTH),
                                visibility_hold.initial_rows(n, len(LIGHT_TASKS)),
-                               flash_gate.initial_rows(n)], axis=1)
+                               flash_gate.initial_rows(n), brake_onset.initial_rows(n)],
+                              axis=1)
 
     def step(self, probs: Mapping[str, np.ndarray], stamps_ns: Union[int, np.ndarray],
              rows: np.ndarray, lamp_levels: Optional[np.ndarray] = None,
@@ -289,7 +312,8 @@ class IntentFilter:
         p = np.stack([np.asarray(probs[t], np.float64) for t in LIGHT_TASKS], axis=1)
         state = rows[:, :_HOLD_WIDTH].reshape(n, len(LIGHT_TASKS), _FIELDS).copy()
         shown = rows[:, _HOLD_WIDTH:_HOLD_WIDTH + _VISIBILITY_WIDTH]
-        ring = rows[:, _HOLD_WIDTH + _VISIBILITY_WIDTH:]
+        ring = rows[:, _HOLD_WIDTH + _VISIBILITY_WIDTH:_RING_END]
+        released = rows[:, _RING_END:]
         if cover is not None and self.uses_cover:
             p = self._judge_sight(p, probs["view"], np.asarray(cover).reshape(n))
         if lamp_levels is not None and self.config.flash_min_evidence > 0:
@@ -297,6 +321,11 @@ class IntentFilter:
             evidence = flash_gate.side_evidence(
                 flash_gate.half_evidence(ring, now, self.config.flash_window_s), probs["view"])
             p = flash_gate.veto(p, evidence, self.config.flash_min_evidence, (_LEFT, _RIGHT))
+        if self.config.brake_released_below > 0:
+            brake = LIGHT_TASKS.index("brake")
+            p[:, brake], released = brake_onset.step(
+                p[:, brake], released, self.config.brake_released_below,
+                self.config.brake_onset_shift)
         if self.config.visibility_confirm_s > 0:
             p, shown = visibility_hold.step(p, now, shown, self.config.visibility_confirm_s)
         on = self._advance(state, p, now[:, None])
@@ -309,7 +338,8 @@ class IntentFilter:
             out_states[task] = light_states[:, i] if keep else raw[task]
         out_probs["intent"], out_states["intent"] = _intent(out_probs, out_states)
         return FilterOutput(out_probs, {t: out_states[t] for t in TASKS},
-                            np.concatenate([state.reshape(n, _HOLD_WIDTH), shown, ring], axis=1))
+                            np.concatenate([state.reshape(n, _HOLD_WIDTH), shown, ring, released],
+                                           axis=1))
 
     def _judge_sight(self, p: np.ndarray, view: np.ndarray, cover: np.ndarray) -> np.ndarray:
         """``p`` with the UNKNOWN of the lights whose sight is ``geometry`` from

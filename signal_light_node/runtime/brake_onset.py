@@ -1,0 +1,65 @@
+"""A brake is switched on at a moment: once a track has shown its brake released, a rise
+counts for more.
+
+A steady lit tail lamp at night and a brake look alike to the model in a single frame,
+and a vehicle first seen with its lamps lit may be either; so the brake's ON takes a
+strict operating point (the model file's ``on_offsets``), which also costs brakes that
+the model sees rise on a vehicle it has just seen unbraked (docs/model.md, "Where the
+held-out family's brake F1 goes"). This step tells the two cases apart by the track's own
+past: once the brake has been judged with P(ON | judged) under ``released_below`` the
+track has shown its lamps unbraked, and from that frame on the brake's ON log-odds get
+``shift`` more. A vehicle never seen released keeps the strict point, so a tail lamp that
+stays lit (the model's P(ON) on such tracks seldom falls that low) gains nothing.
+
+One float per track in the filter row: 1 once the brake has been seen released, else 0.
+Pure numpy, vectorised over tracks.
+"""
+
+from __future__ import annotations
+
+from typing import Tuple
+
+import numpy as np
+
+from signal_light_node.labels import LightStatus
+
+#: Floats per track in a filter row.
+FIELDS = 1
+_OFF, _ON, _UNKNOWN = int(LightStatus.OFF), int(LightStatus.ON), int(LightStatus.UNKNOWN)
+
+
+def initial_rows(n: int) -> np.ndarray:
+    """float64 ``[n, FIELDS]``: tracks whose brake has not been seen released."""
+    return np.zeros((n, FIELDS))
+
+
+def shift_on(p: np.ndarray, shift: "float | np.ndarray") -> np.ndarray:
+    """``p`` (``[..., 3]`` OFF, ON, UNKNOWN) with the ON log-odds against OFF moved by
+    ``shift`` (broadcast over the rows); UNKNOWN keeps its probability. Not in place."""
+    out = np.array(p, np.float64, copy=True)
+    out[..., _ON] *= np.exp(shift)
+    judged = out[..., :2].sum(-1, keepdims=True)
+    out[..., :2] *= (1.0 - out[..., _UNKNOWN:_UNKNOWN + 1]) / np.where(judged > 0, judged, 1.0)
+    return out
+
+
+def step(p: np.ndarray, rows: np.ndarray, released_below: float, shift: float
+         ) -> Tuple[np.ndarray, np.ndarray]:
+    """One frame of the brake: its probabilities to publish and the new rows.
+
+    Args:
+        p: ``[N, 3]`` the brake's (OFF, ON, UNKNOWN) probabilities.
+        rows: ``[N, FIELDS]`` (not modified).
+        released_below: P(ON | judged) under which a judged brake counts as released.
+        shift: Log-odds added to ON once the track has been seen released.
+
+    Returns:
+        ``(probabilities [N, 3], rows [N, FIELDS])``.
+    """
+    p = np.asarray(p, np.float64)
+    off_on = p[:, :2].sum(-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        released = (p.argmax(-1) != _UNKNOWN) & (off_on > 0) & \
+            (p[:, _ON] < released_below * off_on)
+    seen = np.maximum(np.asarray(rows, np.float64)[:, 0], released)
+    return shift_on(p, shift * seen), seen.reshape(-1, FIELDS)

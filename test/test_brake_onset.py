@@ -1,0 +1,53 @@
+"""A brake seen released gets more ON from then on; one never seen released does not
+(``runtime.brake_onset`` and the filter's ``brake_released_below``)."""
+
+import numpy as np
+import pytest
+
+from signal_light_node.runtime import brake_onset
+from signal_light_node.runtime.intent_filter import IntentFilter, IntentFilterConfig
+
+
+def test_shift_moves_on_against_off_and_keeps_unknown():
+    p = np.array([[0.6, 0.3, 0.1], [0.0, 0.0, 1.0]])
+    out = brake_onset.shift_on(p, np.array([1.0, 1.0]))
+    assert out[0, 2] == pytest.approx(0.1) and out[0, :2].sum() == pytest.approx(0.9)
+    assert out[0, 1] / out[0, 0] == pytest.approx(0.5 * np.e)
+    np.testing.assert_array_equal(out[1], [0.0, 0.0, 1.0])  # nothing judged, nothing moved
+    np.testing.assert_array_equal(p[0], [0.6, 0.3, 0.1])
+
+
+def test_released_from_the_frame_it_is_seen_and_only_when_judged():
+    rows = brake_onset.initial_rows(3)
+    p = np.array([[0.97, 0.02, 0.01],   # judged, clearly released
+                  [0.05, 0.01, 0.94],   # UNKNOWN: says nothing about the lamps
+                  [0.60, 0.30, 0.10]])  # judged, not released
+    out, rows = brake_onset.step(p, rows, released_below=0.05, shift=1.0)
+    np.testing.assert_array_equal(rows[:, 0], [1.0, 0.0, 0.0])
+    assert out[0, 1] > p[0, 1] and out[2, 1] == pytest.approx(p[2, 1])
+    later, rows2 = brake_onset.step(np.repeat([[0.6, 0.4, 0.0]], 3, 0), rows, 0.05, 1.0)
+    np.testing.assert_array_equal(rows2, rows)  # a flag once set stays
+    assert later[0].argmax() == 1 and later[1].argmax() == 0 and later[2].argmax() == 0
+
+
+def _brake_states(p_on, config):
+    filt = IntentFilter(config)
+    rows, states = filt.initial_rows(1), []
+    for i, q in enumerate(p_on):
+        probs = {"intent": np.array([[1.0, 0, 0, 0, 0]]), "view": np.array([[1.0, 0, 0, 0]]),
+                 "brake": np.array([[1.0 - q, q, 0.0]]), "left": np.array([[1.0, 0, 0]]),
+                 "right": np.array([[1.0, 0, 0]])}
+        out = filt.step(probs, i * 100_000_000, rows)
+        rows = out.rows
+        states.append(int(out.states["brake"][0]))
+    return states
+
+
+def test_a_rise_after_a_release_is_a_brake_a_steady_middling_lamp_is_not():
+    on = IntentFilterConfig(brake_released_below=0.05, brake_onset_shift=1.0)
+    seen_released = [0.02, 0.02, 0.4, 0.4, 0.4]
+    steady_tail = [0.4] * 5
+    assert _brake_states(seen_released, on) == [0, 0, 1, 1, 1]
+    assert _brake_states(steady_tail, on) == [0] * 5
+    assert _brake_states(seen_released, IntentFilterConfig()) == [0] * 5  # off by default
+    assert "once seen released" in on.describe()
