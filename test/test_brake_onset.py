@@ -51,3 +51,17 @@ def test_a_rise_after_a_release_is_a_brake_a_steady_middling_lamp_is_not():
     assert _brake_states(steady_tail, on) == [0] * 5
     assert _brake_states(seen_released, IntentFilterConfig()) == [0] * 5  # off by default
     assert "once seen released" in on.describe()
+
+
+def test_the_node_parameters_and_the_cli_options_reach_the_filter():
+    from signal_light_node.cli import build_parser
+    from signal_light_node.commands.options import intent_filter_from_args
+    from signal_light_node.ros.params import DetectorParams
+
+    params = DetectorParams(filter_brake_released_below=0.05, filter_brake_onset_shift=2.0)
+    config = params.intent_filter_config
+    assert (config.brake_released_below, config.brake_onset_shift) == (0.05, 2.0)
+    args = build_parser(["evaluate"]).parse_args(
+        ["evaluate", "--out", "OUT", "--filter-brake-released-below", "0.05",
+         "--filter-brake-onset-shift", "2"])
+    assert intent_filter_from_args(args) == config

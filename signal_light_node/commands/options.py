@@ -112,6 +112,13 @@ def add_intent_filter_options(group: ArgumentContainer) -> None:
     group.add_argument("--filter-cover-max", type=float, default=d.cover_max, metavar="C",
                        help="with a sight of geometry: the share of a box that "
                             "may be covered before the model's own UNKNOWN counts again")
+    group.add_argument("--filter-brake-released-below", type=float,
+                       default=d.brake_released_below, metavar="P",
+                       help="a judged brake under this P(ON) marks its track seen released; "
+                            "its later rise gets --filter-brake-onset-shift more ON "
+                            "log-odds (0: off)")
+    group.add_argument("--filter-brake-onset-shift", type=float, default=d.brake_onset_shift,
+                       metavar="L", help="ON log-odds added to a seen-released brake")
 
 
 def intent_filter_from_args(args: argparse.Namespace) -> Any:
@@ -130,7 +137,9 @@ def intent_filter_from_args(args: argparse.Namespace) -> Any:
                               visibility_confirm_s=args.filter_visibility_confirm,
                               blinker_sight=args.filter_blinker_sight,
                               brake_sight=args.filter_brake_sight,
-                              cover_max=args.filter_cover_max)
+                              cover_max=args.filter_cover_max,
+                              brake_released_below=args.filter_brake_released_below,
+                              brake_onset_shift=args.filter_brake_onset_shift)
 
 
 def add_pairing_options(group: ArgumentContainer) -> None:

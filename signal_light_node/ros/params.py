@@ -86,6 +86,9 @@ class DetectorParams:
             ``geometry`` (``runtime.box_sight``: the view head and the boxes' cover).
         filter_cover_max: With ``geometry``: the share of a box that may be covered
             before the model's own UNKNOWN counts again.
+        filter_brake_released_below: A judged brake under this P(ON) marks its track as
+            seen released (``runtime.brake_onset``; 0: off).
+        filter_brake_onset_shift: ON log-odds a seen-released brake gets from then on.
         publish_debug_image: Publish the annotated frame on ``~/output/debug/image``.
         publish_markers: Publish the results drawn for RViz on ``~/output/markers``
             (``visualization_msgs/MarkerArray``, see :mod:`signal_light_node.outputs.markers`).
@@ -128,6 +131,8 @@ class DetectorParams:
     filter_blinker_sight: str = IntentFilterConfig.blinker_sight
     filter_brake_sight: str = IntentFilterConfig.brake_sight
     filter_cover_max: float = IntentFilterConfig.cover_max
+    filter_brake_released_below: float = IntentFilterConfig.brake_released_below
+    filter_brake_onset_shift: float = IntentFilterConfig.brake_onset_shift
     publish_debug_image: bool = False
     publish_markers: bool = False
     diagnostics_period_s: float = 1.0
@@ -154,7 +159,9 @@ class DetectorParams:
                                   visibility_confirm_s=self.filter_visibility_confirm_s,
                                   blinker_sight=self.filter_blinker_sight,
                                   brake_sight=self.filter_brake_sight,
-                                  cover_max=self.filter_cover_max)
+                                  cover_max=self.filter_cover_max,
+                                  brake_released_below=self.filter_brake_released_below,
+                                  brake_onset_shift=self.filter_brake_onset_shift)
 
     @property
     def pairing_ns(self) -> Tuple[int, int]:
@@ -277,6 +284,14 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
                                   "that may be covered (image edge, nearer boxes) before "
                                   "the model's own UNKNOWN counts again.", low=0.0,
                                   high=1.0),
+    "filter_brake_released_below": ParamSpec("Once a track's brake is judged with P(ON) "
+                                             "under this, the track has been seen released "
+                                             "and its brake's later rise counts for "
+                                             "filter_brake_onset_shift more log-odds (a tail "
+                                             "lamp never released keeps the strict point); "
+                                             "0 = off.", low=0.0, high=0.99),
+    "filter_brake_onset_shift": ParamSpec("ON log-odds added to a brake whose track has been "
+                                          "seen released.", low=0.0, high=10.0),
     "publish_debug_image": ParamSpec("Publish the annotated frame on ~/output/debug/image "
                                      "(costs CPU)."),
     "publish_markers": ParamSpec("Publish the results drawn for RViz on ~/output/markers "
