@@ -71,8 +71,7 @@ def shift_brake(raw: Dict[str, np.ndarray], shift: float) -> Dict[str, np.ndarra
     """``raw`` with the brake's ON logit moved by ``shift`` (its UNKNOWN kept)."""
     if shift == 0.0:
         return raw
-    with np.errstate(invalid="ignore"):  # the NaN rows of frames a track lacks stay NaN
-        return dict(raw, brake=brake_onset.shift_on(raw["brake"], shift))
+    return dict(raw, brake=brake_onset.shift_on(raw["brake"], shift))
 
 
 def _on_f1(report: Dict[str, Any]) -> Optional[float]:

@@ -22,10 +22,11 @@ from typing import Tuple
 import numpy as np
 
 from signal_light_node.labels import LightStatus
+from signal_light_node.runtime.visibility_hold import with_unknown
 
 #: Floats per track in a filter row.
 FIELDS = 1
-_OFF, _ON, _UNKNOWN = int(LightStatus.OFF), int(LightStatus.ON), int(LightStatus.UNKNOWN)
+_ON, _UNKNOWN = int(LightStatus.ON), int(LightStatus.UNKNOWN)
 
 
 def initial_rows(n: int) -> np.ndarray:
@@ -36,11 +37,10 @@ def initial_rows(n: int) -> np.ndarray:
 def shift_on(p: np.ndarray, shift: "float | np.ndarray") -> np.ndarray:
     """``p`` (``[..., 3]`` OFF, ON, UNKNOWN) with the ON log-odds against OFF moved by
     ``shift`` (broadcast over the rows); UNKNOWN keeps its probability. Not in place."""
-    out = np.array(p, np.float64, copy=True)
-    out[..., _ON] *= np.exp(shift)
-    judged = out[..., :2].sum(-1, keepdims=True)
-    out[..., :2] *= (1.0 - out[..., _UNKNOWN:_UNKNOWN + 1]) / np.where(judged > 0, judged, 1.0)
-    return out
+    p = np.asarray(p, np.float64)
+    raised = p.copy()
+    raised[..., _ON] *= np.exp(shift)
+    return with_unknown(raised, p[..., _UNKNOWN], np.ones(p.shape[:-1], bool))
 
 
 def step(p: np.ndarray, rows: np.ndarray, released_below: float, shift: float
@@ -58,8 +58,6 @@ def step(p: np.ndarray, rows: np.ndarray, released_below: float, shift: float
     """
     p = np.asarray(p, np.float64)
     off_on = p[:, :2].sum(-1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        released = (p.argmax(-1) != _UNKNOWN) & (off_on > 0) & \
-            (p[:, _ON] < released_below * off_on)
+    released = (p.argmax(-1) != _UNKNOWN) & (off_on > 0) & (p[:, _ON] < released_below * off_on)
     seen = np.maximum(np.asarray(rows, np.float64)[:, 0], released)
     return shift_on(p, shift * seen), seen.reshape(-1, FIELDS)
