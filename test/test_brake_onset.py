@@ -26,8 +26,23 @@ def test_released_from_the_frame_it_is_seen_and_only_when_judged():
     np.testing.assert_array_equal(rows[:, 0], [1.0, 0.0, 0.0])
     assert out[0, 1] > p[0, 1] and out[2, 1] == pytest.approx(p[2, 1])
     later, rows2 = brake_onset.step(np.repeat([[0.6, 0.4, 0.0]], 3, 0), rows, 0.05, 1.0)
-    np.testing.assert_array_equal(rows2, rows)  # a flag once set stays
+    np.testing.assert_array_equal(rows2[:, 0], rows[:, 0])  # a flag once set stays
     assert later[0].argmax() == 1 and later[1].argmax() == 0 and later[2].argmax() == 0
+
+
+def test_a_rise_is_measured_against_the_tracks_own_lowest_level():
+    rows = brake_onset.initial_rows(2)
+    assert np.isnan(rows[:, 1]).all()
+    # Track 0 was released far down (P 0.001), track 1 only just (P 0.04).
+    for q in ([0.001, 0.04], [0.3, 0.3]):
+        p = np.array([[1 - q[0], q[0], 0.0], [1 - q[1], q[1], 0.0]])
+        out, rows = brake_onset.step(p, rows, released_below=0.05, shift=1.0, rise=4.0)
+    np.testing.assert_array_equal(rows[:, 0], [1.0, 1.0])
+    np.testing.assert_allclose(rows[:, 1], np.log([0.001 / 0.999, 0.04 / 0.96]))
+    # logit(0.3) - logit(0.001) = 6.1 >= 4: shifted; - logit(0.04) = 2.3 < 4: not.
+    assert out[0, 1] > 0.3 and out[1, 1] == pytest.approx(0.3)
+    unknown, rows2 = brake_onset.step(np.array([[0.0, 0.0, 1.0]] * 2), rows, 0.05, 1.0, 4.0)
+    np.testing.assert_array_equal(rows2, rows)  # an UNKNOWN frame moves neither field
 
 
 def _brake_states(p_on, config):
@@ -58,10 +73,12 @@ def test_the_node_parameters_and_the_cli_options_reach_the_filter():
     from signal_light_node.commands.options import intent_filter_from_args
     from signal_light_node.ros.params import DetectorParams
 
-    params = DetectorParams(filter_brake_released_below=0.05, filter_brake_onset_shift=2.0)
+    params = DetectorParams(filter_brake_released_below=0.05, filter_brake_onset_shift=2.0,
+                            filter_brake_onset_rise=3.0)
     config = params.intent_filter_config
-    assert (config.brake_released_below, config.brake_onset_shift) == (0.05, 2.0)
+    assert (config.brake_released_below, config.brake_onset_shift,
+            config.brake_onset_rise) == (0.05, 2.0, 3.0)
     args = build_parser(["evaluate"]).parse_args(
         ["evaluate", "--out", "OUT", "--filter-brake-released-below", "0.05",
-         "--filter-brake-onset-shift", "2"])
+         "--filter-brake-onset-shift", "2", "--filter-brake-onset-rise", "3"])
     assert intent_filter_from_args(args) == config

@@ -119,6 +119,9 @@ def add_intent_filter_options(group: ArgumentContainer) -> None:
                             "log-odds (0: off)")
     group.add_argument("--filter-brake-onset-shift", type=float, default=d.brake_onset_shift,
                        metavar="L", help="ON log-odds added to a seen-released brake")
+    group.add_argument("--filter-brake-onset-rise", type=float, default=d.brake_onset_rise,
+                       metavar="L", help="with > 0: the shift only on frames whose ON "
+                       "log-odds stand this far above the track's lowest (0: every frame)")
 
 
 def intent_filter_from_args(args: argparse.Namespace) -> Any:
@@ -139,7 +142,8 @@ def intent_filter_from_args(args: argparse.Namespace) -> Any:
                               brake_sight=args.filter_brake_sight,
                               cover_max=args.filter_cover_max,
                               brake_released_below=args.filter_brake_released_below,
-                              brake_onset_shift=args.filter_brake_onset_shift)
+                              brake_onset_shift=args.filter_brake_onset_shift,
+                              brake_onset_rise=args.filter_brake_onset_rise)
 
 
 def add_pairing_options(group: ArgumentContainer) -> None:

@@ -89,6 +89,8 @@ class DetectorParams:
         filter_brake_released_below: A judged brake under this P(ON) marks its track as
             seen released (``runtime.brake_onset``; 0: off).
         filter_brake_onset_shift: ON log-odds a seen-released brake gets from then on.
+        filter_brake_onset_rise: With > 0, only on frames whose ON log-odds stand this far
+            above the track's lowest (0: every later frame).
         publish_debug_image: Publish the annotated frame on ``~/output/debug/image``.
         publish_markers: Publish the results drawn for RViz on ``~/output/markers``
             (``visualization_msgs/MarkerArray``, see :mod:`signal_light_node.outputs.markers`).
@@ -133,6 +135,7 @@ class DetectorParams:
     filter_cover_max: float = IntentFilterConfig.cover_max
     filter_brake_released_below: float = IntentFilterConfig.brake_released_below
     filter_brake_onset_shift: float = IntentFilterConfig.brake_onset_shift
+    filter_brake_onset_rise: float = IntentFilterConfig.brake_onset_rise
     publish_debug_image: bool = False
     publish_markers: bool = False
     diagnostics_period_s: float = 1.0
@@ -161,7 +164,8 @@ class DetectorParams:
                                   brake_sight=self.filter_brake_sight,
                                   cover_max=self.filter_cover_max,
                                   brake_released_below=self.filter_brake_released_below,
-                                  brake_onset_shift=self.filter_brake_onset_shift)
+                                  brake_onset_shift=self.filter_brake_onset_shift,
+                                  brake_onset_rise=self.filter_brake_onset_rise)
 
     @property
     def pairing_ns(self) -> Tuple[int, int]:
@@ -292,6 +296,10 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
                                              "0 = off.", low=0.0, high=0.99),
     "filter_brake_onset_shift": ParamSpec("ON log-odds added to a brake whose track has been "
                                           "seen released.", low=0.0, high=10.0),
+    "filter_brake_onset_rise": ParamSpec("With > 0, a seen-released brake gets the onset "
+                                         "shift only on frames whose ON log-odds stand this "
+                                         "far above the lowest its track has shown; 0 = "
+                                         "every later frame.", low=0.0, high=20.0),
     "publish_debug_image": ParamSpec("Publish the annotated frame on ~/output/debug/image "
                                      "(costs CPU)."),
     "publish_markers": ParamSpec("Publish the results drawn for RViz on ~/output/markers "

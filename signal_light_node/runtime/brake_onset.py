@@ -11,8 +11,15 @@ track has shown its lamps unbraked, and from that frame on the brake's ON log-od
 ``shift`` more. A vehicle never seen released keeps the strict point, so a tail lamp that
 stays lit (the model's P(ON) on such tracks seldom falls that low) gains nothing.
 
-One float per track in the filter row: 1 once the brake has been seen released, else 0.
-Pure numpy, vectorised over tracks.
+With ``rise`` > 0 the shift is stated against the track's own levels: a frame of a
+released track gets it only where its ON log-odds stand ``rise`` above the lowest the
+track has shown. A camera the model reads with a high unbraked level (the second
+generator's released frames sit at P(ON) about 0.13, the training family's at 0.01) then
+needs a real step before its middling frames count as braking.
+
+Two floats per track in the filter row: 1 once the brake has been seen released (else 0),
+and the lowest judged ON log-odds so far (NaN before the first judged frame). Pure numpy,
+vectorised over tracks.
 """
 
 from __future__ import annotations
@@ -25,13 +32,18 @@ from signal_light_node.labels import LightStatus
 from signal_light_node.runtime.visibility_hold import with_unknown
 
 #: Floats per track in a filter row.
-FIELDS = 1
+FIELDS = 2
+_SEEN, _FLOOR = 0, 1
 _ON, _UNKNOWN = int(LightStatus.ON), int(LightStatus.UNKNOWN)
+#: P(ON | judged) is clipped to this distance from 0 and 1 before its log-odds are taken.
+_EPS = 1e-6
 
 
 def initial_rows(n: int) -> np.ndarray:
-    """float64 ``[n, FIELDS]``: tracks whose brake has not been seen released."""
-    return np.zeros((n, FIELDS))
+    """float64 ``[n, FIELDS]``: tracks whose brake has not been seen released or judged."""
+    rows = np.zeros((n, FIELDS))
+    rows[:, _FLOOR] = np.nan
+    return rows
 
 
 def shift_on(p: np.ndarray, shift: "float | np.ndarray") -> np.ndarray:
@@ -43,8 +55,8 @@ def shift_on(p: np.ndarray, shift: "float | np.ndarray") -> np.ndarray:
     return with_unknown(raised, p[..., _UNKNOWN], np.ones(p.shape[:-1], bool))
 
 
-def step(p: np.ndarray, rows: np.ndarray, released_below: float, shift: float
-         ) -> Tuple[np.ndarray, np.ndarray]:
+def step(p: np.ndarray, rows: np.ndarray, released_below: float, shift: float,
+         rise: float = 0.0) -> Tuple[np.ndarray, np.ndarray]:
     """One frame of the brake: its probabilities to publish and the new rows.
 
     Args:
@@ -52,12 +64,20 @@ def step(p: np.ndarray, rows: np.ndarray, released_below: float, shift: float
         rows: ``[N, FIELDS]`` (not modified).
         released_below: P(ON | judged) under which a judged brake counts as released.
         shift: Log-odds added to ON once the track has been seen released.
+        rise: With > 0, the shift applies only to frames whose ON log-odds (against OFF)
+            stand at least this far above the lowest the track has shown while judged.
 
     Returns:
         ``(probabilities [N, 3], rows [N, FIELDS])``.
     """
     p = np.asarray(p, np.float64)
+    rows = np.asarray(rows, np.float64)
     off_on = p[:, :2].sum(-1)
-    released = (p.argmax(-1) != _UNKNOWN) & (off_on > 0) & (p[:, _ON] < released_below * off_on)
-    seen = np.maximum(np.asarray(rows, np.float64)[:, 0], released)
-    return shift_on(p, shift * seen), seen.reshape(-1, FIELDS)
+    judged = (p.argmax(-1) != _UNKNOWN) & (off_on > 0)
+    ratio = p[:, _ON] / np.where(judged, off_on, 1.0)
+    q = np.clip(ratio, _EPS, 1.0 - _EPS)
+    log_odds = np.log(q / (1.0 - q))
+    seen = np.maximum(rows[:, _SEEN], judged & (ratio < released_below))
+    floor = np.fmin(rows[:, _FLOOR], np.where(judged, log_odds, np.nan))
+    gain = seen if rise <= 0 else seen * (judged & (log_odds - floor >= rise))
+    return shift_on(p, shift * gain), np.stack([seen, floor], axis=1)

@@ -142,6 +142,9 @@ class IntentFilterConfig:
             ``brake_onset_shift`` more log-odds from then on (:mod:`brake_onset`); 0
             turns this off.
         brake_onset_shift: The log-odds added to a seen-released brake's ON.
+        brake_onset_rise: With > 0, a seen-released brake's frame gets the shift only
+            where its ON log-odds stand this far above the lowest its track has shown
+            (a rise against the track's own level); 0 shifts every later frame.
         cover_max: With ``geometry``: the share of a box that may be covered before the
             model's own UNKNOWN counts again.
     """
@@ -159,6 +162,7 @@ class IntentFilterConfig:
     cover_max: float = 0.1
     brake_released_below: float = 0.0
     brake_onset_shift: float = 1.0
+    brake_onset_rise: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, (bool, np.bool_)):
@@ -195,6 +199,10 @@ class IntentFilterConfig:
         if not _is_finite_number(value) or value < 0.0:
             raise ConfigError(f"brake_onset_shift must be a number >= 0, got {value!r}")
         object.__setattr__(self, "brake_onset_shift", float(value))
+        value = self.brake_onset_rise
+        if not _is_finite_number(value) or value < 0.0:
+            raise ConfigError(f"brake_onset_rise must be a number >= 0 (0: off), got {value!r}")
+        object.__setattr__(self, "brake_onset_rise", float(value))
 
     def describe(self) -> str:
         """One line for reports: what is published."""
@@ -205,6 +213,8 @@ class IntentFilterConfig:
         if self.brake_released_below > 0:
             brake += (f", ON +{self.brake_onset_shift:g} log-odds once seen released "
                       f"(P(ON) < {self.brake_released_below:g})")
+            if self.brake_onset_rise > 0:
+                brake += f" on a rise of {self.brake_onset_rise:g} over the track's lowest"
         gate = (f"a blinker must flash (evidence >= {self.flash_min_evidence:g} over "
                 f"{self.flash_window_s:g} s)" if self.flash_min_evidence > 0 else "no flash gate")
         seen = (f"; visibility changes after {self.visibility_confirm_s:g} s"
@@ -325,7 +335,7 @@ class IntentFilter:
             brake = LIGHT_TASKS.index("brake")
             p[:, brake], released = brake_onset.step(
                 p[:, brake], released, self.config.brake_released_below,
-                self.config.brake_onset_shift)
+                self.config.brake_onset_shift, self.config.brake_onset_rise)
         if self.config.visibility_confirm_s > 0:
             p, shown = visibility_hold.step(p, now, shown, self.config.visibility_confirm_s)
         on = self._advance(state, p, now[:, None])
