@@ -45,6 +45,18 @@ def test_a_rise_is_measured_against_the_tracks_own_lowest_level():
     np.testing.assert_array_equal(rows2, rows)  # an UNKNOWN frame moves neither field
 
 
+def test_until_released_a_brake_takes_the_unreleased_shift():
+    rows = brake_onset.initial_rows(1)
+    lit = np.array([[0.45, 0.55, 0.0]])  # a tail lamp lit from the first frame
+    out, rows = brake_onset.step(lit, rows, 0.2, 0.5, unreleased_shift=-1.0)
+    assert out[0].argmax() == 0 and rows[0, 0] == 0.0
+    out, rows = brake_onset.step(np.array([[0.9, 0.1, 0.0]]), rows, 0.2, 0.5,
+                                 unreleased_shift=-1.0)
+    assert rows[0, 0] == 1.0  # seen released: the strict shift is gone
+    out, rows = brake_onset.step(lit, rows, 0.2, 0.5, unreleased_shift=-1.0)
+    assert out[0, 1] / out[0, 0] == pytest.approx(0.55 / 0.45 * np.exp(0.5))
+
+
 def _brake_states(p_on, config):
     filt = IntentFilter(config)
     rows, states = filt.initial_rows(1), []
@@ -74,11 +86,12 @@ def test_the_node_parameters_and_the_cli_options_reach_the_filter():
     from signal_light_node.ros.params import DetectorParams
 
     params = DetectorParams(filter_brake_released_below=0.05, filter_brake_onset_shift=2.0,
-                            filter_brake_onset_rise=3.0)
+                            filter_brake_onset_rise=3.0, filter_brake_unreleased_shift=-1.0)
     config = params.intent_filter_config
-    assert (config.brake_released_below, config.brake_onset_shift,
-            config.brake_onset_rise) == (0.05, 2.0, 3.0)
+    assert (config.brake_released_below, config.brake_onset_shift, config.brake_onset_rise,
+            config.brake_unreleased_shift) == (0.05, 2.0, 3.0, -1.0)
     args = build_parser(["evaluate"]).parse_args(
         ["evaluate", "--out", "OUT", "--filter-brake-released-below", "0.05",
-         "--filter-brake-onset-shift", "2", "--filter-brake-onset-rise", "3"])
+         "--filter-brake-onset-shift", "2", "--filter-brake-onset-rise", "3",
+         "--filter-brake-unreleased-shift", "-1"])
     assert intent_filter_from_args(args) == config

@@ -122,6 +122,10 @@ def add_intent_filter_options(group: ArgumentContainer) -> None:
     group.add_argument("--filter-brake-onset-rise", type=float, default=d.brake_onset_rise,
                        metavar="L", help="with > 0: the shift only on frames whose ON "
                        "log-odds stand this far above the track's lowest (0: every frame)")
+    group.add_argument("--filter-brake-unreleased-shift", type=float,
+                       default=d.brake_unreleased_shift, metavar="L",
+                       help="with --filter-brake-released-below: ON log-odds added to a "
+                       "brake until its track is seen released (< 0: stricter)")
 
 
 def intent_filter_from_args(args: argparse.Namespace) -> Any:
@@ -143,7 +147,8 @@ def intent_filter_from_args(args: argparse.Namespace) -> Any:
                               cover_max=args.filter_cover_max,
                               brake_released_below=args.filter_brake_released_below,
                               brake_onset_shift=args.filter_brake_onset_shift,
-                              brake_onset_rise=args.filter_brake_onset_rise)
+                              brake_onset_rise=args.filter_brake_onset_rise,
+                              brake_unreleased_shift=args.filter_brake_unreleased_shift)
 
 
 def add_pairing_options(group: ArgumentContainer) -> None:

@@ -91,6 +91,8 @@ class DetectorParams:
         filter_brake_onset_shift: ON log-odds a seen-released brake gets from then on.
         filter_brake_onset_rise: With > 0, only on frames whose ON log-odds stand this far
             above the track's lowest (0: every later frame).
+        filter_brake_unreleased_shift: ON log-odds a brake gets while its track has not
+            been seen released (< 0: stricter for vehicles first seen with lamps lit).
         publish_debug_image: Publish the annotated frame on ``~/output/debug/image``.
         publish_markers: Publish the results drawn for RViz on ``~/output/markers``
             (``visualization_msgs/MarkerArray``, see :mod:`signal_light_node.outputs.markers`).
@@ -136,6 +138,7 @@ class DetectorParams:
     filter_brake_released_below: float = IntentFilterConfig.brake_released_below
     filter_brake_onset_shift: float = IntentFilterConfig.brake_onset_shift
     filter_brake_onset_rise: float = IntentFilterConfig.brake_onset_rise
+    filter_brake_unreleased_shift: float = IntentFilterConfig.brake_unreleased_shift
     publish_debug_image: bool = False
     publish_markers: bool = False
     diagnostics_period_s: float = 1.0
@@ -165,7 +168,8 @@ class DetectorParams:
                                   cover_max=self.filter_cover_max,
                                   brake_released_below=self.filter_brake_released_below,
                                   brake_onset_shift=self.filter_brake_onset_shift,
-                                  brake_onset_rise=self.filter_brake_onset_rise)
+                                  brake_onset_rise=self.filter_brake_onset_rise,
+                                  brake_unreleased_shift=self.filter_brake_unreleased_shift)
 
     @property
     def pairing_ns(self) -> Tuple[int, int]:
@@ -300,6 +304,12 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
                                          "shift only on frames whose ON log-odds stand this "
                                          "far above the lowest its track has shown; 0 = "
                                          "every later frame.", low=0.0, high=20.0),
+    "filter_brake_unreleased_shift": ParamSpec("With filter_brake_released_below > 0: ON "
+                                               "log-odds added to a brake while its track "
+                                               "has not been seen released (< 0: a vehicle "
+                                               "first seen with its lamps lit, e.g. tail "
+                                               "lamps at night, needs a clearer brake).",
+                                               low=-10.0, high=10.0),
     "publish_debug_image": ParamSpec("Publish the annotated frame on ~/output/debug/image "
                                      "(costs CPU)."),
     "publish_markers": ParamSpec("Publish the results drawn for RViz on ~/output/markers "

@@ -17,6 +17,11 @@ track has shown. A camera the model reads with a high unbraked level (the second
 generator's released frames sit at P(ON) about 0.13, the training family's at 0.01) then
 needs a real step before its middling frames count as braking.
 
+With ``unreleased_shift`` < 0 the other side of the same evidence is used as well: until a
+track has been seen released, its brake's ON log-odds get that (negative) shift, so a
+vehicle first seen with its lamps lit needs a clearer brake, and a tail lamp that stays lit
+at night, which the model puts at a median P(ON) of 0.43, is not published braking.
+
 Two floats per track in the filter row: 1 once the brake has been seen released (else 0),
 and the lowest judged ON log-odds so far (NaN before the first judged frame). Pure numpy,
 vectorised over tracks.
@@ -56,7 +61,7 @@ def shift_on(p: np.ndarray, shift: "float | np.ndarray") -> np.ndarray:
 
 
 def step(p: np.ndarray, rows: np.ndarray, released_below: float, shift: float,
-         rise: float = 0.0) -> Tuple[np.ndarray, np.ndarray]:
+         rise: float = 0.0, unreleased_shift: float = 0.0) -> Tuple[np.ndarray, np.ndarray]:
     """One frame of the brake: its probabilities to publish and the new rows.
 
     Args:
@@ -66,6 +71,7 @@ def step(p: np.ndarray, rows: np.ndarray, released_below: float, shift: float,
         shift: Log-odds added to ON once the track has been seen released.
         rise: With > 0, the shift applies only to frames whose ON log-odds (against OFF)
             stand at least this far above the lowest the track has shown while judged.
+        unreleased_shift: Log-odds added to ON while the track has not been seen released.
 
     Returns:
         ``(probabilities [N, 3], rows [N, FIELDS])``.
@@ -80,4 +86,5 @@ def step(p: np.ndarray, rows: np.ndarray, released_below: float, shift: float,
     seen = np.maximum(rows[:, _SEEN], judged & (ratio < released_below))
     floor = np.fmin(rows[:, _FLOOR], np.where(judged, log_odds, np.nan))
     gain = seen if rise <= 0 else seen * (judged & (log_odds - floor >= rise))
-    return shift_on(p, shift * gain), np.stack([seen, floor], axis=1)
+    return (shift_on(p, np.where(seen > 0, shift * gain, unreleased_shift)),
+            np.stack([seen, floor], axis=1))

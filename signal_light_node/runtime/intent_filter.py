@@ -145,6 +145,9 @@ class IntentFilterConfig:
         brake_onset_rise: With > 0, a seen-released brake's frame gets the shift only
             where its ON log-odds stand this far above the lowest its track has shown
             (a rise against the track's own level); 0 shifts every later frame.
+        brake_unreleased_shift: With ``brake_released_below``, the log-odds added to the
+            brake's ON while its track has not been seen released (< 0: a vehicle first
+            seen with its lamps lit needs a clearer brake; 0: as the model says).
         cover_max: With ``geometry``: the share of a box that may be covered before the
             model's own UNKNOWN counts again.
     """
@@ -163,6 +166,7 @@ class IntentFilterConfig:
     brake_released_below: float = 0.0
     brake_onset_shift: float = 1.0
     brake_onset_rise: float = 0.0
+    brake_unreleased_shift: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, (bool, np.bool_)):
@@ -203,6 +207,11 @@ class IntentFilterConfig:
         if not _is_finite_number(value) or value < 0.0:
             raise ConfigError(f"brake_onset_rise must be a number >= 0 (0: off), got {value!r}")
         object.__setattr__(self, "brake_onset_rise", float(value))
+        value = self.brake_unreleased_shift
+        if not _is_finite_number(value):
+            raise ConfigError(f"brake_unreleased_shift must be a finite number of log-odds, "
+                              f"got {value!r}")
+        object.__setattr__(self, "brake_unreleased_shift", float(value))
 
     def describe(self) -> str:
         """One line for reports: what is published."""
@@ -215,6 +224,8 @@ class IntentFilterConfig:
                       f"(P(ON) < {self.brake_released_below:g})")
             if self.brake_onset_rise > 0:
                 brake += f" on a rise of {self.brake_onset_rise:g} over the track's lowest"
+            if self.brake_unreleased_shift != 0:
+                brake += f", {self.brake_unreleased_shift:+g} until then"
         gate = (f"a blinker must flash (evidence >= {self.flash_min_evidence:g} over "
                 f"{self.flash_window_s:g} s)" if self.flash_min_evidence > 0 else "no flash gate")
         seen = (f"; visibility changes after {self.visibility_confirm_s:g} s"
@@ -335,7 +346,8 @@ class IntentFilter:
             brake = LIGHT_TASKS.index("brake")
             p[:, brake], released = brake_onset.step(
                 p[:, brake], released, self.config.brake_released_below,
-                self.config.brake_onset_shift, self.config.brake_onset_rise)
+                self.config.brake_onset_shift, self.config.brake_onset_rise,
+                self.config.brake_unreleased_shift)
         if self.config.visibility_confirm_s > 0:
             p, shown = visibility_hold.step(p, now, shown, self.config.visibility_confirm_s)
         on = self._advance(state, p, now[:, None])
