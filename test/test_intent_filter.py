@@ -221,6 +221,7 @@ def test_rows_are_fixed_size_and_not_modified_in_place():
     ({"brake_onset_shift": -1.0}, "brake_onset_shift"),
     ({"brake_onset_rise": float("nan")}, "brake_onset_rise"),
     ({"brake_unreleased_shift": float("inf")}, "brake_unreleased_shift"),
+    ({"brake_hysteresis": -0.5}, "brake_hysteresis"),
     ({"flash_window_s": 0.0}, "flash_window_s"), ({"flash_window_s": -1.0}, "flash_window_s"),
 ])
 def test_bad_settings_are_config_errors(kwargs, word):

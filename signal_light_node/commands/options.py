@@ -126,6 +126,9 @@ def add_intent_filter_options(group: ArgumentContainer) -> None:
                        default=d.brake_unreleased_shift, metavar="L",
                        help="with --filter-brake-released-below: ON log-odds added to a "
                        "brake until its track is seen released (< 0: stricter)")
+    group.add_argument("--filter-brake-hysteresis", type=float, default=d.brake_hysteresis,
+                       metavar="L", help="ON log-odds a brake keeps while it was last "
+                       "published ON (0: none)")
 
 
 def intent_filter_from_args(args: argparse.Namespace) -> Any:
@@ -148,7 +151,8 @@ def intent_filter_from_args(args: argparse.Namespace) -> Any:
                               brake_released_below=args.filter_brake_released_below,
                               brake_onset_shift=args.filter_brake_onset_shift,
                               brake_onset_rise=args.filter_brake_onset_rise,
-                              brake_unreleased_shift=args.filter_brake_unreleased_shift)
+                              brake_unreleased_shift=args.filter_brake_unreleased_shift,
+                              brake_hysteresis=args.filter_brake_hysteresis)
 
 
 def add_pairing_options(group: ArgumentContainer) -> None:

@@ -93,6 +93,8 @@ class DetectorParams:
             above the track's lowest (0: every later frame).
         filter_brake_unreleased_shift: ON log-odds a brake gets while its track has not
             been seen released (< 0: stricter for vehicles first seen with lamps lit).
+        filter_brake_hysteresis: ON log-odds a brake keeps while it was last published ON
+            (0: none).
         publish_debug_image: Publish the annotated frame on ``~/output/debug/image``.
         publish_markers: Publish the results drawn for RViz on ``~/output/markers``
             (``visualization_msgs/MarkerArray``, see :mod:`signal_light_node.outputs.markers`).
@@ -139,6 +141,7 @@ class DetectorParams:
     filter_brake_onset_shift: float = IntentFilterConfig.brake_onset_shift
     filter_brake_onset_rise: float = IntentFilterConfig.brake_onset_rise
     filter_brake_unreleased_shift: float = IntentFilterConfig.brake_unreleased_shift
+    filter_brake_hysteresis: float = IntentFilterConfig.brake_hysteresis
     publish_debug_image: bool = False
     publish_markers: bool = False
     diagnostics_period_s: float = 1.0
@@ -169,7 +172,8 @@ class DetectorParams:
                                   brake_released_below=self.filter_brake_released_below,
                                   brake_onset_shift=self.filter_brake_onset_shift,
                                   brake_onset_rise=self.filter_brake_onset_rise,
-                                  brake_unreleased_shift=self.filter_brake_unreleased_shift)
+                                  brake_unreleased_shift=self.filter_brake_unreleased_shift,
+                                  brake_hysteresis=self.filter_brake_hysteresis)
 
     @property
     def pairing_ns(self) -> Tuple[int, int]:
@@ -310,6 +314,10 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
                                                "first seen with its lamps lit, e.g. tail "
                                                "lamps at night, needs a clearer brake).",
                                                low=-10.0, high=10.0),
+    "filter_brake_hysteresis": ParamSpec("ON log-odds a brake keeps while it was last "
+                                         "published ON: a release must be clearer than an "
+                                         "onset (fewer brake flickers); 0 = none.",
+                                         low=0.0, high=10.0),
     "publish_debug_image": ParamSpec("Publish the annotated frame on ~/output/debug/image "
                                      "(costs CPU)."),
     "publish_markers": ParamSpec("Publish the results drawn for RViz on ~/output/markers "

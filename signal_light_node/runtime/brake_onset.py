@@ -22,14 +22,20 @@ track has been seen released, its brake's ON log-odds get that (negative) shift,
 vehicle first seen with its lamps lit needs a clearer brake, and a tail lamp that stays lit
 at night, which the model puts at a median P(ON) of 0.43, is not published braking.
 
-Two floats per track in the filter row: 1 once the brake has been seen released (else 0),
-and the lowest judged ON log-odds so far (NaN before the first judged frame). Pure numpy,
+With ``hysteresis`` > 0 a brake published ON keeps that many more log-odds until it is
+published OFF: a release has to be clearer than an onset, so a brake the model holds near
+its operating point does not flicker. Together with a negative ``unreleased_shift`` a
+steady tail lamp never turns ON in the first place, so it cannot latch.
+
+Three floats per track in the filter row: 1 once the brake has been seen released (else
+0), the lowest judged ON log-odds so far (NaN before the first judged frame), and 1 while
+the brake this step last published was ON (an UNKNOWN frame keeps it). Pure numpy,
 vectorised over tracks.
 """
 
 from __future__ import annotations
 
-from typing import Tuple
+from typing import NamedTuple, Tuple
 
 import numpy as np
 
@@ -37,11 +43,31 @@ from signal_light_node.labels import LightStatus
 from signal_light_node.runtime.visibility_hold import with_unknown
 
 #: Floats per track in a filter row.
-FIELDS = 2
-_SEEN, _FLOOR = 0, 1
+FIELDS = 3
+_SEEN, _FLOOR, _WAS_ON = 0, 1, 2
 _ON, _UNKNOWN = int(LightStatus.ON), int(LightStatus.UNKNOWN)
 #: P(ON | judged) is clipped to this distance from 0 and 1 before its log-odds are taken.
 _EPS = 1e-6
+
+
+class Settings(NamedTuple):
+    """What :func:`step` does (``IntentFilterConfig``'s ``brake_*`` fields, module doc).
+
+    Attributes:
+        released_below: P(ON | judged) under which a judged brake counts as released
+            (0: no release is ever seen, and neither shift applies).
+        shift: Log-odds added to ON once the track has been seen released.
+        rise: With > 0, the shift applies only to frames whose ON log-odds (against OFF)
+            stand at least this far above the lowest the track has shown while judged.
+        unreleased_shift: Log-odds added to ON while the track has not been seen released.
+        hysteresis: Log-odds added to ON while the brake's last published state is ON.
+    """
+
+    released_below: float = 0.0
+    shift: float = 0.0
+    rise: float = 0.0
+    unreleased_shift: float = 0.0
+    hysteresis: float = 0.0
 
 
 def initial_rows(n: int) -> np.ndarray:
@@ -60,18 +86,14 @@ def shift_on(p: np.ndarray, shift: "float | np.ndarray") -> np.ndarray:
     return with_unknown(raised, p[..., _UNKNOWN], np.ones(p.shape[:-1], bool))
 
 
-def step(p: np.ndarray, rows: np.ndarray, released_below: float, shift: float,
-         rise: float = 0.0, unreleased_shift: float = 0.0) -> Tuple[np.ndarray, np.ndarray]:
+def step(p: np.ndarray, rows: np.ndarray, settings: Settings
+         ) -> Tuple[np.ndarray, np.ndarray]:
     """One frame of the brake: its probabilities to publish and the new rows.
 
     Args:
         p: ``[N, 3]`` the brake's (OFF, ON, UNKNOWN) probabilities.
         rows: ``[N, FIELDS]`` (not modified).
-        released_below: P(ON | judged) under which a judged brake counts as released.
-        shift: Log-odds added to ON once the track has been seen released.
-        rise: With > 0, the shift applies only to frames whose ON log-odds (against OFF)
-            stand at least this far above the lowest the track has shown while judged.
-        unreleased_shift: Log-odds added to ON while the track has not been seen released.
+        settings: What to shift, and when.
 
     Returns:
         ``(probabilities [N, 3], rows [N, FIELDS])``.
@@ -83,8 +105,14 @@ def step(p: np.ndarray, rows: np.ndarray, released_below: float, shift: float,
     ratio = p[:, _ON] / np.where(judged, off_on, 1.0)
     q = np.clip(ratio, _EPS, 1.0 - _EPS)
     log_odds = np.log(q / (1.0 - q))
-    seen = np.maximum(rows[:, _SEEN], judged & (ratio < released_below))
+    seen = np.maximum(rows[:, _SEEN], judged & (ratio < settings.released_below))
     floor = np.fmin(rows[:, _FLOOR], np.where(judged, log_odds, np.nan))
-    gain = seen if rise <= 0 else seen * (judged & (log_odds - floor >= rise))
-    return (shift_on(p, np.where(seen > 0, shift * gain, unreleased_shift)),
-            np.stack([seen, floor], axis=1))
+    shift = settings.hysteresis * rows[:, _WAS_ON]
+    if settings.released_below > 0:
+        gain = seen if settings.rise <= 0 else \
+            seen * (judged & (log_odds - floor >= settings.rise))
+        shift = shift + np.where(seen > 0, settings.shift * gain, settings.unreleased_shift)
+    out = shift_on(p, shift)
+    state = out.argmax(-1)
+    was_on = np.where(state == _UNKNOWN, rows[:, _WAS_ON], state == _ON)
+    return out, np.stack([seen, floor, was_on], axis=1)

@@ -148,6 +148,9 @@ class IntentFilterConfig:
         brake_unreleased_shift: With ``brake_released_below``, the log-odds added to the
             brake's ON while its track has not been seen released (< 0: a vehicle first
             seen with its lamps lit needs a clearer brake; 0: as the model says).
+        brake_hysteresis: Log-odds added to the brake's ON while its last judged frame
+            came out ON (:mod:`brake_onset`): a release must be clearer than an onset;
+            0: none.
         cover_max: With ``geometry``: the share of a box that may be covered before the
             model's own UNKNOWN counts again.
     """
@@ -167,6 +170,7 @@ class IntentFilterConfig:
     brake_onset_shift: float = 1.0
     brake_onset_rise: float = 0.0
     brake_unreleased_shift: float = 0.0
+    brake_hysteresis: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, (bool, np.bool_)):
@@ -212,6 +216,17 @@ class IntentFilterConfig:
             raise ConfigError(f"brake_unreleased_shift must be a finite number of log-odds, "
                               f"got {value!r}")
         object.__setattr__(self, "brake_unreleased_shift", float(value))
+        value = self.brake_hysteresis
+        if not _is_finite_number(value) or value < 0.0:
+            raise ConfigError(f"brake_hysteresis must be a number >= 0 (0: none), got {value!r}")
+        object.__setattr__(self, "brake_hysteresis", float(value))
+
+    @property
+    def brake_onset_settings(self) -> brake_onset.Settings:
+        """The ``brake_*`` settings of :mod:`brake_onset`."""
+        return brake_onset.Settings(self.brake_released_below, self.brake_onset_shift,
+                                    self.brake_onset_rise, self.brake_unreleased_shift,
+                                    self.brake_hysteresis)
 
     def describe(self) -> str:
         """One line for reports: what is published."""
@@ -226,6 +241,8 @@ class IntentFilterConfig:
                 brake += f" on a rise of {self.brake_onset_rise:g} over the track's lowest"
             if self.brake_unreleased_shift != 0:
                 brake += f", {self.brake_unreleased_shift:+g} until then"
+        if self.brake_hysteresis > 0:
+            brake += f", +{self.brake_hysteresis:g} log-odds while ON (hysteresis)"
         gate = (f"a blinker must flash (evidence >= {self.flash_min_evidence:g} over "
                 f"{self.flash_window_s:g} s)" if self.flash_min_evidence > 0 else "no flash gate")
         seen = (f"; visibility changes after {self.visibility_confirm_s:g} s"
@@ -342,12 +359,10 @@ class IntentFilter:
             evidence = flash_gate.side_evidence(
                 flash_gate.half_evidence(ring, now, self.config.flash_window_s), probs["view"])
             p = flash_gate.veto(p, evidence, self.config.flash_min_evidence, (_LEFT, _RIGHT))
-        if self.config.brake_released_below > 0:
+        if self.config.brake_released_below > 0 or self.config.brake_hysteresis > 0:
             brake = LIGHT_TASKS.index("brake")
-            p[:, brake], released = brake_onset.step(
-                p[:, brake], released, self.config.brake_released_below,
-                self.config.brake_onset_shift, self.config.brake_onset_rise,
-                self.config.brake_unreleased_shift)
+            p[:, brake], released = brake_onset.step(p[:, brake], released,
+                                                     self.config.brake_onset_settings)
         if self.config.visibility_confirm_s > 0:
             p, shown = visibility_hold.step(p, now, shown, self.config.visibility_confirm_s)
         on = self._advance(state, p, now[:, None])
