@@ -30,7 +30,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 
 from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
-from signal_light_node.evaluation.streaming import chunks, filter_track_probs, model_track_probs
+from signal_light_node.evaluation.streaming import chunks, model_track_probs, score_batch
 from signal_light_node.labels import TASKS
 from signal_light_node.model.backends.registry import create_backend
 from signal_light_node.runtime import brake_onset
@@ -85,9 +85,7 @@ def score(batches: Pass, config: IntentFilterConfig, shift: float) -> Dict[str, 
     brake_on = judged = 0
     column = TASKS.index("brake")
     for tracks, raw in batches:
-        preds, probs = filter_track_probs(shift_brake(raw, shift), tracks, config)
-        for track, pred, prob in zip(tracks, preds, probs):
-            scorer.add(track, pred, probs=prob)
+        for pred in score_batch(scorer, tracks, shift_brake(raw, shift), config):
             brake = pred[pred[:, column] >= 0, column]
             brake_on += int((brake == _ON).sum())
             judged += int((brake != 2).sum())

@@ -192,12 +192,14 @@ def evaluate_tracks(model: Any, tracks: Iterable[TrackSequence],
 
 
 def score_batch(scorer: TrackScorer, tracks: Sequence[TrackSequence], raw: Dict[str, np.ndarray],
-                intent_filter: IntentFilterConfig) -> None:
+                intent_filter: IntentFilterConfig) -> List[np.ndarray]:
     """Add a batch of tracks to ``scorer``: their :func:`model_track_probs` outputs ``raw``
-    through the intent filter, as published."""
+    through the intent filter, as published. Returns the published states per track
+    (``[T, len(TASKS)]``, -1 where none), for callers that count more than the scorer."""
     preds, probs = filter_track_probs(raw, tracks, intent_filter)
     for track, pred, prob in zip(tracks, preds, probs):
         scorer.add(track, pred, probs=prob)
+    return list(preds)
 
 
 def scorer_result(scorer: TrackScorer, intent_filter: IntentFilterConfig) -> Dict[str, Any]:
