@@ -62,6 +62,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(render_data.sh: NIGHT_NEGATIVE_TRACKS): with --max-false-brake "
                              "or --max-false-blinker, the ON offset nearest 0 that keeps "
                              "their false lights within it")
+    parser.add_argument("--fit-filter", action="store_true",
+                        help="also fit the node's output filter (blinker hold, visibility "
+                             "hold, brake release) on the same tracks; written into the "
+                             "checkpoint's metadata and as node parameters to OUT.filter.yaml")
     for group in LIGHT_GROUPS:
         parser.add_argument(f"--max-false-{group}", type=float, default=None, metavar="X",
                             help=f"with --night-negatives: the largest share of their "
@@ -77,6 +81,7 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from signal_light_node.training.night_bound import summary_line
+    from signal_light_node.training.filter_fit import FILTER_GRID
     from signal_light_node.training.unknown_bias import calibrate_checkpoint, summary_lines
 
     require_pt_checkpoints(args, "calibrate")
@@ -87,7 +92,8 @@ def run(args: argparse.Namespace) -> int:
         torch.set_num_threads(int(args.threads))
     fit, report = calibrate_checkpoint(args.out, args.inputs, args.checkpoint,
                                        args.holdout_fraction, args.seed, args.grid,
-                                       args.on_grid, bounds)
+                                       args.on_grid, bounds,
+                                       FILTER_GRID if args.fit_filter else None)
     lines = summary_lines(fit, args.out, report)
     lines += [summary_line(fit) for fit in (bounds.fits if bounds else [])]
     print("\n".join(lines))

@@ -59,7 +59,8 @@ def headline(result: Mapping[str, Any]) -> Dict[str, Any]:
 
 
 def before_after(before: Any, after: Any, held_out: Sequence[TrackSequence],
-                 before_name: str, after_name: str) -> Dict[str, Any]:
+                 before_name: str, after_name: str, after_filter: Any = None
+                 ) -> Dict[str, Any]:
     """Evaluate both models on the held-out tracks (the node's intent filter, default rules).
 
     Args:
@@ -68,15 +69,21 @@ def before_after(before: Any, after: Any, held_out: Sequence[TrackSequence],
         held_out: The tracks held out of the run.
         before_name: What ``before`` is (its checkpoint).
         after_name: What ``after`` is.
+        after_filter: The ``IntentFilterConfig`` that ``after`` is published with (None:
+            the defaults, as ``before``).
     """
     from signal_light_node.evaluation.streaming import evaluate_tracks
 
     rows = {}
-    for key, model in (("before", before), ("after", after)):
-        rows[key] = headline(evaluate_tracks(model, held_out, progress=False))
-    return {"held_out_tracks": sorted({t.track_id for t in held_out}),
-            "before": {"model": before_name, **rows["before"]},
-            "after": {"model": after_name, **rows["after"]}}
+    for key, model, light_filter in (("before", before, None), ("after", after, after_filter)):
+        rows[key] = headline(evaluate_tracks(model, held_out, progress=False,
+                                             intent_filter=light_filter))
+    report = {"held_out_tracks": sorted({t.track_id for t in held_out}),
+              "before": {"model": before_name, **rows["before"]},
+              "after": {"model": after_name, **rows["after"]}}
+    if after_filter is not None:
+        report["after"]["filter"] = after_filter.describe()
+    return report
 
 
 def report_markdown(report: Mapping[str, Any], what: str = "Fine-tuning") -> str:
@@ -91,6 +98,8 @@ def report_markdown(report: Mapping[str, Any], what: str = "Fine-tuning") -> str
         lines.append(f"| {key}: `{r['model']}` | {percent_cell(r['intent_macro_f1'])} | "
                      f"{percent_cell(r['brake_f1'])} | {percent_cell(r['unknown_share'])} | "
                      f"{r['scored_frames']} |")
+    if report["after"].get("filter"):
+        lines += ["", f"After is published with the fitted filter: {report['after']['filter']}."]
     return "\n".join(lines) + "\n"
 
 

@@ -55,9 +55,11 @@ from signal_light_node.evaluation.tracks import TrackSequence
 from signal_light_node.labels import LightStatus
 from signal_light_node.model.checkpoint import FILE_META
 from signal_light_node.runtime.crops import CropConfig
+from signal_light_node.training.filter_fit import FilterFit, fit_filter, parameter_file
 
 if TYPE_CHECKING:
     from signal_light_node.evaluation.scoring import TrackScorer
+    from signal_light_node.runtime.intent_filter import IntentFilterConfig
 
 logger = logging.getLogger(__name__)
 
@@ -74,6 +76,8 @@ ON_HEADS = ("left", "right")
 DEFAULT_ON_GRID: Tuple[float, ...] = (-2.0, -1.5, -1.0, -0.5, 0.0, 0.5, 1.0)
 #: Checkpoint metadata key of the fit.
 META_KEY = "unknown_margin"
+#: ... and of the filter fitted with it (``--fit-filter``).
+FILTER_META_KEY = "filter_fit"
 
 
 @dataclass
@@ -89,6 +93,7 @@ class MarginFit:
         fit_frames: Their frames scored.
         edges: What was chosen at the end of its grid (:func:`grid_edges`): a wider grid
             might score better still.
+        filter: The node's filter fitted with it (``--fit-filter``), or None.
     """
 
     margin: float
@@ -97,6 +102,7 @@ class MarginFit:
     fit_tracks: int = 0
     fit_frames: int = 0
     edges: List[str] = field(default_factory=list)
+    filter: Optional[FilterFit] = None
 
 
 def grid_edges(margin: float, on_offset: float, grid: Sequence[float],
@@ -249,27 +255,31 @@ class ModelPass:
                         for batch in chunks(tracks, self.settings.batch_tracks)]
 
     def scorer(self, offsets: Dict[str, np.ndarray],
-               shifts: Optional[Mapping[str, float]] = None) -> "TrackScorer":
+               shifts: Optional[Mapping[str, float]] = None,
+               light_filter: Optional["IntentFilterConfig"] = None) -> "TrackScorer":
         """Every track scored as the model moved by bias ``offsets`` and ON ``shifts``
-        (:func:`with_offsets`) would publish it."""
+        (:func:`with_offsets`) would publish it, through ``light_filter`` (default: the
+        node's defaults)."""
         from signal_light_node.evaluation.scoring import TrackScorer
         from signal_light_node.evaluation.streaming import score_batch
 
         scorer = TrackScorer(self.settings)
         for batch, raw in self.outputs:
             moved = with_offsets(raw, offsets, self.temperatures, shifts)
-            score_batch(scorer, batch, moved, self.light_filter)
+            score_batch(scorer, batch, moved, light_filter or self.light_filter)
         return scorer
 
 
 def fit_unknown_margin(model: nn.Module, tracks: Sequence[TrackSequence],
                        grid: Sequence[float] = DEFAULT_GRID,
-                       on_grid: Sequence[float] = (0.0,)) -> MarginFit:
+                       on_grid: Sequence[float] = (0.0,),
+                       passed: Optional[ModelPass] = None) -> MarginFit:
     """Score ``tracks`` at every margin of ``grid`` and ON offset of ``on_grid``; keep the
     best. ``model`` itself is not changed.
 
-    The model runs once; each setting is applied to its outputs (:func:`with_offsets`)
-    and filtered and scored as ``evaluate`` does.
+    The model runs once (or ``passed``, its pass over ``tracks``, is used); each setting
+    is applied to its outputs (:func:`with_offsets`) and filtered and scored as
+    ``evaluate`` does.
 
     Raises:
         ConfigError: An empty grid, a negative margin, or no track to fit on.
@@ -283,7 +293,7 @@ def fit_unknown_margin(model: nn.Module, tracks: Sequence[TrackSequence],
     if not tracks:
         raise ConfigError("no labelled track to fit the UNKNOWN margin on")
     head_offsets(model, 0.0)  # every head has the classes moved
-    passed = ModelPass(model, tracks)
+    passed = passed or ModelPass(model, tracks)
     fit = MarginFit(margin=0.0, fit_tracks=len(tracks))
     chosen: Dict[float, float] = {}
     for margin in sorted({float(m) for m in grid}):
@@ -329,10 +339,16 @@ def calibrate_checkpoint(out: Path, inputs: Sequence[Path],
                          checkpoint: Optional[Path] = None, holdout_fraction: float = 0.0,
                          seed: int = 0, grid: Sequence[float] = DEFAULT_GRID,
                          on_grid: Sequence[float] = DEFAULT_ON_GRID,
-                         after_fit: Optional[Callable[[nn.Module], Dict[str, Any]]] = None
+                         after_fit: Optional[Callable[[nn.Module], Dict[str, Any]]] = None,
+                         filter_grid: Optional[Sequence[Dict[str, float]]] = None
                          ) -> Tuple[MarginFit, Optional[Dict[str, Any]]]:
     """Fit the UNKNOWN margin and ON offsets of ``checkpoint`` on ``inputs``, write ``out``
     (and, with held-out tracks, its before/after report); returns the fit and the report.
+
+    With ``filter_grid`` the node's filter settings are fitted too, on the same tracks and
+    model pass, once the margin and offsets are chosen (:mod:`training.filter_fit`): they
+    go into the metadata (``filter_fit``) and into ``OUT.filter.yaml`` (node parameters),
+    and the held-out tracks are scored after with them.
 
     ``after_fit`` is called with the model once its margin and offsets are applied; it may
     move the model further (``training.night_bound.NightBounds``), and what it returns joins
@@ -353,7 +369,10 @@ def calibrate_checkpoint(out: Path, inputs: Sequence[Path],
     head_offsets(loaded.model, 0.0)  # the heads have the classes moved
     tracks = load_labelled(inputs, loaded.config.crop_config())
     kept, held = split_by_track_id(tracks, holdout_fraction, seed)
-    fit = fit_unknown_margin(loaded.model, kept, grid, on_grid)
+    passed = ModelPass(loaded.model, kept) if kept else None
+    fit = fit_unknown_margin(loaded.model, kept, grid, on_grid, passed)
+    fit.filter = filtered = (None if filter_grid is None
+                             else _fit_filter(loaded.model, passed, fit, filter_grid))
     apply_offsets(loaded.model, head_offsets(loaded.model, fit.margin))
     add_on_offsets(loaded.model, on_offsets(ON_HEADS, fit.on_offset))
     extra = after_fit(loaded.model) if after_fit is not None else {}
@@ -367,16 +386,39 @@ def calibrate_checkpoint(out: Path, inputs: Sequence[Path],
                       "held_out_tracks": len(held), "seed": seed,
                       "scores": {f"{m:g}": s for m, s in fit.scores.items()}}
     meta.update(extra)
+    if filtered is not None:
+        meta[FILTER_META_KEY] = {"changes": filtered.changes, "score": filtered.score,
+                                 "default_score": filtered.default_score,
+                                 "tried": filtered.tried, "allowed": filtered.allowed}
     report = None
     if held:
         original = load_checkpoint(source, map_location="cpu").model.eval()
-        report = before_after(original, loaded.model.eval(), held, str(source), str(out))
+        report = before_after(original, loaded.model.eval(), held, str(source), str(out),
+                              None if filtered is None else filtered.config)
     save_checkpoint(out, loaded.model, loaded.model.config, meta)
+    if filtered is not None:
+        filter_paths(Path(out)).write_text(parameter_file(filtered.changes))
     if report is not None:
         path_json, path_md = report_paths(Path(out))
         path_json.write_text(json.dumps(report, indent=2) + "\n")
-        path_md.write_text(report_markdown(report, what="UNKNOWN margin and ON offsets"))
+        path_md.write_text(report_markdown(report, what="UNKNOWN margin and ON offsets"
+                                           + (" and the filter" if filtered else "")))
     return fit, report
+
+
+def filter_paths(out: Path) -> Path:
+    """Where ``calibrate --fit-filter`` writes the node parameters: ``OUT.filter.yaml``."""
+    return out.with_suffix(".filter.yaml")
+
+
+def _fit_filter(model: nn.Module, passed: ModelPass, fit: MarginFit,
+                grid: Sequence[Dict[str, float]]) -> FilterFit:
+    """The node's filter fitted on ``passed``'s tracks, the model moved by ``fit``."""
+    from signal_light_node.evaluation.streaming import scorer_result
+
+    offsets, shifts = head_offsets(model, fit.margin), on_offsets(ON_HEADS, fit.on_offset)
+    return fit_filter(lambda config: scorer_result(passed.scorer(offsets, shifts, config),
+                                                   config), score, grid)
 
 
 def summary_lines(fit: MarginFit, out: Path, report: Optional[Dict[str, Any]]) -> List[str]:
@@ -389,6 +431,12 @@ def summary_lines(fit: MarginFit, out: Path, report: Optional[Dict[str, Any]]) -
              f"{', '.join(ON_HEADS)}, in log-odds); wrote {out}"]
     if fit.edges:
         lines.append(f"note: {'; '.join(fit.edges)}: a wider grid may score better")
+    if fit.filter is not None:
+        f = fit.filter
+        lines.append(f"filter fitted ({f.allowed} of {f.tried} settings within the switch "
+                     f"bound): {f.changes or 'the defaults'}, score {100 * f.score:.1f} % "
+                     f"(defaults {100 * f.default_score:.1f} %); node parameters in "
+                     f"{filter_paths(Path(out))}")
     if report is not None:
         for key in ("before", "after"):
             r = report[key]
