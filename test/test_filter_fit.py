@@ -15,8 +15,8 @@ from signal_light_node.cli import main
 from signal_light_node.model import load_checkpoint
 from signal_light_node.ros.params import DetectorParams
 from signal_light_node.runtime.intent_filter import IntentFilterConfig
-from signal_light_node.training.filter_fit import (FILTER_GRID, fit_filter, node_parameters,
-                                                   parameter_file)
+from signal_light_node.training.filter_fit import (FILTER_GRID, cli_options, fit_filter,
+                                                   node_parameters, parameter_file)
 from signal_light_node.training.unknown_bias import FILTER_META_KEY
 
 REPO = Path(__file__).resolve().parents[1]
@@ -58,6 +58,17 @@ def test_every_grid_setting_is_a_node_parameter_file() -> None:
     assert yaml.safe_load(parameter_file({}))["signal_light_detector"]["ros__parameters"] == {}
     assert node_parameters({"enabled": False, "hold_s": 0.4}) == {
         "intent_filter": False, "filter_hold_s": 0.4}
+
+
+def test_the_printed_options_set_evaluate_to_the_fitted_filter() -> None:
+    from signal_light_node.cli import build_parser
+    from signal_light_node.commands.options import intent_filter_from_args
+
+    others = {"enabled": False, "flash_min_evidence": 0.2, "confirm_s": 0.1, "on_threshold": 0.6}
+    for changes in FILTER_GRID + [others]:
+        args = build_parser(["evaluate"]).parse_args(["evaluate", "--out", "OUT"]
+                                                     + cli_options(changes))
+        assert intent_filter_from_args(args) == IntentFilterConfig(**changes), changes
 
 
 @pytest.mark.skipif(not (BAG / "metadata.yaml").exists(), reason="bags/day_street is not committed")

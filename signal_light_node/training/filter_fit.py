@@ -113,6 +113,23 @@ def node_parameters(changes: Mapping[str, float]) -> Dict[str, float]:
     return {("intent_filter" if k == "enabled" else f"filter_{k}"): v for k, v in changes.items()}
 
 
+#: ``IntentFilterConfig`` fields whose command-line option is not ``--filter-`` + the
+#: field's name without its ``_s`` (``commands.options.add_intent_filter_options``).
+_OPTION_NAMES = {"flash_min_evidence": "--filter-flash-min"}
+
+
+def cli_options(changes: Mapping[str, float]) -> List[str]:
+    """``evaluate`` / ``replay`` options that set the filter to ``changes``."""
+    options: List[str] = []
+    for name, value in changes.items():
+        if name == "enabled":
+            options.append("--intent-filter" if value else "--no-intent-filter")
+            continue
+        stem = name[:-2] if name.endswith("_s") else name
+        options += [_OPTION_NAMES.get(name, "--filter-" + stem.replace("_", "-")), f"{value:g}"]
+    return options
+
+
 def parameter_file(changes: Mapping[str, float], node: str = "signal_light_detector") -> str:
     """A ROS 2 parameter file (YAML) that sets the node's filter to ``changes``."""
     params = node_parameters(changes)

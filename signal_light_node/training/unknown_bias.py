@@ -55,7 +55,8 @@ from signal_light_node.evaluation.tracks import TrackSequence
 from signal_light_node.labels import LightStatus
 from signal_light_node.model.checkpoint import FILE_META
 from signal_light_node.runtime.crops import CropConfig
-from signal_light_node.training.filter_fit import FilterFit, fit_filter, parameter_file
+from signal_light_node.training.filter_fit import (FilterFit, cli_options, fit_filter,
+                                                   parameter_file)
 
 if TYPE_CHECKING:
     from signal_light_node.evaluation.scoring import TrackScorer
@@ -436,7 +437,8 @@ def summary_lines(fit: MarginFit, out: Path, report: Optional[Dict[str, Any]]) -
         lines.append(f"filter fitted ({f.allowed} of {f.tried} settings within the switch "
                      f"bound): {f.changes or 'the defaults'}, score {100 * f.score:.1f} % "
                      f"(defaults {100 * f.default_score:.1f} %); node parameters in "
-                     f"{filter_paths(Path(out))}")
+                     f"{filter_paths(Path(out))}; evaluate / replay options: "
+                     f"{' '.join(cli_options(f.changes)) or '(none)'}")
     if report is not None:
         for key in ("before", "after"):
             r = report[key]
