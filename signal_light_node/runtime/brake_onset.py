@@ -22,14 +22,14 @@ track has been seen released, its brake's ON log-odds get that (negative) shift,
 vehicle first seen with its lamps lit needs a clearer brake, and a tail lamp that stays lit
 at night, which the model puts at a median P(ON) of 0.43, is not published braking.
 
-With ``hysteresis`` > 0 a brake published ON keeps that many more log-odds until it is
-published OFF: a release has to be clearer than an onset, so a brake the model holds near
+With ``hysteresis`` > 0 a brake that came out ON keeps that many more log-odds until it
+comes out OFF: a release has to be clearer than an onset, so a brake the model holds near
 its operating point does not flicker. Together with a negative ``unreleased_shift`` a
 steady tail lamp never turns ON in the first place, so it cannot latch.
 
 Three floats per track in the filter row: 1 once the brake has been seen released (else
 0), the lowest judged ON log-odds so far (NaN before the first judged frame), and 1 while
-the brake this step last published was ON (an UNKNOWN frame keeps it). Pure numpy,
+the brake last came out of this step ON (an UNKNOWN frame keeps it). Pure numpy,
 vectorised over tracks.
 """
 
@@ -60,7 +60,8 @@ class Settings(NamedTuple):
         rise: With > 0, the shift applies only to frames whose ON log-odds (against OFF)
             stand at least this far above the lowest the track has shown while judged.
         unreleased_shift: Log-odds added to ON while the track has not been seen released.
-        hysteresis: Log-odds added to ON while the brake's last published state is ON.
+        hysteresis: Log-odds added to ON while the track's last judged frame came out of
+            this step ON.
     """
 
     released_below: float = 0.0

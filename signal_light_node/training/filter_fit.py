@@ -46,8 +46,8 @@ class FilterFit:
     """What :func:`fit_filter` found.
 
     Attributes:
-        changes: The chosen ``IntentFilterConfig`` fields that differ from the defaults
-            (``{}``: the defaults won).
+        changes: The chosen setting of the grid, as ``IntentFilterConfig`` fields (it may
+            repeat a default's value; ``{}``: the defaults themselves won).
         score: Its score on the fit tracks (``calibrate``'s objective).
         default_score: The defaults' score there.
         tried: Settings scored; ``allowed`` of them within the switch bound.
