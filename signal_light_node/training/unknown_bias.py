@@ -347,7 +347,8 @@ def calibrate_checkpoint(out: Path, inputs: Sequence[Path],
     (and, with held-out tracks, its before/after report); returns the fit and the report.
 
     With ``filter_grid`` the node's filter settings are fitted too, on the same tracks and
-    model pass, once the margin and offsets are chosen (:mod:`training.filter_fit`): they
+    model pass, once the margin and offsets are chosen and before ``after_fit`` moves the
+    model further (:mod:`training.filter_fit`): they
     go into the metadata (``filter_fit``) and into ``OUT.filter.yaml`` (node parameters),
     and the held-out tracks are scored after with them.
 
