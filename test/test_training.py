@@ -188,9 +188,9 @@ def test_tiny_model_overfits_fixed_sequences(tmp_path, precision, steps):
     assert "UCM" in best.meta["training_data"]["sources"][0]
 
 
-def _fine_tuned_from_a_start(tmp_path, flag: str):
-    """(start, fine-tuned) state dicts of a 5-step run with ``flag`` set on a 1-step
-    start; the flag alone (without --init-from) is refused."""
+def _fine_tuned_from_a_start(tmp_path, flag: str, **more):
+    """(start, fine-tuned) state dicts of a 5-step run with ``flag`` (and ``more``
+    options) set on a 1-step start; the flag alone (without --init-from) is refused."""
     ucm = tmp_path / "ucm"
     make_ucm(ucm, CODES[:3], frames=8)
     with pytest.raises(ConfigError, match="needs --init-from"):
@@ -198,7 +198,7 @@ def _fine_tuned_from_a_start(tmp_path, flag: str):
     Trainer(tiny_options(tmp_path / "init", ucm, max_steps=1)).run()
     init = load_checkpoint(tmp_path / "init" / "last.pt").model.state_dict()
     Trainer(tiny_options(tmp_path / "run", ucm, max_steps=5, init_from=tmp_path / "init" /
-                         "last.pt", **{flag: True})).run()
+                         "last.pt", **{flag: True}, **more)).run()
     return init, load_checkpoint(tmp_path / "run" / "last.pt").model.state_dict()
 
 
@@ -221,6 +221,24 @@ def test_heads_only_run_moves_only_the_output_layers(tmp_path):
              (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     assert steps == [5]
 
+
+
+def test_head_tasks_move_only_those_heads(tmp_path):
+    init, trained = _fine_tuned_from_a_start(tmp_path, "heads_only", head_tasks=("brake",))
+    moved = {name for name, before in init.items() if not torch.equal(before, trained[name])}
+    assert moved == {"heads.brake.weight", "heads.brake.bias"}, moved
+    ucm = tmp_path / "ucm"
+    with pytest.raises(ConfigError, match="goes with --heads-only"):
+        tiny_options(tmp_path / "bad", ucm, head_tasks=("brake",)).validate()
+    with pytest.raises(ConfigError, match="unknown task 'brakes'"):
+        tiny_options(tmp_path / "bad", ucm, heads_only=True, init_from=tmp_path / "x.pt",
+                     head_tasks=("brakes",)).validate()
+    from signal_light_node.cli import build_parser
+    from signal_light_node.commands.train import options_from_args
+
+    args = build_parser(["train"]).parse_args(["train", "--out", str(tmp_path), "--heads-only",
+                                               "--head-tasks", "brake,left"])
+    assert options_from_args(args).head_tasks == ("brake", "left")
 
 
 def test_train_trunk_from_is_refused_on_a_model_without_a_pretrained_trunk(tmp_path):

@@ -97,6 +97,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--heads-only", action="store_true",
                    help="train only the output layers (last dense layer and task heads); the "
                         "rest, batch norms included, keeps the --init-from weights")
+    g.add_argument("--head-tasks", type=lambda text: tuple(t for t in text.split(",") if t),
+                   default=(), metavar="TASK,...",
+                   help="with --heads-only: only these tasks' heads learn (e.g. brake: the "
+                        "shared dense layer and the other heads keep their weights)")
     g.add_argument("--train-trunk-from", type=int, default=None, metavar="N",
                    help="with --heads-only: the pretrained trunk's blocks N.. learn too "
                         "(their batch norms keep their statistics)")
@@ -235,6 +239,7 @@ def options_from_args(args: argparse.Namespace) -> TrainOptions:
         init_from=Path(args.init_from) if args.init_from else None,
         freeze_encoder=args.freeze_encoder, freeze_norms=args.freeze_norms,
         heads_only=args.heads_only, trunk_from=args.train_trunk_from,
+        head_tasks=tuple(args.head_tasks),
         grown_init_scale=args.grown_init_scale, bags=list(args.bags),
         ucm=list(args.ucm), pools=list(args.pools), rehearse=list(args.rehearse),
         rehearse_share=args.rehearse_share, mode=args.mode,

@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, List, Optional, Tuple
 
 from signal_light_node.errors import ConfigError
 from signal_light_node.labels import TASKS
@@ -86,6 +86,8 @@ class TrainOptions:
             heads, every member's); everything before them, batch norms included, keeps
             its ``init_from`` weights (:func:`.run_model.freeze_to_heads`). What a few
             labelled tracks of a user's camera can move without overfitting.
+        head_tasks: With ``heads_only``: only these tasks' heads learn (the shared dense
+            layer and every other head keep their weights); empty: all output layers.
         trunk_from: With ``heads_only``: the pretrained trunk's blocks from this index on
             learn too, their batch norms keeping their statistics
             (:func:`.run_model.train_trunk_blocks`); None: the trunk stays fixed.
@@ -169,6 +171,7 @@ class TrainOptions:
     freeze_norms: bool = False
     heads_only: bool = False
     trunk_from: Optional[int] = None
+    head_tasks: Tuple[str, ...] = ()
     grown_init_scale: float = 0.0
     bags: List[Path] = field(default_factory=list)
     ucm: List[Path] = field(default_factory=list)
@@ -253,6 +256,13 @@ class TrainOptions:
         if self.heads_only and self.init_from is None and self.resume is None:
             raise ConfigError("--heads-only needs --init-from (or --resume): heads on an "
                               "untrained network would learn nothing")
+        if self.head_tasks and not self.heads_only:
+            raise ConfigError("--head-tasks goes with --heads-only: it narrows the output "
+                              "layers that learn")
+        unknown = [t for t in self.head_tasks if t not in TASKS]
+        if unknown:
+            raise ConfigError(f"--head-tasks: unknown task {unknown[0]!r} (tasks: "
+                              f"{', '.join(TASKS)})")
         if self.trunk_from is not None and not self.heads_only:
             raise ConfigError("--train-trunk-from goes with --heads-only: it adds trunk blocks "
                               "to the output layers that learn")

@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, Mapping, Optional
+from typing import Any, Dict, Mapping, Optional, Sequence
 
 from torch import nn
 
@@ -87,7 +87,8 @@ def _warm_started(init: Path, changes: Mapping[str, Any], grown_init_scale: floa
 
 
 def freeze_parts(model: nn.Module, config: ModelConfig, encoder: bool, norms: bool,
-                 heads_only: bool = False, trunk_from: Optional[int] = None) -> None:
+                 heads_only: bool = False, trunk_from: Optional[int] = None,
+                 head_tasks: Sequence[str] = ()) -> None:
     """``--freeze-encoder`` (train only the ConvLSTM and the heads) and ``--freeze-norms``
     (keep the batch-norm statistics; the weights still train) and ``--heads-only``
     (:func:`freeze_to_heads`), with ``--train-trunk-from`` (:func:`train_trunk_blocks`).
@@ -106,7 +107,7 @@ def freeze_parts(model: nn.Module, config: ModelConfig, encoder: bool, norms: bo
                               "freeze its norms")
         model.freeze_norms()
     if heads_only:
-        freeze_to_heads(model, config)
+        freeze_to_heads(model, config, head_tasks)
     if trunk_from is not None:
         train_trunk_blocks(model, config, trunk_from)
 
@@ -116,8 +117,10 @@ def freeze_parts(model: nn.Module, config: ModelConfig, encoder: bool, norms: bo
 HEAD_MODULES = ("fc", "heads")
 
 
-def freeze_to_heads(model: nn.Module, config: ModelConfig) -> None:
-    """Fix everything but the output layers (:data:`HEAD_MODULES`), batch norms included.
+def freeze_to_heads(model: nn.Module, config: ModelConfig, tasks: Sequence[str] = ()) -> None:
+    """Fix everything but the output layers (:data:`HEAD_MODULES`), batch norms included;
+    with ``tasks``, everything but those tasks' heads (the shared dense layer fixed too, so
+    the other heads publish exactly as before).
 
     On a few labelled tracks a fine-tune of the recurrent part learns them by heart (on
     24 tracks of a held-out style family it lowered intent macro-F1 on the other 32:
@@ -129,12 +132,15 @@ def freeze_to_heads(model: nn.Module, config: ModelConfig) -> None:
     """
     trainable = 0
     for name, parameter in model.named_parameters():
-        keep = any(part in HEAD_MODULES for part in name.split(".")[:-1])
+        parts = name.split(".")[:-1]
+        keep = (any(part in HEAD_MODULES for part in parts) if not tasks
+                else any(a == "heads" and b in tasks for a, b in zip(parts, parts[1:])))
         parameter.requires_grad_(keep)
         trainable += parameter.numel() if keep else 0
     if not trainable or not hasattr(model, "freeze_norms"):
         raise ConfigError(f"--heads-only: architecture {config.arch!r} has no output layers "
-                          f"named {' / '.join(HEAD_MODULES)} to train")
+                          f"named {' / '.join(HEAD_MODULES)}"
+                          f"{' for ' + ', '.join(tasks) if tasks else ''} to train")
     model.freeze_norms()
     logger.info("--heads-only: %d trainable parameters", trainable)
 
