@@ -137,22 +137,9 @@ def intent_filter_from_args(args: argparse.Namespace) -> Any:
     Raises:
         ConfigError: A value is out of range.
     """
-    from signal_light_node.runtime.intent_filter import IntentFilterConfig
+    from signal_light_node.runtime.intent_filter import config_from, option_dest
 
-    return IntentFilterConfig(enabled=args.intent_filter, on_threshold=args.filter_on_threshold,
-                              hold_s=args.filter_hold, confirm_s=args.filter_confirm,
-                              brake_hold_s=args.filter_brake_hold,
-                              flash_min_evidence=args.filter_flash_min,
-                              flash_window_s=args.filter_flash_window,
-                              visibility_confirm_s=args.filter_visibility_confirm,
-                              blinker_sight=args.filter_blinker_sight,
-                              brake_sight=args.filter_brake_sight,
-                              cover_max=args.filter_cover_max,
-                              brake_released_below=args.filter_brake_released_below,
-                              brake_onset_shift=args.filter_brake_onset_shift,
-                              brake_onset_rise=args.filter_brake_onset_rise,
-                              brake_unreleased_shift=args.filter_brake_unreleased_shift,
-                              brake_hysteresis=args.filter_brake_hysteresis)
+    return config_from(args, option_dest)
 
 
 def add_pairing_options(group: ArgumentContainer) -> None:

@@ -25,7 +25,8 @@ from signal_light_node.io.topics import camera_name_problem
 from signal_light_node.model.backends.registry import known_backends
 from signal_light_node.runtime.backend import (AUTO_BACKEND, DEFAULT_BACKEND, DEFAULT_PRECISION,
                                                PRECISIONS)
-from signal_light_node.runtime.intent_filter import BRAKE_SIGHTS, SIGHTS, IntentFilterConfig
+from signal_light_node.runtime.intent_filter import (BRAKE_SIGHTS, SIGHTS, IntentFilterConfig,
+                                                     config_from, parameter_name)
 from signal_light_node.labels import LIGHT_CODES
 
 LOG = logging.getLogger(__name__)
@@ -159,21 +160,7 @@ class DetectorParams:
     @property
     def intent_filter_config(self) -> IntentFilterConfig:
         """The engine's filter settings."""
-        return IntentFilterConfig(enabled=self.intent_filter,
-                                  on_threshold=self.filter_on_threshold,
-                                  hold_s=self.filter_hold_s, confirm_s=self.filter_confirm_s,
-                                  brake_hold_s=self.filter_brake_hold_s,
-                                  flash_min_evidence=self.filter_flash_min_evidence,
-                                  flash_window_s=self.filter_flash_window_s,
-                                  visibility_confirm_s=self.filter_visibility_confirm_s,
-                                  blinker_sight=self.filter_blinker_sight,
-                                  brake_sight=self.filter_brake_sight,
-                                  cover_max=self.filter_cover_max,
-                                  brake_released_below=self.filter_brake_released_below,
-                                  brake_onset_shift=self.filter_brake_onset_shift,
-                                  brake_onset_rise=self.filter_brake_onset_rise,
-                                  brake_unreleased_shift=self.filter_brake_unreleased_shift,
-                                  brake_hysteresis=self.filter_brake_hysteresis)
+        return config_from(self, parameter_name)
 
     @property
     def pairing_ns(self) -> Tuple[int, int]:

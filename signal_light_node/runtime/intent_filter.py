@@ -48,8 +48,8 @@ array per batch of tracks. The filter itself keeps no per-track state.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Dict, Mapping, Optional, Union
+from dataclasses import dataclass, fields
+from typing import Callable, Dict, Mapping, Optional, Union
 
 import numpy as np
 
@@ -97,6 +97,35 @@ def _check_seconds(name: str, value: float) -> float:
     if not _is_finite_number(value) or value < 0:
         raise ConfigError(f"{name} must be a finite number of seconds >= 0, got {value!r}")
     return float(value)
+
+
+#: Fields whose command-line option is not ``--filter-`` + the field without its ``_s``.
+_OPTION_STEMS = {"flash_min_evidence": "flash_min"}
+
+
+def parameter_name(field_name: str) -> str:
+    """The node parameter (``ros.params.DetectorParams``) of an ``IntentFilterConfig`` field."""
+    return "intent_filter" if field_name == "enabled" else f"filter_{field_name}"
+
+
+def option_dest(field_name: str) -> str:
+    """The argparse destination of an ``IntentFilterConfig`` field's command-line option
+    (``commands.options.add_intent_filter_options``: ``--filter-hold`` for ``hold_s``)."""
+    if field_name == "enabled":
+        return "intent_filter"
+    stem = field_name[:-2] if field_name.endswith("_s") else field_name
+    return f"filter_{_OPTION_STEMS.get(field_name, stem)}"
+
+
+def config_from(source: object, name_of: Callable[[str], str]) -> "IntentFilterConfig":
+    """An ``IntentFilterConfig`` read field by field from ``source``'s attributes, named by
+    ``name_of`` (:func:`parameter_name` or :func:`option_dest`).
+
+    Raises:
+        ConfigError: A value is out of range.
+    """
+    return IntentFilterConfig(**{f.name: getattr(source, name_of(f.name))
+                                 for f in fields(IntentFilterConfig)})
 
 
 @dataclass(frozen=True)

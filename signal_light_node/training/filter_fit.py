@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.runtime.intent_filter import IntentFilterConfig
+from signal_light_node.runtime.intent_filter import IntentFilterConfig, option_dest, parameter_name
 
 logger = logging.getLogger(__name__)
 
@@ -110,12 +110,7 @@ def fit_filter(evaluate: Callable[[IntentFilterConfig], Dict[str, Any]],
 
 def node_parameters(changes: Mapping[str, float]) -> Dict[str, float]:
     """The node's parameter names (``ros.params``) of ``IntentFilterConfig`` changes."""
-    return {("intent_filter" if k == "enabled" else f"filter_{k}"): v for k, v in changes.items()}
-
-
-#: ``IntentFilterConfig`` fields whose command-line option is not ``--filter-`` + the
-#: field's name without its ``_s`` (``commands.options.add_intent_filter_options``).
-_OPTION_NAMES = {"flash_min_evidence": "--filter-flash-min"}
+    return {parameter_name(k): v for k, v in changes.items()}
 
 
 def cli_options(changes: Mapping[str, float]) -> List[str]:
@@ -125,8 +120,7 @@ def cli_options(changes: Mapping[str, float]) -> List[str]:
         if name == "enabled":
             options.append("--intent-filter" if value else "--no-intent-filter")
             continue
-        stem = name[:-2] if name.endswith("_s") else name
-        options += [_OPTION_NAMES.get(name, "--filter-" + stem.replace("_", "-")), f"{value:g}"]
+        options += ["--" + option_dest(name).replace("_", "-"), f"{value:g}"]
     return options
 
 
