@@ -267,13 +267,15 @@ python -m signal_light_node.training.calibrate --checkpoint "$joined" \
   --split "$DATA/family_cal_split" --cache "$DATA/cache" --out "$model/calibrated.pt"
 # Temperatures make the probabilities honest; the offsets move the decisions the node's
 # filter takes from them (docs/model.md, "The blinkers' ON offset fitted for the shipped file").
+# --gain-confidence 0: the recipe keeps the best on its 120 calibration tracks, as when the
+# shipped file was made; the gain guard is for a user's few labelled tracks.
 night_bounds=()
 [[ -n "$MAX_FALSE_BRAKE" ]] && night_bounds+=(--max-false-brake "$MAX_FALSE_BRAKE")
 [[ -n "$MAX_FALSE_BLINKER" ]] && night_bounds+=(--max-false-blinker "$MAX_FALSE_BLINKER")
 (( ${#night_bounds[@]} )) && night_bounds+=(--night-negatives "$DATA/family_night_negatives")
 signal-light calibrate "$DATA/family_cal_split" --checkpoint "$model/calibrated.pt" \
   --out "$model/calibrated.pt" --threads "$THREADS" --device "$DEVICE" --no-progress \
-  "${night_bounds[@]}"
+  --gain-confidence 0 "${night_bounds[@]}"
 
 echo "== 4/5 calibrated checkpoint -> $WEIGHTS"
 mkdir -p "$(dirname "$WEIGHTS")"

@@ -3,9 +3,12 @@ UNKNOWN and ON, on your labelled recordings.
 
 Two numbers per checkpoint: the margin by which the UNKNOWN logit of the brake, left,
 right and intent heads is lowered, and the offset of both blinkers' ON against their OFF
-in log-odds, P(UNKNOWN) kept (how readily the filter turns a blinker on), chosen on grids by the mean of intent macro-F1 and brake F1 through the
-node's intent filter (:mod:`signal_light_node.training.unknown_bias`). ``--holdout-fraction`` keeps a share of
-the track IDs out of the fit and writes the before/after report beside the checkpoint.
+in log-odds, P(UNKNOWN) kept (how readily the filter turns a blinker on), chosen on grids
+by the mean of intent macro-F1 and brake F1 through the node's intent filter
+(:mod:`signal_light_node.training.unknown_bias`); a choice replaces the model as it is only
+if its gain holds on resamples of the fit tracks' scenes (``--gain-confidence``,
+:mod:`signal_light_node.training.fit_guard`). ``--holdout-fraction`` keeps a share of the
+track IDs out of the fit and writes the before/after report beside the checkpoint.
 ``--night-negatives ... --max-false-brake X`` adds a third: the brake's ON offset nearest 0
 that keeps those night tracks' false brakes within X; ``--max-false-blinker Y`` a further
 blinker ON offset for their false blinkers (:mod:`signal_light_node.training.night_bound`).
@@ -37,6 +40,7 @@ def _grid(text: str) -> tuple:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``signal-light calibrate``."""
+    from signal_light_node.training.fit_guard import DEFAULT_CONFIDENCE
     from signal_light_node.training.night_bound import DEFAULT_OFFSET_GRID, LIGHT_GROUPS
     from signal_light_node.training.unknown_bias import DEFAULT_GRID, DEFAULT_ON_GRID
 
@@ -66,6 +70,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="also fit the node's output filter (blinker hold, visibility "
                              "hold, brake release) on the same tracks; written into the "
                              "checkpoint's metadata and as node parameters to OUT.filter.yaml")
+    parser.add_argument("--gain-confidence", type=float, default=DEFAULT_CONFIDENCE,
+                        metavar="P",
+                        help="a margin, ON offset or filter setting replaces the model as "
+                             "it is (the default filter) only if it scores above it on at "
+                             "least this share of resamples of the fit tracks' scenes "
+                             "(0: the best on the fit tracks, however small its gain)")
     for group in LIGHT_GROUPS:
         parser.add_argument(f"--max-false-{group}", type=float, default=None, metavar="X",
                             help=f"with --night-negatives: the largest share of their "
@@ -87,13 +97,16 @@ def run(args: argparse.Namespace) -> int:
     require_pt_checkpoints(args, "calibrate")
     if not 0.0 <= args.holdout_fraction < 1.0:
         raise ConfigError(f"--holdout-fraction must be in [0, 1), got {args.holdout_fraction}")
+    if not 0.0 <= args.gain_confidence < 1.0:
+        raise ConfigError(f"--gain-confidence must be in [0, 1), got {args.gain_confidence}")
     bounds = _night_bounds(args)
     if args.threads:
         torch.set_num_threads(int(args.threads))
     fit, report = calibrate_checkpoint(args.out, args.inputs, args.checkpoint,
                                        args.holdout_fraction, args.seed, args.grid,
                                        args.on_grid, bounds,
-                                       FILTER_GRID if args.fit_filter else None)
+                                       FILTER_GRID if args.fit_filter else None,
+                                       args.gain_confidence)
     lines = summary_lines(fit, args.out, report)
     lines += [summary_line(fit) for fit in (bounds.fits if bounds else [])]
     print("\n".join(lines))

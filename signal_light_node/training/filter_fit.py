@@ -6,7 +6,8 @@ split; on a user's camera other values may publish better. With labels, one mode
 is enough to score every setting of a small grid (:data:`FILTER_GRID`, the settings the
 model work measured: docs/model.md), and the best by ``calibrate``'s objective is kept,
 provided it does not make the published intent or brake change much more often than
-the truth does (:data:`MAX_SWITCHES`). The result is a set of ``IntentFilterConfig``
+the truth does (:data:`MAX_SWITCHES`) and, where a guard is given, its gain over the
+defaults holds on resamples of the fit tracks' scenes (:mod:`training.fit_guard`). The result is a set of ``IntentFilterConfig``
 changes, which the node takes as parameters (:func:`node_parameters`).
 """
 
@@ -15,10 +16,13 @@ from __future__ import annotations
 import itertools
 import logging
 from dataclasses import dataclass, field
-from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Dict, List, Mapping, Optional, Sequence
 
 from signal_light_node.errors import ConfigError
 from signal_light_node.runtime.intent_filter import IntentFilterConfig, option_dest, parameter_name
+
+if TYPE_CHECKING:
+    from signal_light_node.training.fit_guard import Verdict
 
 logger = logging.getLogger(__name__)
 
@@ -51,6 +55,8 @@ class FilterFit:
         score: Its score on the fit tracks (``calibrate``'s objective).
         default_score: The defaults' score there.
         tried: Settings scored; ``allowed`` of them within the switch bound.
+        declined: The best setting where the guard kept the defaults instead, else None.
+        verdict: The guard's verdict on the best setting, where one was asked.
     """
 
     changes: Dict[str, float] = field(default_factory=dict)
@@ -58,6 +64,8 @@ class FilterFit:
     default_score: float = 0.0
     tried: int = 0
     allowed: int = 0
+    declined: Optional[Dict[str, float]] = None
+    verdict: Optional["Verdict"] = None
 
     @property
     def config(self) -> IntentFilterConfig:
@@ -76,7 +84,8 @@ def _within(ratios: Mapping[str, Optional[float]], bound: Mapping[str, float]) -
 
 def fit_filter(evaluate: Callable[[IntentFilterConfig], Dict[str, Any]],
                objective: Callable[[Dict[str, Any]], float],
-               grid: Sequence[Dict[str, float]] = FILTER_GRID) -> FilterFit:
+               grid: Sequence[Dict[str, float]] = FILTER_GRID,
+               guard: Optional[Callable[[IntentFilterConfig], "Verdict"]] = None) -> FilterFit:
     """Score every setting of ``grid`` and keep the best within the switch bound.
 
     Args:
@@ -84,6 +93,9 @@ def fit_filter(evaluate: Callable[[IntentFilterConfig], Dict[str, Any]],
             form), from one model pass.
         objective: Result -> score (higher is better).
         grid: ``IntentFilterConfig`` changes to try; the defaults are always scored.
+        guard: Filter config -> its verdict against the defaults
+            (:meth:`~signal_light_node.training.fit_guard.GainGuard.judge`); the best
+            setting is kept only if the guard keeps it. None: no guard.
 
     Raises:
         ConfigError: A setting of the grid is not a valid filter config.
@@ -105,6 +117,10 @@ def fit_filter(evaluate: Callable[[IntentFilterConfig], Dict[str, Any]],
         logger.info("filter %s: score %.4f", changes, value)
         if value > fit.score:
             fit.changes, fit.score = dict(changes), value
+    if guard is not None and fit.changes:
+        fit.verdict = guard(fit.config)
+        if not fit.verdict.kept:
+            fit.declined, fit.changes, fit.score = fit.changes, {}, fit.default_score
     return fit
 
 

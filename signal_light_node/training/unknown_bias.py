@@ -55,6 +55,7 @@ from signal_light_node.evaluation.tracks import TrackSequence
 from signal_light_node.labels import LightStatus
 from signal_light_node.model.checkpoint import FILE_META
 from signal_light_node.runtime.crops import CropConfig
+from signal_light_node.training.fit_guard import DEFAULT_CONFIDENCE, GainGuard, Verdict
 from signal_light_node.training.filter_fit import (FilterFit, cli_options, fit_filter,
                                                    parameter_file)
 
@@ -95,6 +96,9 @@ class MarginFit:
         edges: What was chosen at the end of its grid (:func:`grid_edges`): a wider grid
             might score better still.
         filter: The node's filter fitted with it (``--fit-filter``), or None.
+        declined: The best margin and ON offset where the gain guard kept 0 and 0 instead
+            (:mod:`training.fit_guard`), else None.
+        verdict: The guard's verdict on the best setting, where one was asked.
     """
 
     margin: float
@@ -104,6 +108,8 @@ class MarginFit:
     fit_frames: int = 0
     edges: List[str] = field(default_factory=list)
     filter: Optional[FilterFit] = None
+    declined: Optional[Tuple[float, float]] = None
+    verdict: Optional[Verdict] = None
 
 
 def grid_edges(margin: float, on_offset: float, grid: Sequence[float],
@@ -270,17 +276,37 @@ class ModelPass:
             score_batch(scorer, batch, moved, light_filter or self.light_filter)
         return scorer
 
+    @property
+    def tracks(self) -> List[TrackSequence]:
+        """The tracks, in the order :meth:`published` gives their states."""
+        return [track for batch, _ in self.outputs for track in batch]
+
+    def published(self, offsets: Dict[str, np.ndarray],
+                  shifts: Optional[Mapping[str, float]] = None,
+                  light_filter: Optional["IntentFilterConfig"] = None) -> List[np.ndarray]:
+        """Per track what the node would publish (``[T, len(TASKS)]``), as :meth:`scorer`
+        scores it."""
+        from signal_light_node.evaluation.streaming import filter_track_probs
+
+        preds: List[np.ndarray] = []
+        for batch, raw in self.outputs:
+            moved = with_offsets(raw, offsets, self.temperatures, shifts)
+            preds += filter_track_probs(moved, batch, light_filter or self.light_filter)[0]
+        return preds
+
 
 def fit_unknown_margin(model: nn.Module, tracks: Sequence[TrackSequence],
                        grid: Sequence[float] = DEFAULT_GRID,
                        on_grid: Sequence[float] = (0.0,),
-                       passed: Optional[ModelPass] = None) -> MarginFit:
+                       passed: Optional[ModelPass] = None,
+                       confidence: float = 0.0) -> MarginFit:
     """Score ``tracks`` at every margin of ``grid`` and ON offset of ``on_grid``; keep the
     best. ``model`` itself is not changed.
 
     The model runs once (or ``passed``, its pass over ``tracks``, is used); each setting
     is applied to its outputs (:func:`with_offsets`) and filtered and scored as
-    ``evaluate`` does.
+    ``evaluate`` does. With ``confidence`` above 0 the best is kept only if it beats margin
+    0 and offset 0 on that share of scene resamples (:class:`~.fit_guard.GainGuard`).
 
     Raises:
         ConfigError: An empty grid, a negative margin, or no track to fit on.
@@ -314,7 +340,22 @@ def fit_unknown_margin(model: nn.Module, tracks: Sequence[TrackSequence],
     fit.on_offset = chosen[fit.margin]
     fit.edges = grid_edges(fit.margin, fit.on_offset, [float(m) for m in grid],
                            [float(o) for o in on_grid])
+    if confidence > 0.0 and (fit.margin, fit.on_offset) != (0.0, 0.0):
+        _guard_margin(model, passed, fit, GainGuard(passed.tracks, confidence))
     return fit
+
+
+def _guard_margin(model: nn.Module, passed: ModelPass, fit: MarginFit, guard: GainGuard) -> None:
+    """Put ``fit`` back to margin 0 and offset 0 unless ``guard`` keeps its choice."""
+    def published(margin: float, on: float) -> List[np.ndarray]:
+        return passed.published(head_offsets(model, margin), on_offsets(ON_HEADS, on))
+
+    fit.verdict = guard.judge(published(0.0, 0.0), published(fit.margin, fit.on_offset))
+    logger.info("margin %g, ON offset %+g: above 0 / 0 on %.1f %% of scene resamples",
+                fit.margin, fit.on_offset, 100 * fit.verdict.share_above)
+    if not fit.verdict.kept:
+        fit.declined = (fit.margin, fit.on_offset)
+        fit.margin, fit.on_offset, fit.edges = 0.0, 0.0, []
 
 
 def load_labelled(paths: Sequence[Path], crop: CropConfig) -> List[TrackSequence]:
@@ -341,7 +382,8 @@ def calibrate_checkpoint(out: Path, inputs: Sequence[Path],
                          seed: int = 0, grid: Sequence[float] = DEFAULT_GRID,
                          on_grid: Sequence[float] = DEFAULT_ON_GRID,
                          after_fit: Optional[Callable[[nn.Module], Dict[str, Any]]] = None,
-                         filter_grid: Optional[Sequence[Dict[str, float]]] = None
+                         filter_grid: Optional[Sequence[Dict[str, float]]] = None,
+                         confidence: float = DEFAULT_CONFIDENCE
                          ) -> Tuple[MarginFit, Optional[Dict[str, Any]]]:
     """Fit the UNKNOWN margin and ON offsets of ``checkpoint`` on ``inputs``, write ``out``
     (and, with held-out tracks, its before/after report); returns the fit and the report.
@@ -351,6 +393,9 @@ def calibrate_checkpoint(out: Path, inputs: Sequence[Path],
     model further (:mod:`training.filter_fit`): they
     go into the metadata (``filter_fit``) and into ``OUT.filter.yaml`` (node parameters),
     and the held-out tracks are scored after with them.
+
+    ``confidence``: the gain guard's level (:mod:`training.fit_guard`; 0: the best on the
+    fit tracks wins whatever its margin over the model as it is and the default filter).
 
     ``after_fit`` is called with the model once its margin and offsets are applied; it may
     move the model further (``training.night_bound.NightBounds``), and what it returns joins
@@ -372,9 +417,9 @@ def calibrate_checkpoint(out: Path, inputs: Sequence[Path],
     tracks = load_labelled(inputs, loaded.config.crop_config())
     kept, held = split_by_track_id(tracks, holdout_fraction, seed)
     passed = ModelPass(loaded.model, kept) if kept else None
-    fit = fit_unknown_margin(loaded.model, kept, grid, on_grid, passed)
+    fit = fit_unknown_margin(loaded.model, kept, grid, on_grid, passed, confidence)
     fit.filter = filtered = (None if filter_grid is None
-                             else _fit_filter(loaded.model, passed, fit, filter_grid))
+                             else _fit_filter(loaded.model, passed, fit, filter_grid, confidence))
     apply_offsets(loaded.model, head_offsets(loaded.model, fit.margin))
     add_on_offsets(loaded.model, on_offsets(ON_HEADS, fit.on_offset))
     extra = after_fit(loaded.model) if after_fit is not None else {}
@@ -386,12 +431,18 @@ def calibrate_checkpoint(out: Path, inputs: Sequence[Path],
                       "heads": list(MARGIN_HEADS), "data": [str(p) for p in inputs],
                       "fit_tracks": fit.fit_tracks, "fit_frames": fit.fit_frames,
                       "held_out_tracks": len(held), "seed": seed,
-                      "scores": {f"{m:g}": s for m, s in fit.scores.items()}}
+                      "scores": {f"{m:g}": s for m, s in fit.scores.items()},
+                      "gain_confidence": confidence,
+                      "declined": list(fit.declined) if fit.declined else None,
+                      "verdict": fit.verdict.as_dict() if fit.verdict else None}
     meta.update(extra)
     if filtered is not None:
         meta[FILTER_META_KEY] = {"changes": filtered.changes, "score": filtered.score,
                                  "default_score": filtered.default_score,
-                                 "tried": filtered.tried, "allowed": filtered.allowed}
+                                 "tried": filtered.tried, "allowed": filtered.allowed,
+                                 "declined": filtered.declined,
+                                 "verdict": (filtered.verdict.as_dict()
+                                             if filtered.verdict else None)}
     report = None
     if held:
         original = load_checkpoint(source, map_location="cpu").model.eval()
@@ -414,13 +465,30 @@ def filter_paths(out: Path) -> Path:
 
 
 def _fit_filter(model: nn.Module, passed: ModelPass, fit: MarginFit,
-                grid: Sequence[Dict[str, float]]) -> FilterFit:
-    """The node's filter fitted on ``passed``'s tracks, the model moved by ``fit``."""
+                grid: Sequence[Dict[str, float]], confidence: float = 0.0) -> FilterFit:
+    """The node's filter fitted on ``passed``'s tracks, the model moved by ``fit``; with
+    ``confidence`` above 0 kept only where it beats the defaults on that share of scene
+    resamples."""
     from signal_light_node.evaluation.streaming import scorer_result
+    from signal_light_node.runtime.intent_filter import IntentFilterConfig
 
     offsets, shifts = head_offsets(model, fit.margin), on_offsets(ON_HEADS, fit.on_offset)
+    def judge(config: IntentFilterConfig) -> Verdict:
+        return gain.judge(defaults, passed.published(offsets, shifts, config))
+
+    if confidence > 0.0:
+        gain = GainGuard(passed.tracks, confidence)
+        defaults = passed.published(offsets, shifts, IntentFilterConfig())
     return fit_filter(lambda config: scorer_result(passed.scorer(offsets, shifts, config),
-                                                   config), score, grid)
+                                                   config), score, grid,
+                      judge if confidence > 0.0 else None)
+
+
+def declined_line(what: str, kept: str, verdict: Optional[Verdict]) -> str:
+    """The line saying the gain guard declined ``what`` and kept ``kept``."""
+    share = verdict.share_above if verdict is not None else float("nan")
+    return (f"declined: {what}, the best on the fit tracks, scored above {kept} on only "
+            f"{100 * share:.0f} % of their scene resamples (--gain-confidence); kept {kept}")
 
 
 def summary_lines(fit: MarginFit, out: Path, report: Optional[Dict[str, Any]]) -> List[str]:
@@ -433,6 +501,9 @@ def summary_lines(fit: MarginFit, out: Path, report: Optional[Dict[str, Any]]) -
              f"{', '.join(ON_HEADS)}, in log-odds); wrote {out}"]
     if fit.edges:
         lines.append(f"note: {'; '.join(fit.edges)}: a wider grid may score better")
+    if fit.declined is not None:
+        lines.append(declined_line(f"margin {fit.declined[0]:g} with ON offset "
+                                   f"{fit.declined[1]:+g}", "margin 0 and offset 0", fit.verdict))
     if fit.filter is not None:
         f = fit.filter
         lines.append(f"filter fitted ({f.allowed} of {f.tried} settings within the switch "
@@ -440,6 +511,8 @@ def summary_lines(fit: MarginFit, out: Path, report: Optional[Dict[str, Any]]) -
                      f"(defaults {100 * f.default_score:.1f} %); node parameters in "
                      f"{filter_paths(Path(out))}; evaluate / replay options: "
                      f"{' '.join(cli_options(f.changes)) or '(none)'}")
+        if f.declined is not None:
+            lines.append(declined_line(f"filter {f.declined}", "the defaults", f.verdict))
     if report is not None:
         for key in ("before", "after"):
             r = report[key]
