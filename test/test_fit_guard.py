@@ -134,6 +134,9 @@ def test_a_margin_the_guard_declines_goes_back_to_0(monkeypatch) -> None:
     assert fit.verdict is not None and not fit.verdict.kept
     lines = unknown_bias.summary_lines(fit, Path("m.pt"), None)
     assert any(line.startswith("declined: margin 2 with ON offset +1") for line in lines)
+    fit.verdict, fit.declined = Verdict(share_above=0.95, kept=True), None
+    kept = unknown_bias.summary_lines(fit, Path("m.pt"), None)
+    assert "above 0 / 0 on 95 % of scene resamples" in kept[1]
     plain = fit_unknown_margin(model, tracks, (2.0,), (1.0,))  # no guard asked
     assert (plain.margin, plain.on_offset, plain.declined) == (2.0, 1.0, None)
 

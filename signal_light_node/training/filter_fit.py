@@ -7,8 +7,9 @@ is enough to score every setting of a small grid (:data:`FILTER_GRID`, the setti
 model work measured: docs/model.md), and the best by ``calibrate``'s objective is kept,
 provided it does not make the published intent or brake change much more often than
 the truth does (:data:`MAX_SWITCHES`) and, where a guard is given, its gain over the
-defaults holds on resamples of the fit tracks' scenes (:mod:`training.fit_guard`). The result is a set of ``IntentFilterConfig``
-changes, which the node takes as parameters (:func:`node_parameters`).
+defaults holds on resamples of the fit tracks' scenes (:mod:`training.fit_guard`). The
+result is a set of ``IntentFilterConfig`` changes, which the node takes as parameters
+(:func:`node_parameters`).
 """
 
 from __future__ import annotations

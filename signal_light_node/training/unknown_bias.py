@@ -491,6 +491,14 @@ def declined_line(what: str, kept: str, verdict: Optional[Verdict]) -> str:
             f"{100 * share:.0f} % of their scene resamples (--gain-confidence); kept {kept}")
 
 
+def _held(verdict: Optional[Verdict], reference: str) -> str:
+    """``, above REFERENCE on N % of scene resamples`` for a choice the gain guard kept (and
+    judged), else nothing."""
+    if verdict is None or not verdict.kept or np.isnan(verdict.share_above):
+        return ""
+    return f", above {reference} on {100 * verdict.share_above:.0f} % of scene resamples"
+
+
 def summary_lines(fit: MarginFit, out: Path, report: Optional[Dict[str, Any]]) -> List[str]:
     """What ``signal-light calibrate`` prints."""
     grid = ", ".join(f"{m:g}: {100 * s:.1f} %" for m, s in sorted(fit.scores.items()))
@@ -498,7 +506,7 @@ def summary_lines(fit: MarginFit, out: Path, report: Optional[Dict[str, Any]]) -
              f"intent macro-F1 and brake F1, best blinker ON offset) per UNKNOWN margin: {grid}",
              f"UNKNOWN margin {fit.margin:g} (UNKNOWN logit of {', '.join(MARGIN_HEADS)} "
              f"lowered by it); blinker ON offset {fit.on_offset:+g} (ON against OFF of "
-             f"{', '.join(ON_HEADS)}, in log-odds); wrote {out}"]
+             f"{', '.join(ON_HEADS)}, in log-odds){_held(fit.verdict, '0 / 0')}; wrote {out}"]
     if fit.edges:
         lines.append(f"note: {'; '.join(fit.edges)}: a wider grid may score better")
     if fit.declined is not None:
@@ -508,7 +516,8 @@ def summary_lines(fit: MarginFit, out: Path, report: Optional[Dict[str, Any]]) -
         f = fit.filter
         lines.append(f"filter fitted ({f.allowed} of {f.tried} settings within the switch "
                      f"bound): {f.changes or 'the defaults'}, score {100 * f.score:.1f} % "
-                     f"(defaults {100 * f.default_score:.1f} %); node parameters in "
+                     f"(defaults {100 * f.default_score:.1f} %)"
+                     f"{_held(f.verdict, 'the defaults')}; node parameters in "
                      f"{filter_paths(Path(out))}; evaluate / replay options: "
                      f"{' '.join(cli_options(f.changes)) or '(none)'}")
         if f.declined is not None:
