@@ -473,15 +473,16 @@ def _fit_filter(model: nn.Module, passed: ModelPass, fit: MarginFit,
     from signal_light_node.runtime.intent_filter import IntentFilterConfig
 
     offsets, shifts = head_offsets(model, fit.margin), on_offsets(ON_HEADS, fit.on_offset)
-    def judge(config: IntentFilterConfig) -> Verdict:
-        return gain.judge(defaults, passed.published(offsets, shifts, config))
-
+    judge: Optional[Callable[[IntentFilterConfig], Verdict]] = None
     if confidence > 0.0:
         gain = GainGuard(passed.tracks, confidence)
         defaults = passed.published(offsets, shifts, IntentFilterConfig())
+
+        def judge(config: IntentFilterConfig) -> Verdict:
+            return gain.judge(defaults, passed.published(offsets, shifts, config))
+
     return fit_filter(lambda config: scorer_result(passed.scorer(offsets, shifts, config),
-                                                   config), score, grid,
-                      judge if confidence > 0.0 else None)
+                                                   config), score, grid, judge)
 
 
 def declined_line(what: str, kept: str, verdict: Optional[Verdict]) -> str:
