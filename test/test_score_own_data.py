@@ -216,6 +216,28 @@ def test_train_trunk_from_moves_the_last_trunk_blocks_and_the_output_layers_only
     assert main(no_heads + ["--out", str(tmp_path / "b"), "--train-trunk-from", "9"]) == 2
     assert "goes with --heads-only" in capsys.readouterr().err
 
+
+def test_train_trunk_norms_moves_the_trunks_norm_scales_and_the_brake_head_only(tmp_path, capsys):
+    out = tmp_path / "ft"
+    common = ["train", "--init-from", "default", "--bags", str(BAG), "--heads-only", "--lr", "0.05",
+              "--steps", "2", "--batch", "2", "--seq-len", "4", "--workers", "0", "--threads", "1",
+              "--no-progress", "--head-tasks", "brake"]
+    assert main(common + ["--out", str(out), "--train-trunk-norms"]) == 0
+    model = load_checkpoint(DEFAULT_WEIGHTS).model
+    norms = {f"trunk.{name}" for name, m in model.trunk.named_modules()
+             if isinstance(m, torch.nn.BatchNorm2d)}
+    before, after = model.state_dict(), load_checkpoint(out / "last.pt").model.state_dict()
+    moved = {name for name, value in before.items() if not torch.equal(value, after[name])}
+    moved_norms = {name.rsplit(".", 1)[0] for name in moved if name.startswith("trunk.")}
+    assert len(moved_norms) > len(norms) // 2 and moved_norms <= norms  # the stem's too
+    for name in moved:  # the norms' scale and shift, and the brake head: nothing else
+        assert name.endswith((".weight", ".bias")), name
+        assert name.rsplit(".", 1)[0] in norms or ".heads.brake." in name, name
+    no_heads = [a for a in common if a not in ("--heads-only", "--head-tasks", "brake")]
+    assert main(no_heads + ["--out", str(tmp_path / "b"), "--train-trunk-norms"]) == 2
+    assert "--train-trunk-norms goes with --heads-only" in capsys.readouterr().err
+
+
 def test_train_holdout_fraction_writes_a_before_after_report(tmp_path, capsys):
     out = tmp_path / "ft"
     assert main(["train", "--out", str(out), "--init-from", "default", "--bags", str(BAG),

@@ -104,6 +104,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--train-trunk-from", type=int, default=None, metavar="N",
                    help="with --heads-only: the pretrained trunk's blocks N.. learn too "
                         "(their batch norms keep their statistics)")
+    g.add_argument("--train-trunk-norms", action="store_true",
+                   help="with --heads-only: the scale and shift of every batch norm of the "
+                        "pretrained trunk learn too (their statistics kept): a few thousand "
+                        "numbers that meet a camera's look without relearning what a lamp is")
     add_torch_options(g)
 
     g = parser.add_argument_group("data")
@@ -239,6 +243,7 @@ def options_from_args(args: argparse.Namespace) -> TrainOptions:
         init_from=Path(args.init_from) if args.init_from else None,
         freeze_encoder=args.freeze_encoder, freeze_norms=args.freeze_norms,
         heads_only=args.heads_only, trunk_from=args.train_trunk_from,
+        trunk_norms=args.train_trunk_norms,
         head_tasks=tuple(args.head_tasks),
         grown_init_scale=args.grown_init_scale, bags=list(args.bags),
         ucm=list(args.ucm), pools=list(args.pools), rehearse=list(args.rehearse),

@@ -129,7 +129,7 @@ class Trainer:
         resumed = load_training_state(Path(opts.resume)) if opts.resume is not None else None
         self.config, self.meta_from_init = loaded.config, loaded.init_meta
         freeze_parts(loaded.model, self.config, opts.freeze_encoder, opts.freeze_norms,
-                     opts.heads_only, opts.trunk_from, opts.head_tasks)
+                     opts.heads_only, opts.trunk_from, opts.head_tasks, opts.trunk_norms)
         self.model = loaded.model.to(self.device).train()
         self.precision = resolve_precision(opts.precision, self.device)
         logger.info("training precision: %s", self.precision)

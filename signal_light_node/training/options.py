@@ -91,6 +91,9 @@ class TrainOptions:
         trunk_from: With ``heads_only``: the pretrained trunk's blocks from this index on
             learn too, their batch norms keeping their statistics
             (:func:`.run_model.train_trunk_blocks`); None: the trunk stays fixed.
+        trunk_norms: With ``heads_only``: the scale and shift of every batch norm of the
+            pretrained trunk learn too, their statistics kept
+            (:func:`.run_model.train_trunk_norms`).
         grown_init_scale: With ``init_from`` and ``model`` changes that add input
             channels: their initial weights' spread relative to the trained ones (0: zeros).
         bags: Labelled bags to train on.
@@ -171,6 +174,7 @@ class TrainOptions:
     freeze_norms: bool = False
     heads_only: bool = False
     trunk_from: Optional[int] = None
+    trunk_norms: bool = False
     head_tasks: Tuple[str, ...] = ()
     grown_init_scale: float = 0.0
     bags: List[Path] = field(default_factory=list)
@@ -266,6 +270,9 @@ class TrainOptions:
         if self.trunk_from is not None and not self.heads_only:
             raise ConfigError("--train-trunk-from goes with --heads-only: it adds trunk blocks "
                               "to the output layers that learn")
+        if self.trunk_norms and not self.heads_only:
+            raise ConfigError("--train-trunk-norms goes with --heads-only: it adds the trunk's "
+                              "batch-norm scales and shifts to the output layers that learn")
         if not 0 <= self.val_fraction < 1:
             raise ConfigError(f"validation fraction must be in [0, 1), got {self.val_fraction}")
         if not 0 <= self.holdout_fraction < 1:

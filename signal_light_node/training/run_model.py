@@ -88,10 +88,11 @@ def _warm_started(init: Path, changes: Mapping[str, Any], grown_init_scale: floa
 
 def freeze_parts(model: nn.Module, config: ModelConfig, encoder: bool, norms: bool,
                  heads_only: bool = False, trunk_from: Optional[int] = None,
-                 head_tasks: Sequence[str] = ()) -> None:
+                 head_tasks: Sequence[str] = (), trunk_norms: bool = False) -> None:
     """``--freeze-encoder`` (train only the ConvLSTM and the heads) and ``--freeze-norms``
     (keep the batch-norm statistics; the weights still train) and ``--heads-only``
-    (:func:`freeze_to_heads`), with ``--train-trunk-from`` (:func:`train_trunk_blocks`).
+    (:func:`freeze_to_heads`), with ``--train-trunk-from`` (:func:`train_trunk_blocks`)
+    and ``--train-trunk-norms`` (:func:`train_trunk_norms`).
 
     Raises:
         ConfigError: The architecture cannot freeze what is asked.
@@ -110,6 +111,8 @@ def freeze_parts(model: nn.Module, config: ModelConfig, encoder: bool, norms: bo
         freeze_to_heads(model, config, head_tasks)
     if trunk_from is not None:
         train_trunk_blocks(model, config, trunk_from)
+    if trunk_norms:
+        train_trunk_norms(model, config)
 
 
 #: Parameters under a module of one of these names train with ``--heads-only``: the last
@@ -164,3 +167,29 @@ def train_trunk_blocks(model: nn.Module, config: ModelConfig, first: int) -> Non
     trainable = sum(p.numel() for p in set_trainable(trunk, first))
     logger.info("--train-trunk-from %d: %d more trainable parameters in %d trunk blocks",
                 first, trainable, len(blocks) - first)
+
+
+def train_trunk_norms(model: nn.Module, config: ModelConfig) -> None:
+    """Let the scale and shift of every batch norm of the pretrained trunk learn (their
+    statistics stay, as :func:`freeze_to_heads` keeps them), on a model it has fixed.
+
+    A new camera changes how a lamp looks, not what it is: a few thousand per-channel
+    scales and shifts can meet its look while the convolutions keep what they learnt
+    (on labelled tracks the trunk's last blocks learnt the tracks by heart:
+    docs/results/adapt_family.md).
+
+    Raises:
+        ConfigError: The model has no pretrained trunk with batch norms.
+    """
+    trunk = getattr(model, "trunk", None)
+    norms = [m for m in trunk.modules() if isinstance(m, nn.BatchNorm2d)] if trunk else []
+    if not norms:
+        raise ConfigError(f"--train-trunk-norms: architecture {config.arch!r} with encoder "
+                          f"{config.encoder!r} has no pretrained trunk with batch norms")
+    trainable = 0
+    for norm in norms:
+        for parameter in (norm.weight, norm.bias):
+            parameter.requires_grad_(True)
+            trainable += parameter.numel()
+    logger.info("--train-trunk-norms: %d more trainable parameters in %d batch norms",
+                trainable, len(norms))
