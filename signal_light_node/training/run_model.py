@@ -173,8 +173,8 @@ def train_trunk_norms(model: nn.Module, config: ModelConfig) -> None:
     """Let the scale and shift of every batch norm of the pretrained trunk learn (their
     statistics stay, as :func:`freeze_to_heads` keeps them), on a model it has fixed.
 
-    A new camera changes how a lamp looks, not what it is: a few thousand per-channel
-    scales and shifts can meet its look while the convolutions keep what they learnt
+    A new camera changes how a lamp looks, not what it is: per-channel scales and shifts
+    (16,160 in the shipped trunk) can meet its look while the convolutions keep what they learnt
     (on labelled tracks the trunk's last blocks learnt the tracks by heart:
     docs/results/adapt_family.md).
 
