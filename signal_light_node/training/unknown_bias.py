@@ -44,7 +44,8 @@ import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
+from typing import (TYPE_CHECKING, Any, Callable, Dict, Iterator, List, Mapping, Optional,
+                    Sequence, Tuple)
 
 import numpy as np
 import torch
@@ -271,10 +272,15 @@ class ModelPass:
         from signal_light_node.evaluation.streaming import score_batch
 
         scorer = TrackScorer(self.settings)
-        for batch, raw in self.outputs:
-            moved = with_offsets(raw, offsets, self.temperatures, shifts)
+        for batch, moved in self._moved(offsets, shifts):
             score_batch(scorer, batch, moved, light_filter or self.light_filter)
         return scorer
+
+    def _moved(self, offsets: Dict[str, np.ndarray], shifts: Optional[Mapping[str, float]]
+               ) -> Iterator[Tuple[list, Dict[str, np.ndarray]]]:
+        """Per batch its tracks and the outputs moved by ``offsets`` and ``shifts``."""
+        for batch, raw in self.outputs:
+            yield batch, with_offsets(raw, offsets, self.temperatures, shifts)
 
     @property
     def tracks(self) -> List[TrackSequence]:
@@ -289,8 +295,7 @@ class ModelPass:
         from signal_light_node.evaluation.streaming import filter_track_probs
 
         preds: List[np.ndarray] = []
-        for batch, raw in self.outputs:
-            moved = with_offsets(raw, offsets, self.temperatures, shifts)
+        for batch, moved in self._moved(offsets, shifts):
             preds += filter_track_probs(moved, batch, light_filter or self.light_filter)[0]
         return preds
 
