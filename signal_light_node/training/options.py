@@ -260,19 +260,19 @@ class TrainOptions:
         if self.heads_only and self.init_from is None and self.resume is None:
             raise ConfigError("--heads-only needs --init-from (or --resume): heads on an "
                               "untrained network would learn nothing")
-        if self.head_tasks and not self.heads_only:
-            raise ConfigError("--head-tasks goes with --heads-only: it narrows the output "
-                              "layers that learn")
+        for flag, asked, what in (
+                ("--head-tasks", bool(self.head_tasks), "it narrows the output layers that learn"),
+                ("--train-trunk-from", self.trunk_from is not None,
+                 "it adds trunk blocks to the output layers that learn"),
+                ("--train-trunk-norms", self.trunk_norms,
+                 "it adds the trunk's batch-norm scales and shifts to the output layers that "
+                 "learn")):
+            if asked and not self.heads_only:
+                raise ConfigError(f"{flag} goes with --heads-only: {what}")
         unknown = [t for t in self.head_tasks if t not in TASKS]
         if unknown:
             raise ConfigError(f"--head-tasks: unknown task {unknown[0]!r} (tasks: "
                               f"{', '.join(TASKS)})")
-        if self.trunk_from is not None and not self.heads_only:
-            raise ConfigError("--train-trunk-from goes with --heads-only: it adds trunk blocks "
-                              "to the output layers that learn")
-        if self.trunk_norms and not self.heads_only:
-            raise ConfigError("--train-trunk-norms goes with --heads-only: it adds the trunk's "
-                              "batch-norm scales and shifts to the output layers that learn")
         if not 0 <= self.val_fraction < 1:
             raise ConfigError(f"validation fraction must be in [0, 1), got {self.val_fraction}")
         if not 0 <= self.holdout_fraction < 1:
