@@ -171,6 +171,9 @@ FRAME_WORKERS=${FRAME_WORKERS:-0}
 # Per-channel white-balance gains of the per-frame stage's random camera, log-uniform within
 # +-FRAME_WHITE_BALANCE (0: none; docs/model.md, "White balance in the per-frame stage").
 FRAME_WHITE_BALANCE=${FRAME_WHITE_BALANCE:-0}
+# FRAME_GREY: share of the per-frame stage's tracks shown without colour (0: none; docs/model.md,
+# "Lit lamps seen without colour").
+FRAME_GREY=${FRAME_GREY:-0}
 # FRAME_PAIR_GAP > 0: the per-frame head also reads each frame's trunk features less those of
 # the same track's frame that many frames earlier (0: the frame alone; docs/model.md, "Pairs
 # of frames in the per-frame stage").
@@ -213,6 +216,7 @@ if [[ -z "$TRUNK_WEIGHTS" && "$FRAME_STEPS" -gt 0 ]]; then
     --out "$RUN/frames" "${pools[@]}" --val "$DATA/val_split" --val "$DATA/family_cal_split" \
     --model "$MODEL" --train-from "$TRAIN_FROM" --steps "$FRAME_STEPS" --tracks "$FRAME_TRACKS" \
     --workers "$FRAME_WORKERS" --white-balance "$FRAME_WHITE_BALANCE" --pair-gap "$FRAME_PAIR_GAP" \
+    --grey "$FRAME_GREY" \
     --seed "$SEED" --threads "$THREADS" --device "$DEVICE" "${resume[@]}"
   TRUNK_WEIGHTS=$RUN/frames/best.pt
 fi

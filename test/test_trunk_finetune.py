@@ -88,6 +88,28 @@ def test_white_balance_reaches_the_batches_camera(split):
     assert not torch.equal(plain, tinted)
 
 
+def test_grey_tracks_lose_their_colour_and_none_keeps_the_stream(split):
+    pool = FramePool.load([split])
+    plain, _ = sample_batch(pool, np.random.default_rng(1), tracks=4, per_track=3, augment=1.0)
+    again, _ = sample_batch(pool, np.random.default_rng(1), tracks=4, per_track=3, augment=1.0,
+                            grey=0.0)
+    grey, _ = sample_batch(pool, np.random.default_rng(1), tracks=4, per_track=3, augment=0.0,
+                           grey=1.0)
+    coloured, _ = sample_batch(pool, np.random.default_rng(1), tracks=4, per_track=3,
+                               augment=0.0)
+    assert torch.equal(plain, again)
+    assert torch.equal(grey[:, 0], grey[:, 1]) and torch.equal(grey[:, 1], grey[:, 2])
+    assert not torch.equal(coloured[:, 0], coloured[:, 2])
+
+
+def test_grey_frames_keep_a_pixels_luma():
+    bgr = np.array([[[0, 0, 255], [255, 255, 255], [10, 200, 30]]], np.uint8)
+    out = frame_pool.grey_frames(bgr)
+    assert out.shape == bgr.shape and out.dtype == np.uint8
+    assert out[0, :, 0].tolist() == [76, 255, 128]  # 0.299*255; 255; 1.14+117.4+8.97
+    assert (out[..., 0] == out[..., 2]).all()
+
+
 def test_a_partner_is_the_same_tracks_earlier_frame_clipped_at_its_start():
     offsets = np.array([0, 5, 12])
     index = np.array([0, 2, 4, 5, 6, 11])

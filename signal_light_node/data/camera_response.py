@@ -69,11 +69,14 @@ def _tone_lut(gain: float, gamma: float) -> np.ndarray:
     return np.clip(255.0 * np.clip(x * gain, 0.0, 1.0) ** gamma, 0, 255).astype(np.uint8)
 
 
+#: Luma weights of the B, G, R channels (ITU-R BT.601).
+LUMA_BGR = np.array([0.114, 0.587, 0.299], np.float32)
+
+
 def _colour_matrix(saturation: float, white_balance: Tuple[float, float, float]) -> np.ndarray:
     # Channel gains first (the sensor's white balance), then each channel mixed with the
     # luma (BGR weights): saturation 1 keeps, 0 greys out.
-    luma = np.array([0.114, 0.587, 0.299], np.float32)
-    mix = saturation * np.eye(3, dtype=np.float32) + (1.0 - saturation) * np.tile(luma, (3, 1))
+    mix = saturation * np.eye(3, dtype=np.float32) + (1.0 - saturation) * np.tile(LUMA_BGR, (3, 1))
     return (mix @ np.diag(np.asarray(white_balance, np.float32))).astype(np.float32)
 
 

@@ -11,6 +11,10 @@ perspective warp and one camera response per track, as a camera would treat them
 With a ``pair_gap`` every frame comes with the same track's frame that many frames earlier
 (:func:`partner_index`; the track's first frame where there is none), augmented with it,
 so a head can read a lamp's change as well as its look.
+
+With a ``grey`` share, that share of the tracks is shown without colour (each frame's luma
+in all three channels, after the camera): a lamp lit in such a frame can be told only by
+its brightness against the vehicle, which does not depend on the lamp's hue.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ from typing import Dict, Iterator, List, Sequence, Tuple
 import numpy as np
 import torch
 
-from signal_light_node.data.camera_response import randomise_camera
+from signal_light_node.data.camera_response import LUMA_BGR, randomise_camera
 from signal_light_node.data.shape_warp import warp_sequence
 from signal_light_node.data.stream import mirror_sequence
 from signal_light_node.errors import ConfigError
@@ -99,19 +103,30 @@ class FramePool:
                 for col, k in zip(all_targets.T, num_classes)]
 
 
+def grey_frames(crops: np.ndarray) -> np.ndarray:
+    """BGR uint8 frames ``[..., 3]`` with each pixel's luma (:data:`LUMA_BGR`) in all three
+    channels."""
+    luma = crops.astype(np.float32) @ LUMA_BGR
+    return np.repeat(np.clip(np.rint(luma), 0, 255).astype(np.uint8)[..., None], 3, axis=-1)
+
+
 def _augment_track(crops: np.ndarray, lit: np.ndarray, labels: np.ndarray,
-                   rng: np.random.Generator, augment: float,
-                   white_balance: float = 0.0) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   rng: np.random.Generator, augment: float, white_balance: float = 0.0,
+                   grey: float = 0.0) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One track's frames mirrored with probability 0.5, then, with probability
     ``augment``, one perspective warp and one camera response (its channel gains drawn
-    within ``white_balance``, :meth:`.CameraResponse.draw`). ``crops`` may hold more
-    frames than the label rows (their partners, behind them): all get the same treatment."""
+    within ``white_balance``, :meth:`.CameraResponse.draw`), then with probability
+    ``grey`` greyed (:func:`grey_frames`). ``crops`` may hold more frames than the label
+    rows (their partners, behind them): all get the same treatment."""
     if rng.random() < 0.5:
         item = mirror_sequence({"crops": crops, "labels": labels, "lit_labels": lit,
                                 "mask": np.ones(len(labels), bool), "meta": {}})
         crops, labels, lit = item["crops"], item["labels"], item["lit_labels"]
     if rng.random() < augment:
         crops = randomise_camera(warp_sequence(crops, rng), rng, white_balance)
+    # Drawn only when asked, so that runs without it keep their random stream.
+    if grey > 0 and rng.random() < grey:
+        crops = grey_frames(crops)
     return crops, lit, labels
 
 
@@ -136,10 +151,11 @@ def _with_partners(frames: np.ndarray, pair_gap: int) -> np.ndarray:
 
 
 def sample_batch(pool: FramePool, rng: np.random.Generator, tracks: int, per_track: int,
-                 augment: float, white_balance: float = 0.0,
-                 pair_gap: int = 0) -> Tuple[torch.Tensor, torch.Tensor]:
+                 augment: float, white_balance: float = 0.0, pair_gap: int = 0,
+                 grey: float = 0.0) -> Tuple[torch.Tensor, torch.Tensor]:
     """``tracks x per_track`` random frames (tracks drawn uniformly, frames uniformly in
-    each), augmented per track (:func:`_augment_track`): crops ``[N, 3, S, S]`` uint8 and
+    each), augmented per track (:func:`_augment_track`, ``grey`` its share of greyed
+    tracks): crops ``[N, 3, S, S]`` uint8 and
     targets ``[N, 4]``. With ``pair_gap`` > 0 each frame's partner (:func:`partner_index`,
     augmented with it) is stacked behind it: crops ``[N, 6, S, S]``."""
     crops, targets = [], []
@@ -148,7 +164,8 @@ def sample_batch(pool: FramePool, rng: np.random.Generator, tracks: int, per_tra
         index = np.sort(rng.integers(a, b, per_track))
         frames = _with_partner_rows(pool.offsets, index, pair_gap)
         c, lit, labels = _augment_track(pool.crops[frames], pool.lit_labels[index],
-                                        pool.labels[index], rng, augment, white_balance)
+                                        pool.labels[index], rng, augment, white_balance,
+                                        grey)
         crops.append(_with_partners(c, pair_gap))
         targets.append(frame_targets(lit, labels))
     x = torch.from_numpy(np.ascontiguousarray(np.concatenate(crops))).permute(0, 3, 1, 2)
@@ -161,11 +178,11 @@ class FrameBatches(torch.utils.data.IterableDataset):
 
     def __init__(self, pool: FramePool, seed: int, tracks: int, per_track: int,
                  augment: float, start: int = 0, white_balance: float = 0.0,
-                 pair_gap: int = 0) -> None:
+                 pair_gap: int = 0, grey: float = 0.0) -> None:
         super().__init__()
         self.pool, self.seed, self.start = pool, seed, start
         self.tracks, self.per_track, self.augment = tracks, per_track, augment
-        self.white_balance, self.pair_gap = white_balance, pair_gap
+        self.white_balance, self.pair_gap, self.grey = white_balance, pair_gap, grey
 
     def __iter__(self) -> Iterator[Tuple[torch.Tensor, torch.Tensor]]:
         info = torch.utils.data.get_worker_info()
@@ -173,7 +190,7 @@ class FrameBatches(torch.utils.data.IterableDataset):
         rng = np.random.default_rng([self.seed, worker, self.start])
         while True:
             yield sample_batch(self.pool, rng, self.tracks, self.per_track, self.augment,
-                               self.white_balance, self.pair_gap)
+                               self.white_balance, self.pair_gap, self.grey)
 
 
 def frame_arrays(pool: FramePool, stride: int = 1, pair_gap: int = 0) -> Dict[str, np.ndarray]:

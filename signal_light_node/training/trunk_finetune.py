@@ -274,7 +274,7 @@ def train(run: FineTune, pool: FramePool, val: Dict[str, Dict[str, np.ndarray]],
     weights = [w.to(run.device) for w in class_weights(pool)]
     batches = FrameBatches(pool, args.seed, args.tracks, args.per_track, args.augment,
                            start=run.progress["step"], white_balance=args.white_balance,
-                           pair_gap=args.pair_gap)
+                           pair_gap=args.pair_gap, grey=args.grey)
     loader = torch.utils.data.DataLoader(batches, batch_size=None, num_workers=args.workers,
                                          pin_memory=run.device.type == "cuda",
                                          prefetch_factor=4 if args.workers else None)
@@ -334,6 +334,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--white-balance", type=float, default=0.0,
                         help="that camera's B, G, R gains are drawn log-uniform within "
                              "+-this (0: none; 0.3 spans 0.74-1.35)")
+    parser.add_argument("--grey", type=float, default=0.0,
+                        help="share of tracks shown without colour (each frame's luma in "
+                             "all channels), so a lit lamp is learnt by its brightness too")
     parser.add_argument("--pair-gap", type=int, default=0,
                         help="frames: the head also reads each frame's trunk features less "
                              "those of the same track's frame this many frames earlier "
@@ -357,6 +360,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         parser.error("CUDA requested but not available")
+    if not 0.0 <= args.grey <= 1.0:
+        parser.error(f"--grey must be a share in [0, 1], got {args.grey}")
     if args.pair_gap < 0:
         parser.error(f"--pair-gap must be >= 0 frames, got {args.pair_gap}")
     args.out.mkdir(parents=True, exist_ok=True)
