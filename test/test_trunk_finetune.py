@@ -202,6 +202,15 @@ def test_the_stage_trains_on_pairs_and_its_trunk_loads_as_any_other(split, tmp_p
                              "--pair-gap", "-1"])
 
 
+@pytest.mark.parametrize("share", ["-0.1", "1.5"])
+def test_a_grey_share_outside_zero_to_one_is_refused(split, tmp_path, share, capsys):
+    with pytest.raises(SystemExit):
+        trunk_finetune.main(["--out", str(tmp_path / "frames"), "--pool", str(split),
+                             "--val", str(split), "--grey", share])
+    assert "--grey must be a share in [0, 1]" in capsys.readouterr().err
+    assert not (tmp_path / "frames").exists()
+
+
 def test_a_trunk_of_another_shape_is_refused(split, tmp_path):
     out = tmp_path / "frames"
     assert trunk_finetune.main(["--out", str(out), "--pool", str(split), "--val", str(split),

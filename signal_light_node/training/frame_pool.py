@@ -155,9 +155,9 @@ def sample_batch(pool: FramePool, rng: np.random.Generator, tracks: int, per_tra
                  grey: float = 0.0) -> Tuple[torch.Tensor, torch.Tensor]:
     """``tracks x per_track`` random frames (tracks drawn uniformly, frames uniformly in
     each), augmented per track (:func:`_augment_track`, ``grey`` its share of greyed
-    tracks): crops ``[N, 3, S, S]`` uint8 and
-    targets ``[N, 4]``. With ``pair_gap`` > 0 each frame's partner (:func:`partner_index`,
-    augmented with it) is stacked behind it: crops ``[N, 6, S, S]``."""
+    tracks): crops ``[N, 3, S, S]`` uint8 and targets ``[N, 4]``. With ``pair_gap`` > 0
+    each frame's partner (:func:`partner_index`, augmented with it) is stacked behind it:
+    crops ``[N, 6, S, S]``."""
     crops, targets = [], []
     for track in rng.integers(0, pool.n_tracks, tracks):
         a, b = int(pool.offsets[track]), int(pool.offsets[track + 1])
