@@ -43,6 +43,7 @@ _NEEDS = (
     ("high_lamp", "track_floor", "adds a region to the track's floor"),
     ("expert_red", "brake_expert", "chooses the brake judge's inputs"),
     ("lit_cells", "lit_periods", "shapes the per-frame lit head"),
+    ("lit_share", "lit_periods", "reads the lit head's P(lit)"),
 )
 
 
@@ -103,6 +104,10 @@ class ModelConfig:
             peaks join the track vector beside their blink-period amplitudes; false keeps
             only the amplitudes for the blinkers (a blinker is a lamp that flashes: a
             steady lit lamp gives no blink evidence), the brake's level stays.
+        lit_share: With ``lit_periods``, each lamp's P(lit) over the last frames also
+            gives the share of its change that is periodic at blink periods
+            (``model.blink_share``): a flash however faint, where the resonators'
+            amplitude grows with how sure the per-frame judge is.
         lit_hidden: Width of the lit head's hidden layer (ReLU); 0 keeps it linear.
         lit_cells: With ``lit_periods``, judge lamps cell by cell: the lit head's layers
             (``lit_hidden`` wide, then this many channels) run on every cell of the
@@ -208,6 +213,7 @@ class ModelConfig:
     lit_head: bool = False
     lit_periods: bool = False
     blink_levels: bool = True
+    lit_share: bool = False
     lit_hidden: int = 0
     lit_cells: int = 0
     lamp_detail: int = 1
@@ -245,7 +251,7 @@ class ModelConfig:
             raise ConfigError(f"model config has a value of the wrong type: {exc}") from None
         # bool("false") is True: refuse anything but a real boolean (CLI values are JSON).
         for name in ("use_attention", "temporal_input", "relative_evidence", "frequency_evidence",
-                     "lit_head", "lit_periods", "blink_levels", "cell_periods",
+                     "lit_head", "lit_periods", "blink_levels", "lit_share", "cell_periods",
                      "cell_pooled", "lamp_area", "track_floor", "brake_expert",
                      "expert_red", "high_lamp", "lit_map_head", "crop_fill"):
             if not isinstance(getattr(self, name), bool):

@@ -17,6 +17,7 @@ One step for ``N`` tracks::
          (periodic energy per blink period, left/right phase agreement)
       -> with ``lit_periods``: a linear "lamp lit in this frame" head on the evidence so
          far; each lamp's P(lit) drives its own resonators and a decaying peak
+         (with ``lit_share``, also its blink share over a window of past frames)
       -> with ``cell_periods``: resonators on every fine lamp-map cell; the largest
          amplitudes per image half join the track vector, a per-cell map the evidence
       -> with ``track_floor``: the lit area of the crop and its halves against the
@@ -43,6 +44,7 @@ from torch import Tensor, nn
 
 from signal_light_node.errors import ConfigError
 from signal_light_node.labels import TASKS, LightStatus
+from signal_light_node.model import blink_share
 from signal_light_node.model import lamp_evidence as lamps
 from signal_light_node.model.interface import State, state_batch_size
 from signal_light_node.model.network import (calibrated_logits, check_crops, convlstm_stack,
@@ -263,6 +265,7 @@ class TrunkLightNet(TrunkFront):
         self.n_vector = (self.n_freq if config.frequency_evidence else 0) + \
             (len(LIT_TASKS) * len(lamps.PERIODS) + self.level_lamps
              + sum(self.lit_sizes[:self.level_lamps]) if config.lit_periods else 0) + \
+            (len(LIT_TASKS) if config.lit_share else 0) + \
             (n_cell_vector if config.cell_periods else 0) + \
             (lamps.floor_features(config.high_lamp) if config.track_floor else 0)
         self.freq: Optional[nn.Sequential] = None
@@ -293,6 +296,10 @@ class TrunkLightNet(TrunkFront):
                 self.lit_head = nn.Linear(lit_in, n_lit) if not config.lit_hidden else \
                     nn.Sequential(nn.Linear(lit_in, config.lit_hidden), nn.ReLU(inplace=True),
                                   nn.Linear(config.lit_hidden, n_lit))
+        if config.lit_share:  # fixed maps, rebuilt from the config: not in the state dict
+            band, every = blink_share.basis()
+            self.register_buffer("_share_band", band, persistent=False)
+            self.register_buffer("_share_every", every, persistent=False)
         self.brake_expert: Optional[nn.Linear] = None
         if config.brake_expert:
             self.brake_expert = nn.Linear(
@@ -314,7 +321,8 @@ class TrunkLightNet(TrunkFront):
             shapes.append(((2 * self.n_signals * len(lamps.PERIODS), 1, 1), (self.n_signals, 1, 1)))
         if self.config.lit_periods:
             n_lit = len(LIT_TASKS)
-            shapes.append(((2 * n_lit * len(lamps.PERIODS), 1, 1), (2 * n_lit, 1, 1)))
+            window = n_lit * blink_share.WINDOW if self.config.lit_share else 0
+            shapes.append(((2 * n_lit * len(lamps.PERIODS), 1, 1), (2 * n_lit + window, 1, 1)))
         if self.config.cell_periods:
             s = self.n_cell_signals
             shapes.append(((2 * s * len(lamps.PERIODS), 1, 1), (3 * s, 1, 1)))
@@ -392,20 +400,26 @@ class TrunkLightNet(TrunkFront):
                      ) -> Tuple[Tensor, Tuple[Tensor, Tensor]]:
         """The track vector's lit-lamp part: resonators over each lamp's per-frame P(lit),
         its decaying peak and the probabilities themselves (the brake's only, without
-        ``blink_levels``); and the new history."""
+        ``blink_levels``), with ``lit_share`` each lamp's blink share over its window of
+        past P(lit); and the new history."""
         n, n_lit, periods = lit_logits.shape[0], len(LIT_TASKS), len(lamps.PERIODS)
         probs = [torch.softmax(part, 1) for part in lit_logits.split(self.lit_sizes, 1)]
         p_on = torch.stack([p[:, 1] for p in probs], 1)
         resonators, memory = history
-        level, peak = memory.reshape(n, 2 * n_lit).chunk(2, 1)
+        memory = memory.reshape(n, -1)
+        level, peak, window = memory[:, :n_lit], memory[:, n_lit:2 * n_lit], memory[:, 2 * n_lit:]
         resonators, level = lamps.resonate(p_on, resonators.reshape(n, 2, n_lit, periods), level,
                                            seen, lamps.PERIODS)
         peak = torch.maximum(p_on, peak * (LIT_PEAK_DECAY * seen))
         levels = self.level_lamps
-        vector = torch.cat([lamps.log_amplitude(resonators).flatten(1), peak[:, :levels]]
-                           + probs[:levels], 1)
-        return vector, (resonators.reshape(n, -1, 1, 1),
-                        torch.cat((level, peak), 1).reshape(n, -1, 1, 1))
+        vector = [lamps.log_amplitude(resonators).flatten(1), peak[:, :levels]] + probs[:levels]
+        memory = [level, peak]
+        if self.config.lit_share:
+            window = blink_share.push(window.reshape(n, n_lit, -1), p_on, seen)
+            vector.append(blink_share.share(window, self._share_band, self._share_every))
+            memory.append(window.flatten(1))
+        return torch.cat(vector, 1), (resonators.reshape(n, -1, 1, 1),
+                                      torch.cat(memory, 1).reshape(n, -1, 1, 1))
 
     def _cell_periods(self, maps: Tensor, history: Tuple[Tensor, Tensor], seen: Tensor
                       ) -> Tuple[Tensor, Tensor, Tuple[Tensor, Tensor]]:
