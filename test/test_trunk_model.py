@@ -457,6 +457,7 @@ def test_checkpoint_round_trip_needs_no_wheel(tmp_path, monkeypatch):
                                       "cell_periods": True, "cell_pooled": True},
                                      {"frequency_evidence": False, "lamp_detail": 2,
                                       "lamp_area": True}, FLOOR,
+                                     {"frequency_evidence": False, "lit_share": True},
                                      dict(JUDGE, expert_dark=0.9),
                                      dict(JUDGE, expert_red=True),
                                      dict(JUDGE, expert_red=True, high_lamp=True),
