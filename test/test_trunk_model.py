@@ -98,6 +98,8 @@ def test_trunk_config_is_validated():
                                       "lit_hidden": 16, "lit_cells": 4},
                                      {"blink_levels": False},
                                      {"frequency_evidence": False, "lit_share": True},
+                                     {"frequency_evidence": False, "lit_share": True,
+                                      "blink_amplitudes": False},
                                      {"frequency_evidence": False, "lamp_detail": 2,
                                       "cell_periods": True},
                                      {"frequency_evidence": False, "lamp_detail": 2,
@@ -701,3 +703,26 @@ def test_lit_share_joins_the_track_vector_and_keeps_the_state_out_of_the_weights
     assert set(shared.state_dict()) - set(plain.state_dict()) == set()  # fixed maps are rebuilt
     with pytest.raises(ConfigError, match="lit_share .* needs lit_periods"):
         trunk_config(lit_periods=False, lit_share=True)
+
+
+def test_without_blink_amplitudes_only_the_brake_resonators_join_the_track_vector():
+    from signal_light_node.model.lamp_evidence import PERIODS
+
+    plain = _model(frequency_evidence=False, lit_share=True)
+    brake_only = _model(frequency_evidence=False, lit_share=True, blink_amplitudes=False)
+    assert brake_only.n_vector == plain.n_vector - 2 * len(PERIODS)
+    n_lit = sum(plain.lit_sizes)
+    history = plain.initial_state(1)[-1]
+    generator = torch.Generator().manual_seed(2)
+    for t in range(6):  # a few frames, so that each lamp's resonators differ
+        logits = 3.0 * torch.randn(1, n_lit, generator=generator)
+        seen = torch.full((1, 1), float(t > 0))
+        full, new_history = plain._lit_periods(logits, history, seen)
+        part, _ = brake_only._lit_periods(logits, history, seen)
+        history = new_history
+    assert not torch.allclose(full[:, :len(PERIODS)], full[:, len(PERIODS):2 * len(PERIODS)])
+    # The brake's amplitudes lead both; the blinkers' (next in the full vector) are gone.
+    assert torch.equal(part[:, :len(PERIODS)], full[:, :len(PERIODS)])
+    assert torch.equal(part[:, len(PERIODS):], full[:, 3 * len(PERIODS):])
+    with pytest.raises(ConfigError, match="blink_amplitudes false .* needs lit_periods"):
+        trunk_config(lit_periods=False, blink_amplitudes=False)

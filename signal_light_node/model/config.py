@@ -45,6 +45,10 @@ _NEEDS = (
     ("lit_cells", "lit_periods", "shapes the per-frame lit head"),
     ("lit_share", "lit_periods", "reads the lit head's P(lit)"),
 )
+#: Options that need another option to be off (false) to mean anything.
+_NEEDS_OFF = (
+    ("blink_amplitudes", "lit_periods", "leaves out the lit lamps' resonator amplitudes"),
+)
 
 
 @dataclass(frozen=True)
@@ -108,6 +112,10 @@ class ModelConfig:
             gives the share of its change that is periodic at blink periods
             (``model.blink_share``): a flash however faint, where the resonators'
             amplitude grows with how sure the per-frame judge is.
+        blink_amplitudes: With ``lit_periods``, the blinkers' resonator amplitudes join the
+            track vector; false keeps only the brake's, so the heads read a blink from its
+            share (``lit_share``) and the recurrent evidence rather than from how far a
+            lamp's P(lit) swings, which is less on cameras the judge never saw.
         lit_hidden: Width of the lit head's hidden layer (ReLU); 0 keeps it linear.
         lit_cells: With ``lit_periods``, judge lamps cell by cell: the lit head's layers
             (``lit_hidden`` wide, then this many channels) run on every cell of the
@@ -214,6 +222,7 @@ class ModelConfig:
     lit_periods: bool = False
     blink_levels: bool = True
     lit_share: bool = False
+    blink_amplitudes: bool = True
     lit_hidden: int = 0
     lit_cells: int = 0
     lamp_detail: int = 1
@@ -251,7 +260,8 @@ class ModelConfig:
             raise ConfigError(f"model config has a value of the wrong type: {exc}") from None
         # bool("false") is True: refuse anything but a real boolean (CLI values are JSON).
         for name in ("use_attention", "temporal_input", "relative_evidence", "frequency_evidence",
-                     "lit_head", "lit_periods", "blink_levels", "lit_share", "cell_periods",
+                     "lit_head", "lit_periods", "blink_levels", "lit_share", "blink_amplitudes",
+                     "cell_periods",
                      "cell_pooled", "lamp_area", "track_floor", "brake_expert",
                      "expert_red", "high_lamp", "lit_map_head", "crop_fill"):
             if not isinstance(getattr(self, name), bool):
@@ -325,6 +335,9 @@ class ModelConfig:
         for option, needed, why in _NEEDS:
             if getattr(self, option) and not getattr(self, needed):
                 raise ConfigError(f"model config {option} {why}: it needs {needed}")
+        for option, needed, why in _NEEDS_OFF:
+            if not getattr(self, option) and not getattr(self, needed):
+                raise ConfigError(f"model config {option} false {why}: it needs {needed}")
         if self.lamp_detail > 1 and self.frequency_evidence:
             raise ConfigError("model config frequency_evidence reads whole lamp-map halves: "
                               "it needs lamp_detail 1")

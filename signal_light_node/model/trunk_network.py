@@ -262,8 +262,10 @@ class TrunkLightNet(TrunkFront):
         # resonator amplitudes, decaying peaks and probabilities (``lit_periods``).
         # The lamps whose level (P(lit) and peak) joins the vector: all, or the brake only.
         self.level_lamps = len(LIT_TASKS) if config.blink_levels else 1
+        # The lamps whose resonator amplitudes join it: all, or the brake only.
+        self.amplitude_lamps = len(LIT_TASKS) if config.blink_amplitudes else 1
         self.n_vector = (self.n_freq if config.frequency_evidence else 0) + \
-            (len(LIT_TASKS) * len(lamps.PERIODS) + self.level_lamps
+            (self.amplitude_lamps * len(lamps.PERIODS) + self.level_lamps
              + sum(self.lit_sizes[:self.level_lamps]) if config.lit_periods else 0) + \
             (len(LIT_TASKS) if config.lit_share else 0) + \
             (n_cell_vector if config.cell_periods else 0) + \
@@ -400,8 +402,9 @@ class TrunkLightNet(TrunkFront):
                      ) -> Tuple[Tensor, Tuple[Tensor, Tensor]]:
         """The track vector's lit-lamp part: resonators over each lamp's per-frame P(lit),
         its decaying peak and the probabilities themselves (the brake's only, without
-        ``blink_levels``), with ``lit_share`` each lamp's blink share over its window of
-        past P(lit); and the new history."""
+        ``blink_levels``; the amplitudes too without ``blink_amplitudes``), with
+        ``lit_share`` each lamp's blink share over its window of past P(lit); and the new
+        history."""
         n, n_lit, periods = lit_logits.shape[0], len(LIT_TASKS), len(lamps.PERIODS)
         probs = [torch.softmax(part, 1) for part in lit_logits.split(self.lit_sizes, 1)]
         p_on = torch.stack([p[:, 1] for p in probs], 1)
@@ -412,7 +415,8 @@ class TrunkLightNet(TrunkFront):
                                            seen, lamps.PERIODS)
         peak = torch.maximum(p_on, peak * (LIT_PEAK_DECAY * seen))
         levels = self.level_lamps
-        vector = [lamps.log_amplitude(resonators).flatten(1), peak[:, :levels]] + probs[:levels]
+        amplitudes = lamps.log_amplitude(resonators)[:, :self.amplitude_lamps]
+        vector = [amplitudes.flatten(1), peak[:, :levels]] + probs[:levels]
         memory = [level, peak]
         if self.config.lit_share:
             window = blink_share.push(window.reshape(n, n_lit, -1), p_on, seen)
