@@ -261,8 +261,7 @@ class ModelConfig:
         # bool("false") is True: refuse anything but a real boolean (CLI values are JSON).
         for name in ("use_attention", "temporal_input", "relative_evidence", "frequency_evidence",
                      "lit_head", "lit_periods", "blink_levels", "lit_share", "blink_amplitudes",
-                     "cell_periods",
-                     "cell_pooled", "lamp_area", "track_floor", "brake_expert",
+                     "cell_periods", "cell_pooled", "lamp_area", "track_floor", "brake_expert",
                      "expert_red", "high_lamp", "lit_map_head", "crop_fill"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"model config {name} must be true or false, got "
