@@ -680,20 +680,20 @@ def test_on_offsets_that_cannot_apply_are_refused(offsets, why):
 def test_blink_share_is_high_for_a_faint_flash_and_zero_for_a_steady_lamp():
     from signal_light_node.model import blink_share
 
-    band, every = blink_share.basis()
+    fourier, band = blink_share.basis()
     t = torch.arange(blink_share.WINDOW, dtype=torch.float32)
     flash = (torch.sin(2 * math.pi * t / 9.0) > 0).float()  # a blink of 9 frames
     windows = torch.stack([0.1 + 0.2 * flash, 0.5 + 0.5 * flash,  # faint and clear
                            torch.full_like(t, 0.9),  # steady, lit
                            0.2 + 0.01 * t])  # a slow drift: the trend, no flash
-    shares = blink_share.share(windows.unsqueeze(0), band, every)[0]
+    shares = blink_share.share(windows.unsqueeze(0), fourier, band)[0]
     assert shares[0] > 0.8 and torch.isclose(shares[0], shares[1], atol=0.02)
     assert shares[2] < 1e-6 and shares[3] < 1e-3
     # A new track's window holds its first value: its onset is no flash.
     first = blink_share.push(torch.zeros(1, 2, blink_share.WINDOW), torch.tensor([[0.7, 0.1]]),
                              torch.zeros(1, 1))
     assert torch.equal(first[0, 0], torch.full((blink_share.WINDOW,), 0.7))
-    assert blink_share.share(first, band, every).abs().max() < 1e-6
+    assert blink_share.share(first, fourier, band).abs().max() < 1e-6
 
 
 def test_lit_share_joins_the_track_vector_and_keeps_the_state_out_of_the_weights():

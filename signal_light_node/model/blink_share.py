@@ -8,10 +8,10 @@ last :data:`WINDOW` frames that lies at blink periods does not: a flash is perio
 however faint, a steady lamp, box jitter or passing light is not.
 
 Per track the window of the last frames is state (:func:`push`, a new track's window holds
-its first value, so its onset is no flash), and the share is two small matrix products
-(:func:`basis`, :func:`share`): the window's straight-line trend removed, a Hann taper and
-the Fourier sums at every frequency, all folded into fixed matrices, so ONNX exports it
-as it is.
+its first value, so its onset is no flash), and the share is one small matrix product
+and a mask over its frequency bins (:func:`basis`, :func:`share`): the window's
+straight-line trend removed, a Hann taper and the Fourier sums at every frequency, all
+folded into one fixed matrix, so ONNX exports it as it is.
 """
 
 from __future__ import annotations
@@ -32,31 +32,21 @@ WINDOW = 48
 SHARE_FLOOR = 1e-3
 
 
-def _bins(window: int, periods: Tuple[float, float]) -> Tuple[np.ndarray, np.ndarray]:
-    """Frequency bins (cycles per window) at blink periods and at every non-zero one."""
-    every = np.arange(1, window // 2 + 1)
-    low, high = periods
-    band = every[(window / every >= low) & (window / every <= high)]
-    return band, every
-
-
 def basis(window: int = WINDOW, periods: Tuple[float, float] = (PERIODS[0], PERIODS[-1])
           ) -> Tuple[Tensor, Tensor]:
-    """Maps ``[W, 2B]`` and ``[W, 2T]`` from a window (oldest frame first) to the real and
-    imaginary Fourier sums at the ``B`` bins whose period in frames lies in ``periods``
-    and at all ``T`` non-zero bins, after the trend and the taper."""
+    """The map ``[W, 2T]`` from a window (oldest frame first) to the real, then the
+    imaginary Fourier sums at its ``T`` non-zero bins after the trend and the taper, and
+    the mask ``[T]`` (1.0 or 0.0) of the bins whose period in frames lies in ``periods``."""
     t = np.arange(window, dtype=np.float64)
     trend = np.stack((np.ones(window), t), 1)
     detrend = np.eye(window) - trend @ np.linalg.pinv(trend)
-    taper = np.hanning(window)
-
-    def fourier(bins: np.ndarray) -> Tensor:
-        phase = 2.0 * math.pi * np.outer(t, bins) / window  # [W, bins]
-        waves = np.concatenate((np.cos(phase), np.sin(phase)), 1) * taper[:, None]
-        return torch.from_numpy((detrend.T @ waves).astype(np.float32))
-
-    band, every = _bins(window, periods)
-    return fourier(band), fourier(every)
+    bins = np.arange(1, window // 2 + 1)  # cycles per window
+    phase = 2.0 * math.pi * np.outer(t, bins) / window  # [W, T]
+    waves = np.concatenate((np.cos(phase), np.sin(phase)), 1) * np.hanning(window)[:, None]
+    low, high = periods
+    band = (window / bins >= low) & (window / bins <= high)
+    return (torch.from_numpy((detrend.T @ waves).astype(np.float32)),
+            torch.from_numpy(band.astype(np.float32)))
 
 
 def push(window: Tensor, signals: Tensor, seen: Tensor) -> Tensor:
@@ -67,9 +57,9 @@ def push(window: Tensor, signals: Tensor, seen: Tensor) -> Tensor:
     return shifted * seen + signals.unsqueeze(-1).expand_as(window) * (1.0 - seen)
 
 
-def share(window: Tensor, band: Tensor, every: Tensor, floor: float = SHARE_FLOOR) -> Tensor:
+def share(window: Tensor, fourier: Tensor, band: Tensor, floor: float = SHARE_FLOOR) -> Tensor:
     """``[N, S]`` share in [0, 1) of each window's power (after trend and taper) at blink
-    periods, from :func:`basis`'s maps."""
-    at_blinks = (window @ band).pow(2).sum(-1)
-    in_all = (window @ every).pow(2).sum(-1)
-    return at_blinks / (in_all + floor)
+    periods, from :func:`basis`'s map and mask."""
+    real, imaginary = (window @ fourier).chunk(2, -1)
+    power = real.pow(2) + imaginary.pow(2)  # per bin
+    return (power @ band) / (power.sum(-1) + floor)

@@ -299,9 +299,9 @@ class TrunkLightNet(TrunkFront):
                     nn.Sequential(nn.Linear(lit_in, config.lit_hidden), nn.ReLU(inplace=True),
                                   nn.Linear(config.lit_hidden, n_lit))
         if config.lit_share:  # fixed maps, rebuilt from the config: not in the state dict
-            band, every = blink_share.basis()
+            fourier, band = blink_share.basis()
+            self.register_buffer("_share_fourier", fourier, persistent=False)
             self.register_buffer("_share_band", band, persistent=False)
-            self.register_buffer("_share_every", every, persistent=False)
         self.brake_expert: Optional[nn.Linear] = None
         if config.brake_expert:
             self.brake_expert = nn.Linear(
@@ -420,7 +420,7 @@ class TrunkLightNet(TrunkFront):
         memory = [level, peak]
         if self.config.lit_share:
             window = blink_share.push(window.reshape(n, n_lit, -1), p_on, seen)
-            vector.append(blink_share.share(window, self._share_band, self._share_every))
+            vector.append(blink_share.share(window, self._share_fourier, self._share_band))
             memory.append(window.flatten(1))
         return torch.cat(vector, 1), (resonators.reshape(n, -1, 1, 1),
                                       torch.cat(memory, 1).reshape(n, -1, 1, 1))
