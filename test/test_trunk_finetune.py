@@ -110,6 +110,30 @@ def test_grey_frames_keep_a_pixels_luma():
     assert (out[..., 0] == out[..., 2]).all()
 
 
+def test_value_grey_keeps_a_pixels_largest_channel_whatever_its_hue():
+    # An orange and a yellow lamp at full power: luma tells them apart, value does not.
+    bgr = np.array([[[20, 90, 255], [20, 190, 255], [40, 50, 60]]], np.uint8)
+    value = frame_pool.grey_frames(bgr, "value")
+    assert value[0, :, 1].tolist() == [255, 255, 60]
+    assert (value[..., 0] == value[..., 2]).all()
+    luma = frame_pool.grey_frames(bgr)
+    assert luma[0, 0, 0] < luma[0, 1, 0]
+
+
+def test_an_unknown_grey_mode_is_refused():
+    with pytest.raises(ConfigError, match="grey mode"):
+        frame_pool.grey_frames(np.zeros((1, 1, 3), np.uint8), "hue")
+
+
+def test_value_grey_reaches_the_batches(split):
+    pool = FramePool.load([split])
+    luma, _ = sample_batch(pool, np.random.default_rng(1), tracks=4, per_track=3, augment=0.0,
+                           grey=1.0)
+    value, _ = sample_batch(pool, np.random.default_rng(1), tracks=4, per_track=3,
+                            augment=0.0, grey=1.0, grey_mode="value")
+    assert torch.equal(value[:, 0], value[:, 2]) and not torch.equal(luma, value)
+
+
 def test_a_partner_is_the_same_tracks_earlier_frame_clipped_at_its_start():
     offsets = np.array([0, 5, 12])
     index = np.array([0, 2, 4, 5, 6, 11])

@@ -14,7 +14,9 @@ so a head can read a lamp's change as well as its look.
 
 With a ``grey`` share, that share of the tracks is shown without colour (each frame's luma
 in all three channels, after the camera): a lamp lit in such a frame can be told only by
-its brightness against the vehicle, which does not depend on the lamp's hue.
+its brightness against the vehicle. Luma still depends on the hue (an orange lamp has
+less than a yellow one of the same power); ``grey_mode="value"`` shows each pixel's
+largest channel instead, which a saturated lit lamp keeps near full whatever its hue.
 """
 
 from __future__ import annotations
@@ -103,20 +105,34 @@ class FramePool:
                 for col, k in zip(all_targets.T, num_classes)]
 
 
-def grey_frames(crops: np.ndarray) -> np.ndarray:
-    """BGR uint8 frames ``[..., 3]`` with each pixel's luma (:data:`LUMA_BGR`) in all three
-    channels."""
-    luma = crops.astype(np.float32) @ LUMA_BGR
-    return np.repeat(np.clip(np.rint(luma), 0, 255).astype(np.uint8)[..., None], 3, axis=-1)
+#: What a greyed frame shows in all three channels (:func:`grey_frames`).
+GREY_MODES = ("luma", "value")
+
+
+def grey_frames(crops: np.ndarray, mode: str = "luma") -> np.ndarray:
+    """BGR uint8 frames ``[..., 3]`` with one grey level per pixel in all three channels:
+    its luma (:data:`LUMA_BGR`) or, with ``mode="value"``, its largest channel.
+
+    Raises:
+        ConfigError: ``mode`` is not one of :data:`GREY_MODES`.
+    """
+    if mode == "value":
+        level = crops.max(axis=-1)
+    elif mode == "luma":
+        level = np.clip(np.rint(crops.astype(np.float32) @ LUMA_BGR), 0, 255).astype(np.uint8)
+    else:
+        raise ConfigError(f"grey mode must be one of {GREY_MODES}, got {mode!r}")
+    return np.repeat(level[..., None], 3, axis=-1)
 
 
 def _augment_track(crops: np.ndarray, lit: np.ndarray, labels: np.ndarray,
                    rng: np.random.Generator, augment: float, white_balance: float = 0.0,
-                   grey: float = 0.0) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   grey: float = 0.0, grey_mode: str = "luma"
+                   ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One track's frames mirrored with probability 0.5, then, with probability
     ``augment``, one perspective warp and one camera response (its channel gains drawn
     within ``white_balance``, :meth:`.CameraResponse.draw`), then with probability
-    ``grey`` greyed (:func:`grey_frames`). ``crops`` may hold more frames than the label
+    ``grey`` greyed (:func:`grey_frames` by ``grey_mode``). ``crops`` may hold more frames than the label
     rows (their partners, behind them): all get the same treatment."""
     if rng.random() < 0.5:
         item = mirror_sequence({"crops": crops, "labels": labels, "lit_labels": lit,
@@ -126,7 +142,7 @@ def _augment_track(crops: np.ndarray, lit: np.ndarray, labels: np.ndarray,
         crops = randomise_camera(warp_sequence(crops, rng), rng, white_balance)
     # Drawn only when asked, so that runs without it keep their random stream.
     if grey > 0 and rng.random() < grey:
-        crops = grey_frames(crops)
+        crops = grey_frames(crops, grey_mode)
     return crops, lit, labels
 
 
@@ -152,10 +168,10 @@ def _with_partners(frames: np.ndarray, pair_gap: int) -> np.ndarray:
 
 def sample_batch(pool: FramePool, rng: np.random.Generator, tracks: int, per_track: int,
                  augment: float, white_balance: float = 0.0, pair_gap: int = 0,
-                 grey: float = 0.0) -> Tuple[torch.Tensor, torch.Tensor]:
+                 grey: float = 0.0, grey_mode: str = "luma") -> Tuple[torch.Tensor, torch.Tensor]:
     """``tracks x per_track`` random frames (tracks drawn uniformly, frames uniformly in
     each), augmented per track (:func:`_augment_track`, ``grey`` its share of greyed
-    tracks): crops ``[N, 3, S, S]`` uint8 and targets ``[N, 4]``. With ``pair_gap`` > 0
+    tracks, ``grey_mode`` how they are greyed): crops ``[N, 3, S, S]`` uint8 and targets ``[N, 4]``. With ``pair_gap`` > 0
     each frame's partner (:func:`partner_index`, augmented with it) is stacked behind it:
     crops ``[N, 6, S, S]``."""
     crops, targets = [], []
@@ -165,7 +181,7 @@ def sample_batch(pool: FramePool, rng: np.random.Generator, tracks: int, per_tra
         frames = _with_partner_rows(pool.offsets, index, pair_gap)
         c, lit, labels = _augment_track(pool.crops[frames], pool.lit_labels[index],
                                         pool.labels[index], rng, augment, white_balance,
-                                        grey)
+                                        grey, grey_mode)
         crops.append(_with_partners(c, pair_gap))
         targets.append(frame_targets(lit, labels))
     x = torch.from_numpy(np.ascontiguousarray(np.concatenate(crops))).permute(0, 3, 1, 2)
@@ -178,11 +194,12 @@ class FrameBatches(torch.utils.data.IterableDataset):
 
     def __init__(self, pool: FramePool, seed: int, tracks: int, per_track: int,
                  augment: float, start: int = 0, white_balance: float = 0.0,
-                 pair_gap: int = 0, grey: float = 0.0) -> None:
+                 pair_gap: int = 0, grey: float = 0.0, grey_mode: str = "luma") -> None:
         super().__init__()
         self.pool, self.seed, self.start = pool, seed, start
         self.tracks, self.per_track, self.augment = tracks, per_track, augment
         self.white_balance, self.pair_gap, self.grey = white_balance, pair_gap, grey
+        self.grey_mode = grey_mode
 
     def __iter__(self) -> Iterator[Tuple[torch.Tensor, torch.Tensor]]:
         info = torch.utils.data.get_worker_info()
@@ -190,7 +207,7 @@ class FrameBatches(torch.utils.data.IterableDataset):
         rng = np.random.default_rng([self.seed, worker, self.start])
         while True:
             yield sample_batch(self.pool, rng, self.tracks, self.per_track, self.augment,
-                               self.white_balance, self.pair_gap, self.grey)
+                               self.white_balance, self.pair_gap, self.grey, self.grey_mode)
 
 
 def frame_arrays(pool: FramePool, stride: int = 1, pair_gap: int = 0) -> Dict[str, np.ndarray]:

@@ -45,8 +45,8 @@ from signal_light_node.evaluation.metrics import roc_auc
 from signal_light_node.model.config import trunk_config
 from signal_light_node.model.registry import build_model
 from signal_light_node.model.trunk import BLOCKS
-from signal_light_node.training.frame_pool import (FRAME_TARGETS, FrameBatches, FramePool,
-                                                   frame_arrays)
+from signal_light_node.training.frame_pool import (FRAME_TARGETS, GREY_MODES, FrameBatches,
+                                                   FramePool, frame_arrays)
 from signal_light_node.training.loss import share_weights
 
 LOG = logging.getLogger("trunk_finetune")
@@ -274,7 +274,7 @@ def train(run: FineTune, pool: FramePool, val: Dict[str, Dict[str, np.ndarray]],
     weights = [w.to(run.device) for w in class_weights(pool)]
     batches = FrameBatches(pool, args.seed, args.tracks, args.per_track, args.augment,
                            start=run.progress["step"], white_balance=args.white_balance,
-                           pair_gap=args.pair_gap, grey=args.grey)
+                           pair_gap=args.pair_gap, grey=args.grey, grey_mode=args.grey_mode)
     loader = torch.utils.data.DataLoader(batches, batch_size=None, num_workers=args.workers,
                                          pin_memory=run.device.type == "cuda",
                                          prefetch_factor=4 if args.workers else None)
@@ -337,6 +337,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--grey", type=float, default=0.0,
                         help="share of tracks shown without colour (each frame's luma in "
                              "all channels), so a lit lamp is learnt by its brightness too")
+    parser.add_argument("--grey-mode", choices=GREY_MODES, default="luma",
+                        help="what a greyed frame shows: each pixel's luma, or its largest "
+                             "channel (value), which a lit lamp of any hue keeps near full")
     parser.add_argument("--pair-gap", type=int, default=0,
                         help="frames: the head also reads each frame's trunk features less "
                              "those of the same track's frame this many frames earlier "
