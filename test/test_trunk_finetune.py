@@ -17,7 +17,7 @@ from signal_light_node.model.registry import build_model
 from signal_light_node.training import frame_pool, trunk_finetune, trunk_recipe
 from signal_light_node.training.frame_pool import FramePool, sample_batch
 from signal_light_node.training.trunk_finetune import (FROZEN, frame_scores, load_trunk_weights,
-                                                       set_trainable)
+                                                       rank_loss, set_trainable)
 
 
 @pytest.fixture(scope="module")
@@ -224,6 +224,50 @@ def test_the_stage_trains_on_pairs_and_its_trunk_loads_as_any_other(split, tmp_p
     with pytest.raises(SystemExit):
         trunk_finetune.main(["--out", str(out), "--pool", str(split), "--val", str(split),
                              "--pair-gap", "-1"])
+
+
+def _lamp_logits(on_minus_off):
+    """Per-frame logits of the four targets whose lamps score ``on_minus_off`` (ON over OFF)."""
+    score = torch.tensor(on_minus_off, dtype=torch.float32)
+    lamp = torch.stack([torch.zeros_like(score), score, torch.zeros_like(score)], 1)
+    return [lamp.clone().requires_grad_(True) for _ in range(3)] + [torch.zeros(len(score), 4)]
+
+
+def _targets(lamp_states):
+    rows = torch.tensor(lamp_states, dtype=torch.int64)[:, None].repeat(1, 4)
+    rows[:, 3] = 0
+    return rows
+
+
+def test_the_ranking_asks_a_lit_frame_to_score_above_the_same_tracks_unlit_one():
+    # One track of two frames: lit, then unlit (LightStatus ON = 1, OFF = 0).
+    targets = _targets([1, 0])
+    right = rank_loss(_lamp_logits([3.0, -3.0]), targets, group=2).item()
+    wrong = rank_loss(_lamp_logits([-3.0, 3.0]), targets, group=2).item()
+    assert right < 0.01 < 5.0 < wrong
+    logits = _lamp_logits([0.0, 0.0])
+    rank_loss(logits, targets, group=2).backward()
+    assert float(logits[1].grad[0, 1]) < 0 < float(logits[1].grad[1, 1])  # lit up, unlit down
+
+
+def test_the_ranking_never_compares_two_tracks_nor_unknown_frames():
+    # Track 0 lit twice, track 1 unlit twice: no pair within a track, however they score;
+    # an UNKNOWN frame (2) pairs with nothing.
+    assert float(rank_loss(_lamp_logits([-5.0, -5.0, 5.0, 5.0]), _targets([1, 1, 0, 0]),
+                           group=2)) == 0.0
+    assert float(rank_loss(_lamp_logits([-5.0, 5.0]), _targets([2, 0]), group=2)) == 0.0
+
+
+def test_the_stage_trains_with_the_ranking_and_refuses_a_negative_weight(split, tmp_path):
+    out = tmp_path / "ranked"
+    assert trunk_finetune.main(["--out", str(out), "--pool", str(split), "--val", str(split),
+                                "--tracks", "2", "--per-track", "4", "--val-every", "2",
+                                "--threads", "1", "--train-from", "10", "--steps", "2",
+                                "--rank-weight", "1"]) == 0
+    assert load_trunk_weights(build_model(trunk_config()), out / "last.pt")["step"] == 2
+    with pytest.raises(SystemExit):
+        trunk_finetune.main(["--out", str(out), "--pool", str(split), "--val", str(split),
+                             "--rank-weight", "-1"])
 
 
 @pytest.mark.parametrize("share", ["-0.1", "1.5"])

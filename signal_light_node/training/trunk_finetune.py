@@ -16,7 +16,10 @@ teaches it, frame by frame, before the temporal part is trained on its cached fe
    shift learn), so a crop is normalised the same way in every domain. With
    ``--pair-gap G`` the head reads each frame's features and their difference to those of
    the same track's frame G earlier (:func:`head_input`): the trunk must then encode how a
-   lamp changes, which the temporal part compares the same way;
+   lamp changes, which the temporal part compares the same way. With ``--rank-weight W``
+   the loss also ranks each track's frames against each other (:func:`rank_loss`): a lamp
+   lit in one frame must score above the same lamp unlit in another frame of that
+   vehicle, whatever its colour;
 3. validates every ``--val-every`` steps on whole splits (ROC AUC of each lamp's
    P(ON) / (P(ON) + P(OFF)), view accuracy), keeps ``best.pt`` by the mean lamp AUC on
    the last ``--val`` split and ``last.pt`` + ``last.state.pt`` for ``--resume``.
@@ -42,6 +45,7 @@ from torch import Tensor, nn
 
 from signal_light_node.errors import ConfigError
 from signal_light_node.evaluation.metrics import roc_auc
+from signal_light_node.labels import LightStatus
 from signal_light_node.model.config import trunk_config
 from signal_light_node.model.registry import build_model
 from signal_light_node.model.trunk import BLOCKS
@@ -114,6 +118,28 @@ def frame_loss(logits: Sequence[Tensor], targets: Tensor, weights: Sequence[Tens
     return total, parts
 
 
+def rank_loss(logits: Sequence[Tensor], targets: Tensor, group: int) -> Tensor:
+    """Mean logistic loss over the pairs of one track's frames (``group`` consecutive
+    rows, as :func:`.sample_batch` lays them out) where a lamp is lit in one and unlit in
+    the other: the lit frame's ON-over-OFF log-odds must exceed the unlit frame's.
+
+    The same vehicle, camera and look on both sides of a pair leave only the lamp's own
+    change to tell them apart. 0 when no track holds such a pair.
+    """
+    total, pairs = logits[0].new_zeros((), dtype=torch.float32), 0
+    on, off = int(LightStatus.ON), int(LightStatus.OFF)
+    for i in range(3):  # the lamps of FRAME_TARGETS; the view is last
+        lamp = logits[i].float().view(-1, group, logits[i].shape[1])
+        score = lamp[..., on] - lamp[..., off]  # [tracks, group]
+        y = targets[:, i].view(-1, group)
+        pair = (y == on)[:, :, None] & (y == off)[:, None, :]  # [track, lit a, unlit b]
+        if bool(pair.any()):
+            # softplus(unlit - lit): log(1 + e^-(lit - unlit)), the logistic ranking loss
+            total = total + F.softplus(score[:, None, :] - score[:, :, None])[pair].sum()
+            pairs += int(pair.sum())
+    return total / max(pairs, 1)
+
+
 def head_input(model: nn.Module, x: Tensor) -> Tensor:
     """What :class:`FrameHead` reads of crops ``x`` ``[N, 3, S, S]`` in [0, 1]: the trunk's
     features; of pairs ``[N, 6, S, S]`` (``--pair-gap``), the features of the frame and
@@ -171,8 +197,10 @@ class FineTune:
     """The model, head, optimiser and progress of one per-frame run (module doc)."""
 
     def __init__(self, model: nn.Module, train_from: int, lr: float, trunk_lr_scale: float,
-                 device: torch.device, pairs: bool = False) -> None:
+                 device: torch.device, pairs: bool = False, rank_weight: float = 0.0,
+                 group: int = 8) -> None:
         self.model, self.train_from, self.device = model.to(device), train_from, device
+        self.rank_weight, self.group = rank_weight, group  # rank_loss's share, frames/track
         model.eval()  # ImageNet batch-norm statistics stay; only scale and shift learn
         channels = model.trunk.out_channels * (2 if pairs else 1)  # head_input's width
         self.head = FrameHead(channels, model.grid).to(device)
@@ -208,6 +236,9 @@ class FineTune:
                             enabled=self.device.type == "cuda"):
             logits = self.head(head_input(self.model, x))
         loss, parts = frame_loss(logits, targets, weights)
+        if self.rank_weight > 0:
+            ranked = rank_loss(logits, targets, self.group)
+            loss, parts["rank"] = loss + self.rank_weight * ranked, float(ranked.detach())
         self.optim.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(self.params, 5.0)
@@ -344,6 +375,10 @@ def _parser() -> argparse.ArgumentParser:
                         help="frames: the head also reads each frame's trunk features less "
                              "those of the same track's frame this many frames earlier "
                              "(0: the frame alone)")
+    parser.add_argument("--rank-weight", type=float, default=0.0,
+                        help="weight of the ranking of each track's frames against each "
+                             "other: a lamp lit in one must score above the same lamp unlit "
+                             "in another (0: none)")
     parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument("--trunk-lr-scale", type=float, default=0.3)
     parser.add_argument("--seed", type=int, default=1)
@@ -367,11 +402,13 @@ def main(argv: Optional[List[str]] = None) -> int:
         parser.error(f"--grey must be a share in [0, 1], got {args.grey}")
     if args.pair_gap < 0:
         parser.error(f"--pair-gap must be >= 0 frames, got {args.pair_gap}")
+    if args.rank_weight < 0:
+        parser.error(f"--rank-weight must be >= 0, got {args.rank_weight}")
     args.out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(args.seed)
     model = build_model(trunk_config(**json.loads(args.model)), pretrained=True)
     run = FineTune(model, args.train_from, args.lr, args.trunk_lr_scale, device,
-                   pairs=args.pair_gap > 0)
+                   pairs=args.pair_gap > 0, rank_weight=args.rank_weight, group=args.per_track)
     if args.resume and (args.out / "last.state.pt").is_file():
         run.load_state(torch.load(args.out / "last.state.pt", map_location=device,
                                   weights_only=False))
