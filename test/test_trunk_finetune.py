@@ -211,12 +211,17 @@ def test_stage_trains_resumes_and_hands_its_trunk_to_the_temporal_recipe(split, 
     assert meta["trunk_weights"]["train_from"] == 9
 
 
-def test_the_stage_trains_on_pairs_and_its_trunk_loads_as_any_other(split, tmp_path):
-    out = tmp_path / "pairs"
-    assert trunk_finetune.main(["--out", str(out), "--pool", str(split), "--val", str(split),
+def _two_steps(split, out, *options: str) -> int:
+    """A two-step run of the per-frame stage on ``split`` (later options win)."""
+    return trunk_finetune.main(["--out", str(out), "--pool", str(split), "--val", str(split),
                                 "--tracks", "2", "--per-track", "2", "--val-every", "2",
                                 "--threads", "1", "--train-from", "10", "--steps", "2",
-                                "--pair-gap", "3"]) == 0
+                                *options])
+
+
+def test_the_stage_trains_on_pairs_and_its_trunk_loads_as_any_other(split, tmp_path):
+    out = tmp_path / "pairs"
+    assert _two_steps(split, out, "--pair-gap", "3") == 0
     saved = torch.load(out / "best.pt", weights_only=False)
     width = build_model(trunk_config()).trunk.out_channels
     assert saved["head"]["conv.0.weight"].shape[1] == 2 * width  # frame and difference
@@ -260,10 +265,7 @@ def test_the_ranking_never_compares_two_tracks_nor_unknown_frames():
 
 def test_the_stage_trains_with_the_ranking_and_refuses_a_negative_weight(split, tmp_path):
     out = tmp_path / "ranked"
-    assert trunk_finetune.main(["--out", str(out), "--pool", str(split), "--val", str(split),
-                                "--tracks", "2", "--per-track", "4", "--val-every", "2",
-                                "--threads", "1", "--train-from", "10", "--steps", "2",
-                                "--rank-weight", "1"]) == 0
+    assert _two_steps(split, out, "--per-track", "4", "--rank-weight", "1") == 0
     assert load_trunk_weights(build_model(trunk_config()), out / "last.pt")["step"] == 2
     with pytest.raises(SystemExit):
         trunk_finetune.main(["--out", str(out), "--pool", str(split), "--val", str(split),
