@@ -132,8 +132,8 @@ def _augment_track(crops: np.ndarray, lit: np.ndarray, labels: np.ndarray,
     """One track's frames mirrored with probability 0.5, then, with probability
     ``augment``, one perspective warp and one camera response (its channel gains drawn
     within ``white_balance``, :meth:`.CameraResponse.draw`), then with probability
-    ``grey`` greyed (:func:`grey_frames` by ``grey_mode``). ``crops`` may hold more frames than the label
-    rows (their partners, behind them): all get the same treatment."""
+    ``grey`` greyed (:func:`grey_frames` by ``grey_mode``). ``crops`` may hold more frames
+    than the label rows (their partners, behind them): all get the same treatment."""
     if rng.random() < 0.5:
         item = mirror_sequence({"crops": crops, "labels": labels, "lit_labels": lit,
                                 "mask": np.ones(len(labels), bool), "meta": {}})
@@ -168,12 +168,13 @@ def _with_partners(frames: np.ndarray, pair_gap: int) -> np.ndarray:
 
 def sample_batch(pool: FramePool, rng: np.random.Generator, tracks: int, per_track: int,
                  augment: float, white_balance: float = 0.0, pair_gap: int = 0,
-                 grey: float = 0.0, grey_mode: str = "luma") -> Tuple[torch.Tensor, torch.Tensor]:
+                 grey: float = 0.0, grey_mode: str = "luma"
+                 ) -> Tuple[torch.Tensor, torch.Tensor]:
     """``tracks x per_track`` random frames (tracks drawn uniformly, frames uniformly in
     each), augmented per track (:func:`_augment_track`, ``grey`` its share of greyed
-    tracks, ``grey_mode`` how they are greyed): crops ``[N, 3, S, S]`` uint8 and targets ``[N, 4]``. With ``pair_gap`` > 0
-    each frame's partner (:func:`partner_index`, augmented with it) is stacked behind it:
-    crops ``[N, 6, S, S]``."""
+    tracks, ``grey_mode`` how they are greyed): crops ``[N, 3, S, S]`` uint8 and targets
+    ``[N, 4]``. With ``pair_gap`` > 0 each frame's partner (:func:`partner_index`,
+    augmented with it) is stacked behind it: crops ``[N, 6, S, S]``."""
     crops, targets = [], []
     for track in rng.integers(0, pool.n_tracks, tracks):
         a, b = int(pool.offsets[track]), int(pool.offsets[track + 1])
