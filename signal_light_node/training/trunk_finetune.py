@@ -128,7 +128,7 @@ def rank_loss(logits: Sequence[Tensor], targets: Tensor, group: int) -> Tensor:
     """
     total, pairs = logits[0].new_zeros((), dtype=torch.float32), 0
     on, off = int(LightStatus.ON), int(LightStatus.OFF)
-    for i in range(3):  # the lamps of FRAME_TARGETS; the view is last
+    for i, _ in enumerate(FRAME_TARGETS[:3]):  # the lamps; the view is last
         lamp = logits[i].float().view(-1, group, logits[i].shape[1])
         score = lamp[..., on] - lamp[..., off]  # [tracks, group]
         y = targets[:, i].view(-1, group)
