@@ -178,6 +178,12 @@ FRAME_GREY=${FRAME_GREY:-0}
 # the same track's frame that many frames earlier (0: the frame alone; docs/model.md, "Pairs
 # of frames in the per-frame stage").
 FRAME_PAIR_GAP=${FRAME_PAIR_GAP:-0}
+# FRAME_RANK > 0: weight of the per-frame stage's ranking of each track's frames against each
+# other, a lamp lit in one above the same lamp unlit in another (0: none; docs/model.md, "A lamp
+# against the same vehicle"). FRAME_INIT: a trunk file (per-frame checkpoint or model file) the
+# per-frame stage starts from instead of ImageNet's (empty: ImageNet).
+FRAME_RANK=${FRAME_RANK:-0}
+FRAME_INIT=${FRAME_INIT:-}
 TRUNK_WEIGHTS=${TRUNK_WEIGHTS:-}
 
 mkdir -p "$RUN" "$DATA"
@@ -212,11 +218,13 @@ if [[ -z "$TRUNK_WEIGHTS" && "$FRAME_STEPS" -gt 0 ]]; then
   echo "== 2a/5 per-frame stage: trunk blocks from $TRAIN_FROM on, $FRAME_STEPS steps"
   resume=()
   [[ -f "$RUN/frames/last.state.pt" ]] && resume=(--resume)
+  init=()
+  [[ -n "$FRAME_INIT" ]] && init=(--init-trunk "$FRAME_INIT")
   [[ -f "$RUN/frames/summary.json" ]] || python -m signal_light_node.training.trunk_finetune \
     --out "$RUN/frames" "${pools[@]}" --val "$DATA/val_split" --val "$DATA/family_cal_split" \
     --model "$MODEL" --train-from "$TRAIN_FROM" --steps "$FRAME_STEPS" --tracks "$FRAME_TRACKS" \
     --workers "$FRAME_WORKERS" --white-balance "$FRAME_WHITE_BALANCE" --pair-gap "$FRAME_PAIR_GAP" \
-    --grey "$FRAME_GREY" \
+    --grey "$FRAME_GREY" --rank-weight "$FRAME_RANK" "${init[@]}" \
     --seed "$SEED" --threads "$THREADS" --device "$DEVICE" "${resume[@]}"
   TRUNK_WEIGHTS=$RUN/frames/best.pt
 fi

@@ -272,6 +272,23 @@ def test_the_stage_trains_with_the_ranking_and_refuses_a_negative_weight(split, 
                              "--rank-weight", "-1"])
 
 
+def test_the_stage_goes_on_from_an_earlier_trunk(split, tmp_path):
+    first, second = tmp_path / "first", tmp_path / "second"
+    assert _two_steps(split, first) == 0
+    # A frozen trunk (--train-from 11) keeps exactly what it started from.
+    assert _two_steps(split, second, "--init-trunk", str(first / "last.pt"),
+                      "--train-from", str(FROZEN)) == 0
+    started = torch.load(first / "last.pt", weights_only=False)["trunk"]
+    kept = torch.load(second / "last.pt", weights_only=False)["trunk"]
+    fresh = build_model(trunk_config(), pretrained=True).trunk.state_dict()
+    weight = "blocks.10.project.0.weight"
+    assert not torch.equal(started[weight], fresh[weight])
+    assert all(torch.equal(kept[k], v) for k, v in started.items())
+    with pytest.raises(ConfigError, match="not a per-frame"):
+        torch.save({"x": 1}, tmp_path / "bad.pt")
+        _two_steps(split, tmp_path / "third", "--init-trunk", str(tmp_path / "bad.pt"))
+
+
 @pytest.mark.parametrize("share", ["-0.1", "1.5"])
 def test_a_grey_share_outside_zero_to_one_is_refused(split, tmp_path, share, capsys):
     with pytest.raises(SystemExit):
@@ -321,5 +338,6 @@ def test_every_flag_the_recipe_script_passes_to_the_stage_exists():
     passed = set(re.findall(r"(--[a-z][a-z-]*)", call))
     known = {flag for action in trunk_finetune._parser()._actions
              for flag in action.option_strings}
-    assert {"--pair-gap", "--white-balance", "--steps"} <= passed
+    passed |= set(re.findall(r"init=\((--[a-z][a-z-]*)", script))  # set apart, then passed
+    assert {"--pair-gap", "--white-balance", "--steps", "--rank-weight", "--init-trunk"} <= passed
     assert passed <= known, passed - known

