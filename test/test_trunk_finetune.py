@@ -45,6 +45,13 @@ def test_pool_holds_every_frame_with_its_track_slices(split):
     assert np.array_equal(targets[:, 3], pool.labels[:, TASKS.index("view")])
 
 
+def test_joining_shards_gives_their_concatenation_and_lets_each_go():
+    parts = [np.full((n, 2, 3), n, np.uint8) for n in (3, 1, 2)]
+    want = np.concatenate(parts)
+    joined = frame_pool.join_releasing(parts)
+    assert parts == [] and joined.dtype == np.uint8 and np.array_equal(joined, want)
+
+
 def test_a_folder_that_is_no_split_is_refused(tmp_path):
     with pytest.raises(ConfigError, match="not a rendered split"):
         FramePool.load([tmp_path])
