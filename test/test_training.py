@@ -375,9 +375,9 @@ def _judge_gradients(model, batch, judge_bias: float, head_bias: float, judged: 
             None if judge is None else judge.clone(), parts)
 
 
-def test_the_brake_judge_and_the_brake_head_learn_apart():
-    """Neither one's output reaches the other's gradient, so the head cannot learn to cancel
-    the judge (the recipe's step_loss; model.trunk_network, ``brake_expert``)."""
+def _recipe_model_and_batch(t: int = 5):
+    """The trunk recipe's model (brake judge and all, no dropout) and a random batch of two
+    windows of ``t`` cached frames."""
     from signal_light_node.model.config import trunk_config
     from signal_light_node.model.registry import build_model
 
@@ -385,7 +385,7 @@ def test_the_brake_judge_and_the_brake_head_learn_apart():
     model = build_model(trunk_config(frequency_evidence=False, lamp_detail=2, lamp_area=True,
                                      track_floor=True, brake_expert=True)).train()
     gen = torch.Generator().manual_seed(3)
-    b, t = 2, 5
+    b = 2
     batch = {"features": torch.randn(b, t, model.trunk_channels, 4, 4, generator=gen),
              "maps": torch.rand(b, t, model.lamp_channels, 4, 4, generator=gen),
              "fps": torch.tensor([10.0, 10.0]),
@@ -393,7 +393,14 @@ def test_the_brake_judge_and_the_brake_head_learn_apart():
              "lit_labels": torch.randint(0, 2, (b, t, len(TASKS)), generator=gen),
              "mask": torch.ones(b, t, dtype=torch.bool)}
     model.lstm_dropout.p = 0.0
-    model.fc[2].p = 0.0  # no dropout: the runs must differ only in the biases
+    model.fc[2].p = 0.0  # no dropout: runs on one batch must differ only in what a test sets
+    return model, batch
+
+
+def test_the_brake_judge_and_the_brake_head_learn_apart():
+    """Neither one's output reaches the other's gradient, so the head cannot learn to cancel
+    the judge (the recipe's step_loss; model.trunk_network, ``brake_expert``)."""
+    model, batch = _recipe_model_and_batch()
     head_a, judge_a, parts = _judge_gradients(model, batch, 0.0, 0.0)
     head_b, _, _ = _judge_gradients(model, batch, 4.0, 0.0)
     _, judge_c, _ = _judge_gradients(model, batch, 0.0, 4.0)
@@ -409,6 +416,47 @@ def test_the_brake_judge_and_the_brake_head_learn_apart():
     head_e, _, _ = _judge_gradients(model, batch, 4.0, 0.0, judged=True)
     assert judge_d is None and "expert_brake" not in parts_d
     assert not torch.allclose(head_d, head_e)
+
+
+def _window_logits(on_minus_off):
+    """Brake logits ``[windows, frames, 3]`` whose ON-over-OFF log-odds are ``on_minus_off``."""
+    score = torch.tensor(on_minus_off, dtype=torch.float32)
+    return {"brake": torch.stack([torch.zeros_like(score), score, torch.zeros_like(score)], -1)}
+
+
+def _brake_labels(states):
+    labels = torch.full((*torch.tensor(states).shape, len(TASKS)), -1, dtype=torch.int64)
+    labels[..., TASKS.index("brake")] = torch.tensor(states)
+    return labels
+
+
+def test_the_lamp_ranking_pairs_frames_of_one_window_only():
+    from signal_light_node.training.loss import lamp_rank_loss
+
+    labels, mask = _brake_labels([[1, 0]]), torch.ones(1, 2, dtype=torch.bool)
+    right = float(lamp_rank_loss(_window_logits([[3.0, -3.0]]), labels, mask, ["brake"]))
+    wrong = float(lamp_rank_loss(_window_logits([[-3.0, 3.0]]), labels, mask, ["brake"]))
+    assert right < 0.01 < 5.0 < wrong
+    # Two windows, one lit throughout and one dark: no pair, however they score.
+    two = _brake_labels([[1, 1], [0, 0]])
+    assert float(lamp_rank_loss(_window_logits([[-5.0, -5.0], [5.0, 5.0]]), two,
+                                torch.ones(2, 2, dtype=torch.bool), ["brake"])) == 0.0
+    # A masked frame pairs with nothing.
+    assert float(lamp_rank_loss(_window_logits([[-3.0, 3.0]]), labels,
+                                torch.tensor([[True, False]]), ["brake"])) == 0.0
+
+
+def test_the_recipe_adds_the_ranking_at_its_weight():
+    from signal_light_node.training.trunk_recipe import main as recipe_main, step_loss
+
+    model, batch = _recipe_model_and_batch(t=8)
+    plain, parts = step_loss(model, batch, {})
+    ranked, ranked_parts = step_loss(model, batch, {}, rank_weight=2.0)
+    assert "rank" not in parts and ranked_parts["rank"] > 0
+    assert float((ranked - plain).detach()) == pytest.approx(2.0 * ranked_parts["rank"], rel=1e-4)
+    with pytest.raises(SystemExit):
+        recipe_main(["--out", "unused", "--pool", "unused", "--val", "unused",
+                     "--rank-weight", "-1"])
 
 
 def _labels(rows):

@@ -77,6 +77,40 @@ def brake_judge_loss(logit: torch.Tensor, labels: torch.Tensor, mask: torch.Tens
     return (bce * valid).sum() / valid.sum().clamp(min=1.0)
 
 
+def pair_rank_loss(logits: torch.Tensor, y: torch.Tensor, valid: torch.Tensor
+                   ) -> Tuple[torch.Tensor, int]:
+    """Summed logistic ranking loss over the pairs of one track's frames where a lamp is ON
+    in one and OFF in the other: the ON frame's ON-over-OFF log-odds must exceed the OFF
+    frame's. Rows are tracks (``logits`` ``[B, T, K]``, ``y`` and ``valid`` ``[B, T]``);
+    frames of two tracks and frames not ``valid`` are never paired.
+
+    Returns:
+        ``(sum of the pairs' losses, number of pairs)``, so that callers may pool lamps.
+    """
+    on, off = int(LightStatus.ON), int(LightStatus.OFF)
+    score = logits[..., on].float() - logits[..., off].float()  # [B, T]
+    pair = ((y == on) & valid)[:, :, None] & ((y == off) & valid)[:, None, :]
+    if not bool(pair.any()):
+        return score.new_zeros(()), 0
+    # softplus(unlit - lit) = log(1 + e^-(lit - unlit))
+    return F.softplus(score[:, None, :] - score[:, :, None])[pair].sum(), int(pair.sum())
+
+
+def lamp_rank_loss(logits: Mapping[str, torch.Tensor], labels: torch.Tensor, mask: torch.Tensor,
+                   lamps: Sequence[str], loss_warmup: "int | torch.Tensor" = 0) -> torch.Tensor:
+    """Mean :func:`pair_rank_loss` of the lamp heads ``lamps`` over each window's valid
+    frames (past the warm-up for :data:`TEMPORAL_TASKS`, as :func:`multitask_loss` counts
+    them): within one window, a frame whose lamp is ON must score above one where it is
+    OFF. 0 when no window holds such a pair."""
+    total, pairs = labels.new_zeros((), dtype=torch.float32), 0
+    for lamp in lamps:
+        y = labels[..., TASKS.index(lamp)]
+        valid = _valid_frames(y, mask, loss_warmup if lamp in TEMPORAL_TASKS else None)
+        summed, n = pair_rank_loss(logits[lamp], y, valid)
+        total, pairs = total + summed, pairs + n
+    return total / max(pairs, 1)
+
+
 def _valid_frames(y: torch.Tensor, mask: torch.Tensor,
                   warmup: "int | torch.Tensor | None") -> torch.Tensor:
     """bool ``[B, T]``: frames with a label, past the warm-up when one is given."""

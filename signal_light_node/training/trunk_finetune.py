@@ -47,13 +47,12 @@ from torch import Tensor, nn
 
 from signal_light_node.errors import ConfigError
 from signal_light_node.evaluation.metrics import roc_auc
-from signal_light_node.labels import LightStatus
 from signal_light_node.model.config import trunk_config
 from signal_light_node.model.registry import build_model
 from signal_light_node.model.trunk import BLOCKS
 from signal_light_node.training.frame_pool import (FRAME_TARGETS, GREY_MODES, FrameBatches,
                                                    FramePool, frame_arrays)
-from signal_light_node.training.loss import share_weights
+from signal_light_node.training.loss import pair_rank_loss, share_weights
 
 LOG = logging.getLogger("trunk_finetune")
 #: Classes of each per-frame target (:data:`FRAME_TARGETS`) and its loss weight.
@@ -129,16 +128,11 @@ def rank_loss(logits: Sequence[Tensor], targets: Tensor, group: int) -> Tensor:
     change to tell them apart. 0 when no track holds such a pair.
     """
     total, pairs = logits[0].new_zeros((), dtype=torch.float32), 0
-    on, off = int(LightStatus.ON), int(LightStatus.OFF)
     for i, _ in enumerate(FRAME_TARGETS[:3]):  # the lamps; the view is last
-        lamp = logits[i].float().view(-1, group, logits[i].shape[1])
-        score = lamp[..., on] - lamp[..., off]  # [tracks, group]
+        lamp = logits[i].view(-1, group, logits[i].shape[1])
         y = targets[:, i].view(-1, group)
-        pair = (y == on)[:, :, None] & (y == off)[:, None, :]  # [track, lit a, unlit b]
-        if bool(pair.any()):
-            # softplus(unlit - lit): log(1 + e^-(lit - unlit)), the logistic ranking loss
-            total = total + F.softplus(score[:, None, :] - score[:, :, None])[pair].sum()
-            pairs += int(pair.sum())
+        summed, n = pair_rank_loss(lamp, y, torch.ones_like(y, dtype=torch.bool))
+        total, pairs = total + summed, pairs + n
     return total / max(pairs, 1)
 
 

@@ -45,7 +45,8 @@ from signal_light_node.model.trunk_network import LIT_TASKS
 from signal_light_node.evaluation.metrics import confusion_matrix, macro_f1, per_class_scores
 from signal_light_node.training.feature_cache import (FeatureCache, collate_windows, track_logits,
                                                       trunk_fingerprint, write_cache)
-from signal_light_node.training.loss import (brake_judge_loss, multitask_loss, share_weights,
+from signal_light_node.training.loss import (brake_judge_loss, lamp_rank_loss, multitask_loss,
+                                             share_weights,
                                              warmup_frames)
 from signal_light_node.training.sampling import side_blink_tracks
 from signal_light_node.training.trunk_finetune import load_trunk_weights
@@ -122,18 +123,23 @@ def _lr(step: int, steps: int, lr: float, warm: int = 50) -> float:
     return lr * 0.5 * (1.0 + math.cos(math.pi * min(1.0, (step - warm) / max(1, steps - warm))))
 
 
+#: Heads ``--rank-weight`` ranks within each window (:func:`step_loss`).
+RANKED_LAMPS = ("brake", "left", "right")
 #: Weight of the brake judge's loss (``ModelConfig.brake_expert``).
 EXPERT_WEIGHT = 0.5
 
 
 def step_loss(model: torch.nn.Module, batch: Dict[str, torch.Tensor],
-              weights: Dict[str, torch.Tensor], judged: bool = False
+              weights: Dict[str, torch.Tensor], judged: bool = False, rank_weight: float = 0.0
               ) -> Tuple[torch.Tensor, Dict[str, float]]:
     """The loss of one batch of windows: the task heads (blinkers and intent past each
     window's warm-up) plus, with a lit head, each lamp's per-frame lit state, and with a
     brake judge, its own loss (the brake head then learns on its own logits). ``judged``
     (a fine-tune against a frozen judge, :func:`judge_model`): the brake learns on the
-    published logits, the judge's included, and the judge has no loss."""
+    published logits, the judge's included, and the judge has no loss. ``rank_weight``
+    > 0 adds that much of :func:`.lamp_rank_loss` over the brake and blinker heads: within
+    a window, a frame whose lamp is ON must score above one of the same vehicle where it
+    is OFF."""
     logits, _ = model.sequence_features(batch["features"], batch["maps"])
     warm = warmup_frames(batch["fps"].tolist(), 2, 0.4).to(batch["labels"].device)
     judge = None if judged else logits.get("expert_brake")
@@ -147,6 +153,9 @@ def step_loss(model: torch.nn.Module, batch: Dict[str, torch.Tensor],
         judge_loss = brake_judge_loss(judge, batch["labels"], batch["mask"])
         loss = loss + EXPERT_WEIGHT * judge_loss
         parts["expert_brake"] = float(judge_loss.detach())
+    if rank_weight > 0:
+        ranked = lamp_rank_loss(logits, batch["labels"], batch["mask"], RANKED_LAMPS, warm)
+        loss, parts["rank"] = loss + rank_weight * ranked, float(ranked.detach())
     if "lit_left" in logits:
         lit_logits = dict(logits, **{t: logits[f"lit_{t}"] for t in LIT_TASKS})
         lit_loss, lit_parts = multitask_loss(lit_logits, batch["lit_labels"], batch["mask"],
@@ -209,8 +218,8 @@ def train(model: torch.nn.Module, train_caches: Sequence[FeatureCache], val: Fea
           out: Path, steps: int, batch: int, seq_len: int, lr: float, seed: int,
           val_every: int, resume: bool, meta: Dict[str, Any],
           device: Optional[torch.device] = None, judged: bool = False,
-          side_blink_weight: float = 1.0) -> Dict[str, Any]:
-    """The training loop of the module doc (``judged``: see :func:`step_loss`;
+          side_blink_weight: float = 1.0, rank_weight: float = 0.0) -> Dict[str, Any]:
+    """The training loop of the module doc (``judged``, ``rank_weight``: see :func:`step_loss`;
     ``side_blink_weight``: :func:`track_draws`); returns the best validation figures."""
     device = device or torch.device("cpu")
     rng = np.random.default_rng(seed)
@@ -233,7 +242,7 @@ def train(model: torch.nn.Module, train_caches: Sequence[FeatureCache], val: Fea
         for group in optim.param_groups:
             group["lr"] = _lr(progress["step"], steps, lr)
         b = {k: v.to(device) for k, v in _batch(train_caches, rng, batch, seq_len, draws).items()}
-        loss, parts = step_loss(model, b, weights, judged)
+        loss, parts = step_loss(model, b, weights, judged, rank_weight)
         optim.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, 5.0)
@@ -302,6 +311,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--side-blink-weight", type=float, default=1.0,
                         help="draw tracks with a blinker ON seen from its own side this many "
                              "times as often as the others (1: uniform)")
+    parser.add_argument("--rank-weight", type=float, default=0.0,
+                        help="weight of ranking each window's frames against each other: a "
+                             "brake or blinker ON must score above the same lamp OFF (0: none)")
     parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     parser.add_argument("--trunk-weights", type=Path, default=None,
                         help="start from this per-frame stage's trunk (trunk_finetune's "
@@ -325,6 +337,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         parser.error(f"--side-blink-weight must be > 0, got {args.side_blink_weight}")
     if args.judge_learn != "all" and args.judge_gain is None:
         parser.error("--judge-learn goes with --judge-gain")
+    if args.rank_weight < 0:
+        parser.error(f"--rank-weight must be >= 0, got {args.rank_weight}")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -365,7 +379,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                               "judge_learn": args.judge_learn}
     best = train(model, caches, val, args.out, args.steps, args.batch, args.seq_len, args.lr,
                  args.seed, args.val_every, args.resume, meta, device,
-                 judged=args.judge_gain is not None, side_blink_weight=args.side_blink_weight)
+                 judged=args.judge_gain is not None, side_blink_weight=args.side_blink_weight,
+                 rank_weight=args.rank_weight)
     (args.out / "summary.json").write_text(json.dumps(best, indent=1))
     LOG.info("best: %s", best)
     return 0
