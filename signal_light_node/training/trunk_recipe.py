@@ -46,8 +46,7 @@ from signal_light_node.evaluation.metrics import confusion_matrix, macro_f1, per
 from signal_light_node.training.feature_cache import (FeatureCache, collate_windows, track_logits,
                                                       trunk_fingerprint, write_cache)
 from signal_light_node.training.loss import (brake_judge_loss, lamp_rank_loss, multitask_loss,
-                                             share_weights,
-                                             warmup_frames)
+                                             share_weights, warmup_frames)
 from signal_light_node.training.sampling import side_blink_tracks
 from signal_light_node.training.trunk_finetune import load_trunk_weights
 
