@@ -406,12 +406,13 @@ def main(argv: Optional[List[str]] = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(args.seed)
     model = build_model(trunk_config(**json.loads(args.model)), pretrained=True)
-    if args.init_trunk is not None:
+    resuming = args.resume and (args.out / "last.state.pt").is_file()
+    if args.init_trunk is not None and not resuming:  # a resumed run has its own trunk
         start = load_trunk_weights(model, args.init_trunk)
         LOG.info("trunk from %s (per-frame step %s)", args.init_trunk, start["step"])
     run = FineTune(model, args.train_from, args.lr, args.trunk_lr_scale, device,
                    pairs=args.pair_gap > 0, rank_weight=args.rank_weight, group=args.per_track)
-    if args.resume and (args.out / "last.state.pt").is_file():
+    if resuming:
         run.load_state(torch.load(args.out / "last.state.pt", map_location=device,
                                   weights_only=False))
         LOG.info("resumed at step %d", run.progress["step"])
