@@ -7,7 +7,7 @@ cached in ``--cache`` as one pickle per data set and checkpoint), and each filte
 defaults) and each shift of the brake's ON logit (``--brake-shift``, on top of the file's
 own ``on_offsets``) is scored on that pass as ``signal-light evaluate`` scores it (no
 grace). Besides the headline it prints brake F1 on rear views alone, the one face from
-which a brake is always in sight, and the share of judged frames published braking (on a
+which a brake is always in sight (its JSON also holds brake F1 on side views), and the share of judged frames published braking (on a
 bag whose vehicles never brake, the false brakes). Usage::
 
     python scripts/filter_sweep.py --checkpoint signal_light_node/weights/default.pt \\
@@ -29,6 +29,7 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
+from signal_light_node.evaluation.metrics import metrics_from_confusion
 from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
 from signal_light_node.evaluation.streaming import chunks, model_track_probs, score_batch
 from signal_light_node.labels import TASKS
@@ -79,6 +80,14 @@ def _on_f1(report: Dict[str, Any]) -> Optional[float]:
     return per_class["f1"][_ON] if per_class and len(per_class["f1"]) > _ON else None
 
 
+def side_brake_f1(report: Dict[str, Any]) -> Optional[float]:
+    """Brake ON F1 over the frames whose true view is a side (LEFT and RIGHT pooled)."""
+    views = report["groups"].get("view", {})
+    sides = [np.asarray(views[v]["brake"]["confusion"]) for v in ("LEFT", "RIGHT")
+             if "brake" in views.get(v, {})]
+    return _on_f1(metrics_from_confusion("brake", sum(sides))) if sides else None
+
+
 def score(batches: Pass, config: IntentFilterConfig, shift: float) -> Dict[str, Any]:
     """Intent and brake figures of one pass under one setting (no grace)."""
     scorer = TrackScorer(EvalSettings())
@@ -96,6 +105,7 @@ def score(batches: Pass, config: IntentFilterConfig, shift: float) -> Dict[str, 
     return {"intent_macro_f1": summary["intent_macro_f1"], "intent_fp": summary["intent_fp_rate"],
             "intent_fn": summary["intent_fn_rate"],
             "brake_f1": _on_f1(report["overall"].get("brake")), "brake_f1_rear": _on_f1(rear),
+            "brake_f1_side": side_brake_f1(report),
             "brake_on_of_judged": brake_on / judged if judged else None,
             "intent_switches": switches["intent"].get("ratio"),
             "brake_switches": switches["brake"].get("ratio")}

@@ -52,3 +52,18 @@ def test_a_brake_shift_changes_what_is_published(tmp_path):
     config = IntentFilterConfig(brake_sight="model")
     assert sweep.score(batches, config, 0.0)["brake_on_of_judged"] == 0.0
     assert sweep.score(batches, config, 1.0)["brake_on_of_judged"] == 1.0
+
+
+def test_side_brake_f1_pools_both_sides_and_leaves_the_rear_out():
+    sweep = _script()
+
+    def view(on_hit, on_missed, off_called_on):
+        # rows: truth OFF / ON / UNKNOWN; columns: published OFF / ON / UNKNOWN
+        return {"brake": {"confusion": [[10, off_called_on, 0], [on_missed, on_hit, 0],
+                                        [0, 0, 0]]}}
+
+    report = {"groups": {"view": {"LEFT": view(3, 1, 0), "RIGHT": view(1, 3, 0),
+                                  "BEHIND": view(50, 0, 0)}}}
+    # pooled sides: 4 hits, 4 misses, no false ON -> precision 1, recall 0.5
+    assert sweep.side_brake_f1(report) == pytest.approx(2 / 3)
+    assert sweep.side_brake_f1({"groups": {"view": {"BEHIND": view(5, 0, 0)}}}) is None
