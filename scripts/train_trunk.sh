@@ -181,9 +181,12 @@ FRAME_PAIR_GAP=${FRAME_PAIR_GAP:-0}
 # FRAME_RANK > 0: weight of the per-frame stage's ranking of each track's frames against each
 # other, a lamp lit in one above the same lamp unlit in another (0: none; docs/model.md, "A lamp
 # against the same vehicle"). FRAME_INIT: a trunk file (per-frame checkpoint or model file) the
-# per-frame stage starts from instead of ImageNet's (empty: ImageNet).
+# per-frame stage starts from instead of ImageNet's (empty: ImageNet). FRAME_LR_SCALE: the
+# trunk's learning rate as a share of the head's (0.3; 0.1 continues a trained trunk gently,
+# docs/model.md, "The shipped trunk taught the filled crops").
 FRAME_RANK=${FRAME_RANK:-0}
 FRAME_INIT=${FRAME_INIT:-}
+FRAME_LR_SCALE=${FRAME_LR_SCALE:-0.3}
 TRUNK_WEIGHTS=${TRUNK_WEIGHTS:-}
 
 mkdir -p "$RUN" "$DATA"
@@ -225,6 +228,7 @@ if [[ -z "$TRUNK_WEIGHTS" && "$FRAME_STEPS" -gt 0 ]]; then
     --model "$MODEL" --train-from "$TRAIN_FROM" --steps "$FRAME_STEPS" --tracks "$FRAME_TRACKS" \
     --workers "$FRAME_WORKERS" --white-balance "$FRAME_WHITE_BALANCE" --pair-gap "$FRAME_PAIR_GAP" \
     --grey "$FRAME_GREY" --rank-weight "$FRAME_RANK" "${init[@]}" \
+    --trunk-lr-scale "$FRAME_LR_SCALE" \
     --seed "$SEED" --threads "$THREADS" --device "$DEVICE" "${resume[@]}"
   TRUNK_WEIGHTS=$RUN/frames/best.pt
 fi

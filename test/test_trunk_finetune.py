@@ -346,5 +346,6 @@ def test_every_flag_the_recipe_script_passes_to_the_stage_exists():
     known = {flag for action in trunk_finetune._parser()._actions
              for flag in action.option_strings}
     passed |= set(re.findall(r"init=\((--[a-z][a-z-]*)", script))  # set apart, then passed
-    assert {"--pair-gap", "--white-balance", "--steps", "--rank-weight", "--init-trunk"} <= passed
+    assert {"--pair-gap", "--white-balance", "--steps", "--rank-weight", "--init-trunk",
+            "--trunk-lr-scale"} <= passed
     assert passed <= known, passed - known
