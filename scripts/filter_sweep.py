@@ -7,8 +7,9 @@ cached in ``--cache`` as one pickle per data set and checkpoint), and each filte
 defaults) and each shift of the brake's ON logit (``--brake-shift``, on top of the file's
 own ``on_offsets``) is scored on that pass as ``signal-light evaluate`` scores it (no
 grace). Besides the headline it prints brake F1 on rear views alone, the one face from
-which a brake is always in sight (its JSON also holds brake F1 on side views), and the share of judged frames published braking (on a
-bag whose vehicles never brake, the false brakes). Usage::
+which a brake is always in sight (its JSON also holds brake F1 on side views), and the
+share of judged frames published braking (on a bag whose vehicles never brake, the false
+brakes). Usage::
 
     python scripts/filter_sweep.py --checkpoint signal_light_node/weights/default.pt \\
         --data cal=runs/fillf/family_cal_split --data night=bags/night_tail_lamps \\
