@@ -5,11 +5,11 @@ The model is stepped over every track once (``evaluation.streaming.model_track_p
 cached in ``--cache`` as one pickle per data set and checkpoint), and each filter setting
 (``--config``, a JSON object of ``IntentFilterConfig`` fields; ``{}`` is the node's
 defaults) and each shift of the brake's ON logit (``--brake-shift``, on top of the file's
-own ``on_offsets``) is scored on that pass as ``signal-light evaluate`` scores it (no
-grace). Besides the headline it prints brake F1 on rear views alone, the one face from
-which a brake is always in sight (its JSON also holds brake F1 on side views), and the
-share of judged frames published braking (on a bag whose vehicles never brake, the false
-brakes). Usage::
+own ``on_offsets``), each with each ``--brake-side-shift`` (more ON log-odds in proportion
+to the view head's side mass, P(LEFT) + P(RIGHT)), is scored on that pass as ``signal-light
+evaluate`` scores it (no grace). Besides the headline it prints brake F1 on rear views
+alone, the one face from which a brake is always in sight, and on side views, and the share
+of judged frames published braking (on a bag whose vehicles never brake, the false brakes). Usage::
 
     python scripts/filter_sweep.py --checkpoint signal_light_node/weights/default.pt \\
         --data cal=runs/fillf/family_cal_split --data night=bags/night_tail_lamps \\
@@ -33,7 +33,7 @@ import numpy as np
 from signal_light_node.evaluation.metrics import metrics_from_confusion
 from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
 from signal_light_node.evaluation.streaming import chunks, model_track_probs, score_batch
-from signal_light_node.labels import TASKS
+from signal_light_node.labels import TASKS, View
 from signal_light_node.model.backends.registry import create_backend
 from signal_light_node.runtime import brake_onset
 from signal_light_node.runtime.intent_filter import IntentFilterConfig
@@ -69,11 +69,17 @@ def model_pass(backend: Any, path: Path, cache: Optional[Path], checkpoint: Path
     return batches
 
 
-def shift_brake(raw: Dict[str, np.ndarray], shift: float) -> Dict[str, np.ndarray]:
-    """``raw`` with the brake's ON logit moved by ``shift`` (its UNKNOWN kept)."""
-    if shift == 0.0:
+def shift_brake(raw: Dict[str, np.ndarray], shift: float, side: float = 0.0
+                ) -> Dict[str, np.ndarray]:
+    """``raw`` with the brake's ON logit moved by ``shift`` plus ``side`` times the view
+    head's P(LEFT) + P(RIGHT) on each frame (its UNKNOWN kept)."""
+    if shift == 0.0 and side == 0.0:
         return raw
-    return dict(raw, brake=brake_onset.shift_on(raw["brake"], shift))
+    total: "float | np.ndarray" = shift
+    if side != 0.0:
+        view = raw["view"]
+        total = shift + side * (view[..., int(View.LEFT)] + view[..., int(View.RIGHT)])
+    return dict(raw, brake=brake_onset.shift_on(raw["brake"], total))
 
 
 def _on_f1(report: Dict[str, Any]) -> Optional[float]:
@@ -89,13 +95,15 @@ def side_brake_f1(report: Dict[str, Any]) -> Optional[float]:
     return _on_f1(metrics_from_confusion("brake", sum(sides))) if sides else None
 
 
-def score(batches: Pass, config: IntentFilterConfig, shift: float) -> Dict[str, Any]:
-    """Intent and brake figures of one pass under one setting (no grace)."""
+def score(batches: Pass, config: IntentFilterConfig, shift: float, side: float = 0.0
+          ) -> Dict[str, Any]:
+    """Intent and brake figures of one pass under one setting (no grace); ``shift`` and
+    ``side`` as :func:`shift_brake`'s."""
     scorer = TrackScorer(EvalSettings())
     brake_on = judged = 0
     column = TASKS.index("brake")
     for tracks, raw in batches:
-        for pred in score_batch(scorer, tracks, shift_brake(raw, shift), config):
+        for pred in score_batch(scorer, tracks, shift_brake(raw, shift, side), config):
             brake = pred[pred[:, column] >= 0, column]
             brake_on += int((brake == _ON).sum())
             judged += int((brake != 2).sum())
@@ -127,6 +135,8 @@ def main() -> None:
     parser.add_argument("--data", action="append", required=True, help="NAME=PATH")
     parser.add_argument("--config", action="append", default=None, help="JSON (default {})")
     parser.add_argument("--brake-shift", type=float, action="append", default=None)
+    parser.add_argument("--brake-side-shift", type=float, action="append", default=None,
+                        help="more ON log-odds per unit of the view head's side mass")
     parser.add_argument("--cache", type=Path, default=None)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--json", type=Path, default=None)
@@ -135,21 +145,24 @@ def main() -> None:
     if any(len(d) != 2 for d in data):
         parser.error("--data takes NAME=PATH")
     configs = args.config or ["{}"]
-    shifts = args.brake_shift or [0.0]
+    shifts = [(s, k) for s in args.brake_shift or [0.0] for k in args.brake_side_shift or [0.0]]
     backend = create_backend(args.backend, str(args.checkpoint), threads=args.threads)
     rows = []
-    print("data        config                                   shift  intent  FP    FN   "
-          "brake F1 (rear)  brake ON  switches intent / brake")
+    print("data        config                             shift  side  intent  FP    FN   "
+          "brake F1 (rear / side)  brake ON  switches intent / brake")
     for name, path in data:
         batches = model_pass(backend, Path(path), args.cache, args.checkpoint)
         for text in configs:
             config = IntentFilterConfig(**json.loads(text))
-            for shift in shifts:
-                r = score(batches, config, shift)
-                rows.append({"data": name, "config": json.loads(text), "brake_shift": shift, **r})
-                print(f"{name:11s} {text[:40]:40s} {shift:+5.2f} {_pct(r['intent_macro_f1'])} "
+            for shift, side in shifts:
+                r = score(batches, config, shift, side)
+                rows.append({"data": name, "config": json.loads(text), "brake_shift": shift,
+                             "brake_side_shift": side, **r})
+                print(f"{name:11s} {text[:34]:34s} {shift:+5.2f} {side:+5.2f} "
+                      f"{_pct(r['intent_macro_f1'])} "
                       f"{_pct(r['intent_fp'])} {_pct(r['intent_fn'])}  {_pct(r['brake_f1'])} "
-                      f"({_pct(r['brake_f1_rear'])})  {_pct(r['brake_on_of_judged'])}  "
+                      f"({_pct(r['brake_f1_rear'])} / {_pct(r['brake_f1_side'])})  "
+                      f"{_pct(r['brake_on_of_judged'])}  "
                       f"{_ratio(r['intent_switches'])} / {_ratio(r['brake_switches'])}", flush=True)
     if args.json:
         args.json.write_text(json.dumps({"checkpoint": str(args.checkpoint), "rows": rows},

@@ -67,3 +67,17 @@ def test_side_brake_f1_pools_both_sides_and_leaves_the_rear_out():
     # pooled sides: 4 hits, 4 misses, no false ON -> precision 1, recall 0.5
     assert sweep.side_brake_f1(report) == pytest.approx(2 / 3)
     assert sweep.side_brake_f1({"groups": {"view": {"BEHIND": view(5, 0, 0)}}}) is None
+
+
+def test_a_side_shift_acts_in_proportion_to_the_view_heads_side_mass():
+    sweep = _script()
+    brake = np.array([[[0.5, 0.5, 0.0], [0.5, 0.5, 0.0]]])
+    view = np.zeros((1, 2, 4))
+    view[0, 0, 0] = 1.0  # BEHIND: no side mass, nothing moves
+    view[0, 1, 1] = view[0, 1, 3] = 0.5  # LEFT + RIGHT = 1: the whole side shift
+    shifted = sweep.shift_brake({"brake": brake, "view": view}, 0.0, 2.0)["brake"]
+    assert shifted[0, 0, 1] == pytest.approx(0.5)
+    assert shifted[0, 1, 1] / shifted[0, 1, 0] == pytest.approx(np.exp(2.0))
+    both = sweep.shift_brake({"brake": brake, "view": view}, 1.0, 2.0)["brake"]
+    assert both[0, 0, 1] / both[0, 0, 0] == pytest.approx(np.e)
+    assert both[0, 1, 1] / both[0, 1, 0] == pytest.approx(np.exp(3.0))
