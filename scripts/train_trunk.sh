@@ -45,7 +45,9 @@
 #      (clean and LOOKS looks through a random camera response and shape warp per track)
 #      and trains everything after the trunk from scratch on SEQ_LEN-frame windows of
 #      BATCH tracks for STEPS steps (resumable: an interrupted run continues), once per
-#      seed of SEEDS (default SEED); with two seeds or more, the runs (RUN/trunk_sSEED) are
+#      seed of SEEDS (default SEED), MEMBER_JOBS of them side by side (on the CPU by
+#      default one per thread, logs in RUN/member_sSEED.log); with two seeds or more, the
+#      runs (RUN/trunk_sSEED) are
 #      joined into one model averaging them over the shared trunk (RUN/joined,
 #      training/join_members.py; docs/model.md, "Members over one trunk");
 #   3. fits one temperature per head on the family calibration split (never a test set),
@@ -235,12 +237,31 @@ fi
 trunk=()
 [[ -n "$TRUNK_WEIGHTS" ]] && trunk=(--trunk-weights "$TRUNK_WEIGHTS")
 
-echo "== 2/5 trunk features cached, temporal part trained from scratch: $STEPS steps, seeds $SEEDS"
 n_seeds=$(wc -w <<<"$SEEDS")
-members=()
-for seed in $SEEDS; do
-  out=$RUN/trunk
-  (( n_seeds > 1 )) && out=$RUN/trunk_s$seed
+# MEMBER_JOBS: members trained at once, each on THREADS / MEMBER_JOBS threads (at least one).
+# Default on the CPU: one per seed up to THREADS, as the shipped file's members were trained
+# (side by side on one thread each: about 72 minutes for two, against about 2 hours one after
+# the other on two threads); on a GPU one at a time.
+cpu_jobs=$(( n_seeds < THREADS ? n_seeds : THREADS ))
+MEMBER_JOBS=${MEMBER_JOBS:-$([[ "$DEVICE" == cpu ]] && echo "$cpu_jobs" || echo 1)}
+(( MEMBER_JOBS >= 1 )) || {
+  echo "train_trunk.sh: MEMBER_JOBS must be >= 1, not '$MEMBER_JOBS'" >&2; exit 2; }
+member_threads=$(( THREADS / MEMBER_JOBS > 0 ? THREADS / MEMBER_JOBS : 1 ))
+
+member_dir() {  # seed -> the member's run directory
+  if (( n_seeds > 1 )); then echo "$RUN/trunk_s$1"; else echo "$RUN/trunk"; fi
+}
+
+member_file() {  # seed -> the file of the member that is joined
+  local out
+  out=$(member_dir "$1")
+  [[ -n "$JUDGE_GAIN" ]] && out=$out/judged
+  echo "$out/$MEMBER_FILE.pt"
+}
+
+train_member() {  # seed threads: one member, then (with JUDGE_GAIN) its judged fine-tune
+  local seed=$1 threads=$2 out judged resume
+  out=$(member_dir "$seed")
   if [[ -f "$out/summary.json" ]]; then
     echo "$out/summary.json exists: finished before; skipping"
   else
@@ -250,27 +271,54 @@ for seed in $SEEDS; do
       "${pools[@]}" --val "$DATA/val_split" --model "$MODEL" --looks "$LOOKS" \
       --look-white-balance "$LOOK_WHITE_BALANCE" --steps "$STEPS" \
       --batch "$BATCH" --seq-len "$SEQ_LEN" --lr "$LR" --seed "$seed" --val-every "$VAL_EVERY" \
-      --threads "$THREADS" --device "$DEVICE" "${trunk[@]}" "${resume[@]}"
+      --threads "$threads" --device "$DEVICE" "${trunk[@]}" "${resume[@]}"
   fi
-  if [[ -n "$JUDGE_GAIN" ]]; then
-    judged=$out/judged
-    if [[ ! -f "$judged/summary.json" ]]; then
-      echo "== 2/5 member $seed: the brake judge at gain $JUDGE_GAIN, frozen; $JUDGE_STEPS steps on the published logits"
-      resume=()
-      [[ -f "$judged/last.state.pt" ]] && resume=(--resume)
-      python -m signal_light_node.training.trunk_recipe --out "$judged" --cache "$DATA/cache" \
-        "${pools[@]}" --val "$DATA/val_split" --tune-from "$out/$MEMBER_FILE.pt" \
-        --judge-gain "$JUDGE_GAIN" --judge-learn "$JUDGE_LEARN" --looks "$LOOKS" \
-        --look-white-balance "$LOOK_WHITE_BALANCE" \
-        --steps "$JUDGE_STEPS" --batch "$BATCH" --seq-len "$SEQ_LEN" --lr "$JUDGE_LR" \
-        --seed "$seed" --val-every 100 --threads "$THREADS" --device "$DEVICE" "${resume[@]}"
-    fi
-    out=$judged
-  fi
-  members+=(--member "$out/$MEMBER_FILE.pt")
+  [[ -n "$JUDGE_GAIN" ]] || return 0
+  judged=$out/judged
+  [[ -f "$judged/summary.json" ]] && return 0
+  echo "== 2/5 member $seed: the brake judge at gain $JUDGE_GAIN, frozen;" \
+    "$JUDGE_STEPS steps on the published logits"
+  resume=()
+  [[ -f "$judged/last.state.pt" ]] && resume=(--resume)
+  python -m signal_light_node.training.trunk_recipe --out "$judged" --cache "$DATA/cache" \
+    "${pools[@]}" --val "$DATA/val_split" --tune-from "$out/$MEMBER_FILE.pt" \
+    --judge-gain "$JUDGE_GAIN" --judge-learn "$JUDGE_LEARN" --looks "$LOOKS" \
+    --look-white-balance "$LOOK_WHITE_BALANCE" \
+    --steps "$JUDGE_STEPS" --batch "$BATCH" --seq-len "$SEQ_LEN" --lr "$JUDGE_LR" \
+    --seed "$seed" --val-every 100 --threads "$threads" --device "$DEVICE" "${resume[@]}"
+}
+
+member_failed() {  # stop the members still training, then fail
+  echo "train_trunk.sh: a member failed; see its log, $RUN/member_s*.log" >&2
+  kill $(jobs -p) 2>/dev/null || true
+  exit 1
+}
+
+echo "== 2/5 trunk features cached, temporal part trained from scratch: $STEPS steps," \
+  "seeds $SEEDS ($MEMBER_JOBS at a time, $member_threads thread(s) each)"
+if (( MEMBER_JOBS == 1 )); then
+  for seed in $SEEDS; do train_member "$seed" "$THREADS"; done
+else
+  # The caches first, once: members started together would each write them at once.
+  python -m signal_light_node.training.trunk_recipe --out "$RUN" --cache "$DATA/cache" \
+    "${pools[@]}" --val "$DATA/val_split" --model "$MODEL" --looks "$LOOKS" \
+    --look-white-balance "$LOOK_WHITE_BALANCE" --threads "$THREADS" --device "$DEVICE" \
+    "${trunk[@]}" --cache-only
+  running=0
+  for seed in $SEEDS; do
+    if (( running == MEMBER_JOBS )); then wait -n || member_failed; running=$((running - 1)); fi
+    echo "member $seed: log in $RUN/member_s$seed.log"
+    train_member "$seed" "$member_threads" > "$RUN/member_s$seed.log" 2>&1 &
+    running=$((running + 1))
+  done
+  while (( running > 0 )); do wait -n || member_failed; running=$((running - 1)); done
+fi
+members=()
+for seed in $SEEDS; do
+  joined=$(member_file "$seed")
+  members+=(--member "$joined")
 done
 model=$RUN/trunk
-joined=$out/$MEMBER_FILE.pt
 if (( n_seeds > 1 )); then
   model=$RUN/joined
   echo "== 2b/5 $n_seeds runs joined into one model over the shared trunk: $model/best.pt"

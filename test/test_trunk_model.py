@@ -561,9 +561,30 @@ def test_trunk_recipe_trains_resumes_and_calibrates(tmp_path):
     assert calibrated.meta["calibration"]["heads"]["brake"]["frames"] >= 0
 
 
+def test_cache_only_writes_the_caches_a_member_then_reuses_and_trains_nothing(tmp_path, caplog):
+    """Members trained side by side share caches written once before (train_trunk.sh)."""
+    import logging
+    from signal_light_node.data.split import write_split
+    from signal_light_node.training import trunk_recipe
+
+    split = tmp_path / "pool_1"
+    write_split(split, seed=7, n_sequences=2, seq_len=10, crop=trunk_config().crop_config(),
+                full_tracks=True, progress=False)
+    common = ["--pool", str(split), "--val", str(split), "--cache", str(tmp_path / "cache"),
+              "--looks", "0", "--batch", "2", "--seq-len", "8", "--threads", "1"]
+    assert trunk_recipe.main(["--out", str(tmp_path / "caches"), "--cache-only"] + common) == 0
+    assert list((tmp_path / "cache").glob("*/pool_1/cache.json"))
+    assert not list((tmp_path / "caches").iterdir())  # no checkpoint, no summary
+    with caplog.at_level(logging.INFO):
+        assert trunk_recipe.main(["--out", str(tmp_path / "member"), "--steps", "1",
+                                  "--val-every", "1"] + common) == 0
+    assert "cache exists, reused" in caplog.text
+    assert (tmp_path / "member" / "last.pt").is_file()
+
+
 def test_every_flag_the_recipe_script_passes_to_the_temporal_stage_exists(capsys):
-    """scripts/train_trunk.sh calls trunk_recipe twice (a member, its judged fine-tune); a
-    renamed flag would only fail after hours of training."""
+    """scripts/train_trunk.sh calls trunk_recipe three times (the caches, a member, its judged
+    fine-tune); a renamed flag would only fail after hours of training."""
     import re
     from pathlib import Path
     from signal_light_node.training import trunk_recipe
@@ -572,11 +593,14 @@ def test_every_flag_the_recipe_script_passes_to_the_temporal_stage_exists(capsys
     calls = script.split("python -m signal_light_node.training.trunk_recipe")[1:]
     passed = set()
     for call in calls:
-        passed |= set(re.findall(r"(--[a-z][a-z-]*)", call[:call.index('"${resume[@]}"')]))
+        lines = call.split("\n")
+        end = next(i for i, line in enumerate(lines) if not line.rstrip().endswith("\\"))
+        passed |= set(re.findall(r"(--[a-z][a-z-]*)", "\n".join(lines[:end + 1])))
     with pytest.raises(SystemExit):
         trunk_recipe.main(["--help"])
     known = set(re.findall(r"(--[a-z][a-z-]*)", capsys.readouterr().out))
-    assert len(calls) == 2 and {"--tune-from", "--judge-gain", "--model"} <= passed
+    # a member, its judged fine-tune, and the caches written once before members side by side
+    assert len(calls) == 3 and {"--tune-from", "--judge-gain", "--model", "--cache-only"} <= passed
     assert passed <= known, passed - known
 
 

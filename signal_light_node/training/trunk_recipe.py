@@ -307,6 +307,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--val-every", type=int, default=250)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--resume", action="store_true")
+    parser.add_argument("--cache-only", action="store_true",
+                        help="write the feature caches of the pools and the validation split, "
+                             "then stop: members trained side by side then share them instead "
+                             "of each writing them at once")
     parser.add_argument("--side-blink-weight", type=float, default=1.0,
                         help="draw tracks with a blinker ON seen from its own side this many "
                              "times as often as the others (1: uniform)")
@@ -368,6 +372,9 @@ def main(argv: Optional[List[str]] = None) -> int:
                                white_balance=args.look_white_balance)
             caches.append(FeatureCache.load(path, fingerprint))
     val = FeatureCache.load(write_cache(args.val, model, cache_root / args.val.name), fingerprint)
+    if args.cache_only:
+        LOG.info("feature caches ready in %s", cache_root)
+        return 0
     meta = {"recipe": "trunk_recipe", "args": {k: str(v) for k, v in vars(args).items()},
             "training_data": [str(p) for p in args.pool], "trunk_fingerprint": fingerprint,
             "trunk_weights": None if frames is None else {"path": str(args.trunk_weights),
