@@ -33,9 +33,9 @@ import numpy as np
 from signal_light_node.evaluation.metrics import metrics_from_confusion
 from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
 from signal_light_node.evaluation.streaming import chunks, model_track_probs, score_batch
-from signal_light_node.labels import TASKS, View
+from signal_light_node.labels import TASKS
 from signal_light_node.model.backends.registry import create_backend
-from signal_light_node.runtime import brake_onset
+from signal_light_node.runtime import box_sight, brake_onset
 from signal_light_node.runtime.intent_filter import IntentFilterConfig
 from signal_light_node.training import sources
 
@@ -77,8 +77,7 @@ def shift_brake(raw: Dict[str, np.ndarray], shift: float, side: float = 0.0
         return raw
     total: "float | np.ndarray" = shift
     if side != 0.0:
-        view = raw["view"]
-        total = shift + side * (view[..., int(View.LEFT)] + view[..., int(View.RIGHT)])
+        total = shift + side * box_sight.side_mass(raw["view"])
     return dict(raw, brake=brake_onset.shift_on(raw["brake"], total))
 
 

@@ -103,6 +103,13 @@ def judge_blinkers(p: np.ndarray, view: np.ndarray, cover: np.ndarray, cover_max
     return out
 
 
+def side_mass(view: np.ndarray) -> np.ndarray:
+    """The view head's probability that a side faces the camera, P(LEFT) + P(RIGHT), over
+    the last axis of ``view`` (``[..., 4]``)."""
+    view = np.asarray(view, np.float64)
+    return view[..., int(View.LEFT)] + view[..., int(View.RIGHT)]
+
+
 def judge_brake(p: np.ndarray, view: np.ndarray, cover: np.ndarray, cover_max: float,
                 column: int, side_hides: bool = False) -> np.ndarray:
     """The lights' probabilities with the brake's UNKNOWN from geometry.
@@ -119,7 +126,7 @@ def judge_brake(p: np.ndarray, view: np.ndarray, cover: np.ndarray, cover_max: f
     out = p.copy()
     view = np.asarray(view, np.float64)
     q = p[:, column]
-    side = view[:, int(View.LEFT)] + view[:, int(View.RIGHT)]
+    side = side_mass(view)
     from_side = side if side_hides else side * q[:, _UNKNOWN]
     out[:, column] = _judged(q, view[:, int(View.FRONT)] + from_side, cover, cover_max)
     return out
