@@ -248,6 +248,10 @@ MEMBER_JOBS=${MEMBER_JOBS:-$([[ "$DEVICE" == cpu ]] && echo "$cpu_jobs" || echo 
   echo "train_trunk.sh: MEMBER_JOBS must be >= 1, not '$MEMBER_JOBS'" >&2; exit 2; }
 member_threads=$(( THREADS / MEMBER_JOBS > 0 ? THREADS / MEMBER_JOBS : 1 ))
 
+# What every temporal run reads: the pools' and validation split's feature caches.
+recipe_inputs=(--cache "$DATA/cache" "${pools[@]}" --val "$DATA/val_split" --looks "$LOOKS"
+               --look-white-balance "$LOOK_WHITE_BALANCE")
+
 member_dir() {  # seed -> the member's run directory
   if (( n_seeds > 1 )); then echo "$RUN/trunk_s$1"; else echo "$RUN/trunk"; fi
 }
@@ -267,9 +271,8 @@ train_member() {  # seed threads: one member, then (with JUDGE_GAIN) its judged 
   else
     resume=()
     [[ -f "$out/last.state.pt" ]] && resume=(--resume)
-    python -m signal_light_node.training.trunk_recipe --out "$out" --cache "$DATA/cache" \
-      "${pools[@]}" --val "$DATA/val_split" --model "$MODEL" --looks "$LOOKS" \
-      --look-white-balance "$LOOK_WHITE_BALANCE" --steps "$STEPS" \
+    python -m signal_light_node.training.trunk_recipe --out "$out" "${recipe_inputs[@]}" \
+      --model "$MODEL" --steps "$STEPS" \
       --batch "$BATCH" --seq-len "$SEQ_LEN" --lr "$LR" --seed "$seed" --val-every "$VAL_EVERY" \
       --threads "$threads" --device "$DEVICE" "${trunk[@]}" "${resume[@]}"
   fi
@@ -280,10 +283,8 @@ train_member() {  # seed threads: one member, then (with JUDGE_GAIN) its judged 
     "$JUDGE_STEPS steps on the published logits"
   resume=()
   [[ -f "$judged/last.state.pt" ]] && resume=(--resume)
-  python -m signal_light_node.training.trunk_recipe --out "$judged" --cache "$DATA/cache" \
-    "${pools[@]}" --val "$DATA/val_split" --tune-from "$out/$MEMBER_FILE.pt" \
-    --judge-gain "$JUDGE_GAIN" --judge-learn "$JUDGE_LEARN" --looks "$LOOKS" \
-    --look-white-balance "$LOOK_WHITE_BALANCE" \
+  python -m signal_light_node.training.trunk_recipe --out "$judged" "${recipe_inputs[@]}" \
+    --tune-from "$out/$MEMBER_FILE.pt" --judge-gain "$JUDGE_GAIN" --judge-learn "$JUDGE_LEARN" \
     --steps "$JUDGE_STEPS" --batch "$BATCH" --seq-len "$SEQ_LEN" --lr "$JUDGE_LR" \
     --seed "$seed" --val-every 100 --threads "$threads" --device "$DEVICE" "${resume[@]}"
 }
@@ -300,10 +301,8 @@ if (( MEMBER_JOBS == 1 )); then
   for seed in $SEEDS; do train_member "$seed" "$THREADS"; done
 else
   # The caches first, once: members started together would each write them at once.
-  python -m signal_light_node.training.trunk_recipe --out "$RUN" --cache "$DATA/cache" \
-    "${pools[@]}" --val "$DATA/val_split" --model "$MODEL" --looks "$LOOKS" \
-    --look-white-balance "$LOOK_WHITE_BALANCE" --threads "$THREADS" --device "$DEVICE" \
-    "${trunk[@]}" --cache-only
+  python -m signal_light_node.training.trunk_recipe --out "$RUN" "${recipe_inputs[@]}" \
+    --model "$MODEL" --threads "$THREADS" --device "$DEVICE" "${trunk[@]}" --cache-only
   running=0
   for seed in $SEEDS; do
     if (( running == MEMBER_JOBS )); then wait -n || member_failed; running=$((running - 1)); fi
@@ -315,7 +314,7 @@ else
 fi
 members=()
 for seed in $SEEDS; do
-  joined=$(member_file "$seed")
+  joined=$(member_file "$seed")  # with one seed, the last is the model itself
   members+=(--member "$joined")
 done
 model=$RUN/trunk

@@ -596,11 +596,14 @@ def test_every_flag_the_recipe_script_passes_to_the_temporal_stage_exists(capsys
         lines = call.split("\n")
         end = next(i for i, line in enumerate(lines) if not line.rstrip().endswith("\\"))
         passed |= set(re.findall(r"(--[a-z][a-z-]*)", "\n".join(lines[:end + 1])))
+    inputs = script[script.index("recipe_inputs=("):]  # flags every call takes, set apart
+    passed |= set(re.findall(r"(--[a-z][a-z-]*)", inputs[:inputs.index(")")]))
     with pytest.raises(SystemExit):
         trunk_recipe.main(["--help"])
     known = set(re.findall(r"(--[a-z][a-z-]*)", capsys.readouterr().out))
     # a member, its judged fine-tune, and the caches written once before members side by side
-    assert len(calls) == 3 and {"--tune-from", "--judge-gain", "--model", "--cache-only"} <= passed
+    assert len(calls) == 3 and {"--tune-from", "--judge-gain", "--model", "--cache-only",
+                                "--look-white-balance", "--val"} <= passed
     assert passed <= known, passed - known
 
 
