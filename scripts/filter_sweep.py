@@ -9,7 +9,9 @@ own ``on_offsets``), each with each ``--brake-side-shift`` (more ON log-odds in 
 to the view head's side mass, P(LEFT) + P(RIGHT)), is scored on that pass as ``signal-light
 evaluate`` scores it (no grace). Besides the headline it prints brake F1 on rear views
 alone, the one face from which a brake is always in sight, and on side views, and the share
-of judged frames published braking (on a bag whose vehicles never brake, the false brakes). Usage::
+of judged frames published braking (on a bag whose vehicles never brake, the false brakes)
+and the share of brake-OFF frames published ON (on night negatives with braking vehicles
+among them, ``training.night_bound``'s false brakes). Usage::
 
     python scripts/filter_sweep.py --checkpoint signal_light_node/weights/default.pt \\
         --data cal=runs/fillf/family_cal_split --data night=bags/night_tail_lamps \\
@@ -33,14 +35,14 @@ import numpy as np
 from signal_light_node.evaluation.metrics import metrics_from_confusion
 from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
 from signal_light_node.evaluation.streaming import chunks, model_track_probs, score_batch
-from signal_light_node.labels import TASKS
+from signal_light_node.labels import TASKS, LightStatus
 from signal_light_node.model.backends.registry import create_backend
 from signal_light_node.runtime import box_sight, brake_onset
 from signal_light_node.runtime.intent_filter import IntentFilterConfig
 from signal_light_node.training import sources
 
 Pass = List[Tuple[list, Dict[str, np.ndarray]]]
-_ON = 1
+_OFF, _ON = int(LightStatus.OFF), int(LightStatus.ON)
 
 
 def load_tracks(path: Path, crop: Any) -> list:
@@ -94,6 +96,15 @@ def side_brake_f1(report: Dict[str, Any]) -> Optional[float]:
     return _on_f1(metrics_from_confusion("brake", sum(sides))) if sides else None
 
 
+def brake_false_on(report: Dict[str, Any]) -> Optional[float]:
+    """The share of true brake-OFF frames published ON (None without such a frame)."""
+    brake = report["overall"].get("brake")
+    if not brake:
+        return None
+    off = np.asarray(brake["confusion"])[_OFF]
+    return float(off[_ON] / off.sum()) if off.sum() else None
+
+
 def score(batches: Pass, config: IntentFilterConfig, shift: float, side: float = 0.0
           ) -> Dict[str, Any]:
     """Intent and brake figures of one pass under one setting (no grace); ``shift`` and
@@ -115,6 +126,7 @@ def score(batches: Pass, config: IntentFilterConfig, shift: float, side: float =
             "brake_f1": _on_f1(report["overall"].get("brake")), "brake_f1_rear": _on_f1(rear),
             "brake_f1_side": side_brake_f1(report),
             "brake_on_of_judged": brake_on / judged if judged else None,
+            "brake_false_on": brake_false_on(report),
             "intent_switches": switches["intent"].get("ratio"),
             "brake_switches": switches["brake"].get("ratio")}
 
@@ -148,7 +160,7 @@ def main() -> None:
     backend = create_backend(args.backend, str(args.checkpoint), threads=args.threads)
     rows = []
     print("data        config                             shift  side  intent  FP    FN   "
-          "brake F1 (rear / side)  brake ON  switches intent / brake")
+          "brake F1 (rear / side)  brake ON  false ON  switches intent / brake")
     for name, path in data:
         batches = model_pass(backend, Path(path), args.cache, args.checkpoint)
         for text in configs:
@@ -161,7 +173,7 @@ def main() -> None:
                       f"{_pct(r['intent_macro_f1'])} "
                       f"{_pct(r['intent_fp'])} {_pct(r['intent_fn'])}  {_pct(r['brake_f1'])} "
                       f"({_pct(r['brake_f1_rear'])} / {_pct(r['brake_f1_side'])})  "
-                      f"{_pct(r['brake_on_of_judged'])}  "
+                      f"{_pct(r['brake_on_of_judged'])}  {_pct(r['brake_false_on'])}  "
                       f"{_ratio(r['intent_switches'])} / {_ratio(r['brake_switches'])}", flush=True)
     if args.json:
         args.json.write_text(json.dumps({"checkpoint": str(args.checkpoint), "rows": rows},

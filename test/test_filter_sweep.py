@@ -81,3 +81,13 @@ def test_a_side_shift_acts_in_proportion_to_the_view_heads_side_mass():
     both = sweep.shift_brake({"brake": brake, "view": view}, 1.0, 2.0)["brake"]
     assert both[0, 0, 1] / both[0, 0, 0] == pytest.approx(np.e)
     assert both[0, 1, 1] / both[0, 1, 0] == pytest.approx(np.exp(3.0))
+
+
+def test_brake_false_on_counts_off_frames_published_on():
+    sweep = _script()
+    # rows: truth OFF / ON / UNKNOWN; columns: published OFF / ON / UNKNOWN
+    report = {"overall": {"brake": {"confusion": [[6, 3, 1], [2, 8, 0], [0, 0, 5]]}}}
+    assert sweep.brake_false_on(report) == pytest.approx(0.3)
+    no_off = {"overall": {"brake": {"confusion": [[0, 0, 0], [2, 8, 0], [0, 0, 5]]}}}
+    assert sweep.brake_false_on(no_off) is None
+    assert sweep.brake_false_on({"overall": {}}) is None
