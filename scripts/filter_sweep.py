@@ -11,7 +11,10 @@ evaluate`` scores it (no grace). Besides the headline it prints brake F1 on rear
 alone, the one face from which a brake is always in sight, and on side views, and the share
 of judged frames published braking (on a bag whose vehicles never brake, the false brakes)
 and the share of brake-OFF frames published ON (on night negatives with braking vehicles
-among them, ``training.night_bound``'s false brakes). Usage::
+among them, ``training.night_bound``'s false brakes). With ``--blinkers PART`` the blinker
+heads' outputs are taken in part from the truth (:data:`BLINKER_PARTS`), which tells where
+the intent is lost: in whether a blinker can be seen, in ON against OFF, or in the filter
+itself (docs/model.md, "Where the intent is lost"). Usage::
 
     python scripts/filter_sweep.py --checkpoint signal_light_node/weights/default.pt \\
         --data cal=runs/fillf/family_cal_split --data night=bags/night_tail_lamps \\
@@ -42,7 +45,10 @@ from signal_light_node.runtime.intent_filter import IntentFilterConfig
 from signal_light_node.training import sources
 
 Pass = List[Tuple[list, Dict[str, np.ndarray]]]
-_OFF, _ON = int(LightStatus.OFF), int(LightStatus.ON)
+_OFF, _ON, _UNKNOWN = int(LightStatus.OFF), int(LightStatus.ON), int(LightStatus.UNKNOWN)
+#: What ``--blinkers`` takes from the truth: nothing (``model``), whether each blinker can be
+#: seen (``sight``), ON or OFF where it can (``state``), or both (``truth``).
+BLINKER_PARTS = ("model", "sight", "state", "truth")
 
 
 def load_tracks(path: Path, crop: Any) -> list:
@@ -81,6 +87,48 @@ def shift_brake(raw: Dict[str, np.ndarray], shift: float, side: float = 0.0
     if side != 0.0:
         total = shift + side * box_sight.side_mass(raw["view"])
     return dict(raw, brake=brake_onset.shift_on(raw["brake"], total))
+
+
+def _labels(tracks: list, shape: Tuple[int, int], task: str) -> np.ndarray:
+    """The tracks' labels of ``task`` as ``shape`` (tracks x frames), -1 past a track's end."""
+    labels = np.full(shape, -1, np.int64)
+    for i, track in enumerate(tracks):
+        labels[i, :len(track)] = track.labels[:, TASKS.index(task)]
+    return labels
+
+
+def blinkers_from_truth(raw: Dict[str, np.ndarray], tracks: list, part: str
+                        ) -> Dict[str, np.ndarray]:
+    """``raw`` with the blinker heads' outputs taken in part from the tracks' labels.
+
+    ``sight``: P(UNKNOWN) is 1 where the label is UNKNOWN, else 0, the heads' ON:OFF ratio
+    kept; ``state``: where the label is ON or OFF, the judged mass 1 - P(UNKNOWN) goes all
+    to it; ``truth``: both. Unlabelled frames and frames the model did not step keep the
+    heads' outputs; ``model`` returns ``raw`` itself.
+    """
+    if part not in BLINKER_PARTS:
+        raise ValueError(f"blinkers must be one of {BLINKER_PARTS}, got {part!r}")
+    if part == "model":
+        return raw
+    out = dict(raw)
+    for task in ("left", "right"):
+        p = raw[task].copy()
+        label = _labels(tracks, p.shape[:2], task)
+        if part in ("sight", "truth"):
+            judged = p[..., :2].sum(-1, keepdims=True)
+            p[..., :2] = np.where(judged > 0, p[..., :2] / np.maximum(judged, 1e-9), 0.5)
+            p[..., _UNKNOWN] = 0.0
+            p[label == _UNKNOWN] = np.eye(3)[_UNKNOWN]
+        if part in ("state", "truth"):
+            known = (label == _ON) | (label == _OFF)
+            judged = 1.0 - p[..., _UNKNOWN]
+            on = np.where(known, np.where(label == _ON, judged, 0.0), p[..., _ON])
+            p[..., _OFF] = np.where(known, judged - on, p[..., _OFF])
+            p[..., _ON] = on
+        keep = (label < 0) | np.isnan(raw[task]).any(-1)
+        p[keep] = raw[task][keep]
+        out[task] = p
+    return out
 
 
 def _on_f1(report: Dict[str, Any]) -> Optional[float]:
@@ -148,6 +196,8 @@ def main() -> None:
     parser.add_argument("--brake-shift", type=float, action="append", default=None)
     parser.add_argument("--brake-side-shift", type=float, action="append", default=None,
                         help="more ON log-odds per unit of the view head's side mass")
+    parser.add_argument("--blinkers", action="append", choices=BLINKER_PARTS, default=None,
+                        help="what of the blinker heads' outputs to take from the truth")
     parser.add_argument("--cache", type=Path, default=None)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--json", type=Path, default=None)
@@ -159,25 +209,36 @@ def main() -> None:
     shifts = [(s, k) for s in args.brake_shift or [0.0] for k in args.brake_side_shift or [0.0]]
     backend = create_backend(args.backend, str(args.checkpoint), threads=args.threads)
     rows = []
-    print("data        config                             shift  side  intent  FP    FN   "
-          "brake F1 (rear / side)  brake ON  false ON  switches intent / brake")
+    print("data        blinkers config                             shift  side  intent  FP    "
+          "FN   brake F1 (rear / side)  brake ON  false ON  switches intent / brake")
     for name, path in data:
-        batches = model_pass(backend, Path(path), args.cache, args.checkpoint)
-        for text in configs:
-            config = IntentFilterConfig(**json.loads(text))
-            for shift, side in shifts:
-                r = score(batches, config, shift, side)
-                rows.append({"data": name, "config": json.loads(text), "brake_shift": shift,
-                             "brake_side_shift": side, **r})
-                print(f"{name:11s} {text[:34]:34s} {shift:+5.2f} {side:+5.2f} "
-                      f"{_pct(r['intent_macro_f1'])} "
-                      f"{_pct(r['intent_fp'])} {_pct(r['intent_fn'])}  {_pct(r['brake_f1'])} "
-                      f"({_pct(r['brake_f1_rear'])} / {_pct(r['brake_f1_side'])})  "
-                      f"{_pct(r['brake_on_of_judged'])}  {_pct(r['brake_false_on'])}  "
-                      f"{_ratio(r['intent_switches'])} / {_ratio(r['brake_switches'])}", flush=True)
+        model_batches = model_pass(backend, Path(path), args.cache, args.checkpoint)
+        for part in args.blinkers or ["model"]:
+            batches = [(tracks, blinkers_from_truth(raw, tracks, part))
+                       for tracks, raw in model_batches]
+            rows += _sweep(name, part, batches, configs, shifts)
     if args.json:
         args.json.write_text(json.dumps({"checkpoint": str(args.checkpoint), "rows": rows},
                                         indent=1))
+
+
+def _sweep(name: str, part: str, batches: Pass, configs: List[str],
+           shifts: List[Tuple[float, float]]) -> List[Dict[str, Any]]:
+    """Score and print one data set's pass under every filter config and brake shift."""
+    rows = []
+    for text in configs:
+        config = IntentFilterConfig(**json.loads(text))
+        for shift, side in shifts:
+            r = score(batches, config, shift, side)
+            rows.append({"data": name, "blinkers": part, "config": json.loads(text),
+                         "brake_shift": shift, "brake_side_shift": side, **r})
+            print(f"{name:11s} {part:8s} {text[:34]:34s} {shift:+5.2f} {side:+5.2f} "
+                  f"{_pct(r['intent_macro_f1'])} "
+                  f"{_pct(r['intent_fp'])} {_pct(r['intent_fn'])}  {_pct(r['brake_f1'])} "
+                  f"({_pct(r['brake_f1_rear'])} / {_pct(r['brake_f1_side'])})  "
+                  f"{_pct(r['brake_on_of_judged'])}  {_pct(r['brake_false_on'])}  "
+                  f"{_ratio(r['intent_switches'])} / {_ratio(r['brake_switches'])}", flush=True)
+    return rows
 
 
 if __name__ == "__main__":

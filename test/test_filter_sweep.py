@@ -91,3 +91,59 @@ def test_brake_false_on_counts_off_frames_published_on():
     no_off = {"overall": {"brake": {"confusion": [[0, 0, 0], [2, 8, 0], [0, 0, 5]]}}}
     assert sweep.brake_false_on(no_off) is None
     assert sweep.brake_false_on({"overall": {}}) is None
+
+
+class _Track:
+    def __init__(self, left, right):
+        self.labels = np.zeros((len(left), len(TASKS)), np.int64)
+        self.labels[:, TASKS.index("left")] = left
+        self.labels[:, TASKS.index("right")] = right
+
+    def __len__(self):
+        return len(self.labels)
+
+
+def _blinker_pass():
+    # frames labelled OFF, ON, UNKNOWN, unlabelled, and a frame the model did not step
+    p = np.array([[[0.3, 0.2, 0.5]] * 4 + [[np.nan] * 3]])
+    return [_Track([0, 1, 2, -1, 1], [0, 1, 2, -1, 1])], {"left": p, "right": p.copy(),
+                                                        "brake": p.copy()}
+
+
+def test_blinkers_from_truth_replaces_sight_state_or_both():
+    sweep = _script()
+    tracks, raw = _blinker_pass()
+    assert sweep.blinkers_from_truth(raw, tracks, "model") is raw
+    sight = sweep.blinkers_from_truth(raw, tracks, "sight")["left"][0]
+    np.testing.assert_allclose(sight[:3], [[0.6, 0.4, 0], [0.6, 0.4, 0], [0, 0, 1]])
+    state = sweep.blinkers_from_truth(raw, tracks, "state")["right"][0]
+    np.testing.assert_allclose(state[:3], [[0.5, 0, 0.5], [0, 0.5, 0.5], [0.3, 0.2, 0.5]])
+    truth = sweep.blinkers_from_truth(raw, tracks, "truth")
+    np.testing.assert_allclose(truth["left"][0, :3], np.eye(3))
+    for part in ("sight", "state", "truth"):
+        out = sweep.blinkers_from_truth(raw, tracks, part)
+        np.testing.assert_allclose(out["left"][0, 3], [0.3, 0.2, 0.5])  # unlabelled
+        assert np.isnan(out["left"][0, 4]).all()  # never stepped
+        assert out["brake"] is raw["brake"]
+    assert np.allclose(raw["left"][0, 0], [0.3, 0.2, 0.5])  # the pass itself is not changed
+    with pytest.raises(ValueError, match="blinkers"):
+        sweep.blinkers_from_truth(raw, tracks, "oracle")
+
+
+def test_the_truths_blinkers_through_a_filter_without_delays_give_the_true_intent(tmp_path):
+    from signal_light_node.data.split import write_split
+    from signal_light_node.training.sources import split_tracks
+
+    crop = trunk_config().crop_config()
+    write_split(tmp_path / "split", seed=5, n_sequences=4, seq_len=40, crop=crop,
+                full_tracks=True, progress=False)
+    tracks = split_tracks(tmp_path / "split", crop)
+    sweep = _script()
+    raw = sweep.blinkers_from_truth(_uncertain_pass(tracks), tracks, "truth")
+    no_delays = IntentFilterConfig(confirm_s=0.0, hold_s=0.0, visibility_confirm_s=0.0,
+                                   flash_min_evidence=0.0)
+    assert sweep.score([(tracks, raw)], no_delays, 0.0)["intent_macro_f1"] == pytest.approx(1.0)
+    # the heads as they were (every blinker OFF) miss the split's blinks
+    assert any((t.labels[:, TASKS.index("left")] == 1).any() for t in tracks)
+    assert sweep.score([(tracks, _uncertain_pass(tracks))], no_delays,
+                       0.0)["intent_macro_f1"] < 0.9
