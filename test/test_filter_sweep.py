@@ -39,14 +39,19 @@ def _uncertain_pass(tracks):
     return raw
 
 
-def test_a_brake_shift_changes_what_is_published(tmp_path):
+def _split_tracks(path, seed, n_sequences, seq_len):
+    """The tracks of a small rendered split, cut as the trunk model cuts them."""
     from signal_light_node.data.split import write_split
     from signal_light_node.training.sources import split_tracks
 
     crop = trunk_config().crop_config()
-    write_split(tmp_path / "split", seed=3, n_sequences=3, seq_len=12, crop=crop,
+    write_split(path, seed=seed, n_sequences=n_sequences, seq_len=seq_len, crop=crop,
                 full_tracks=True, progress=False)
-    tracks = split_tracks(tmp_path / "split", crop)
+    return split_tracks(path, crop)
+
+
+def test_a_brake_shift_changes_what_is_published(tmp_path):
+    tracks = _split_tracks(tmp_path / "split", seed=3, n_sequences=3, seq_len=12)
     sweep = _script()
     batches = [(tracks, _uncertain_pass(tracks))]
     config = IntentFilterConfig(brake_sight="model")
@@ -131,13 +136,7 @@ def test_blinkers_from_truth_replaces_sight_state_or_both():
 
 
 def test_the_truths_blinkers_through_a_filter_without_delays_give_the_true_intent(tmp_path):
-    from signal_light_node.data.split import write_split
-    from signal_light_node.training.sources import split_tracks
-
-    crop = trunk_config().crop_config()
-    write_split(tmp_path / "split", seed=5, n_sequences=4, seq_len=40, crop=crop,
-                full_tracks=True, progress=False)
-    tracks = split_tracks(tmp_path / "split", crop)
+    tracks = _split_tracks(tmp_path / "split", seed=5, n_sequences=4, seq_len=40)
     sweep = _script()
     raw = sweep.blinkers_from_truth(_uncertain_pass(tracks), tracks, "truth")
     no_delays = IntentFilterConfig(confirm_s=0.0, hold_s=0.0, visibility_confirm_s=0.0,
