@@ -14,7 +14,8 @@ and the share of brake-OFF frames published ON (on night negatives with braking 
 among them, ``training.night_bound``'s false brakes). With ``--blinkers PART`` the blinker
 heads' outputs are taken in part from the truth (:data:`BLINKER_PARTS`), which tells where
 the intent is lost: in whether a blinker can be seen, in ON against OFF, or in the filter
-itself (docs/model.md, "Where the intent is lost"). Usage::
+itself (docs/model.md, "Where the intent is lost"); ``--blinkers lit`` gives them a perfect
+per-frame eye instead (a split's lit labels). Usage::
 
     python scripts/filter_sweep.py --checkpoint signal_light_node/weights/default.pt \\
         --data cal=runs/fillf/family_cal_split --data night=bags/night_tail_lamps \\
@@ -35,6 +36,7 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
+from signal_light_node.errors import ConfigError
 from signal_light_node.evaluation.metrics import metrics_from_confusion
 from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
 from signal_light_node.evaluation.streaming import chunks, model_track_probs, score_batch
@@ -47,8 +49,10 @@ from signal_light_node.training import sources
 Pass = List[Tuple[list, Dict[str, np.ndarray]]]
 _OFF, _ON, _UNKNOWN = int(LightStatus.OFF), int(LightStatus.ON), int(LightStatus.UNKNOWN)
 #: What ``--blinkers`` takes from the truth: nothing (``model``), whether each blinker can be
-#: seen (``sight``), ON or OFF where it can (``state``), or both (``truth``).
-BLINKER_PARTS = ("model", "sight", "state", "truth")
+#: seen (``sight``), ON or OFF where it can (``state``), both (``truth``), or both from the
+#: lit labels of a split (``lit``: ON in the lit half of a blink, OFF in its dark half, a
+#: perfect per-frame eye with no temporal model).
+BLINKER_PARTS = ("model", "sight", "state", "truth", "lit")
 
 
 def load_tracks(path: Path, crop: Any) -> list:
@@ -97,6 +101,30 @@ def _labels(tracks: list, shape: Tuple[int, int], task: str) -> np.ndarray:
     return labels
 
 
+def lit_tracks(path: Path) -> list:
+    """A split's tracks labelled with its lit labels, in the order :func:`load_tracks` gives.
+
+    Raises:
+        ConfigError: ``path`` is not a split directory (bags keep no lit labels).
+    """
+    if not sources.is_split_dir(path):
+        raise ConfigError(f"--blinkers lit needs a split directory: {path} is not one "
+                          f"(bags keep no lit labels)")
+    return sources.split_tracks(path, None, label_key="lit_labels")
+
+
+def with_blinkers(batches: Pass, part: str, path: Path) -> Pass:
+    """``batches`` with :func:`blinkers_from_truth`'s ``part`` of their labels; ``lit``
+    takes both from the split's lit labels (:func:`lit_tracks`)."""
+    if part != "lit":
+        return [(tracks, blinkers_from_truth(raw, tracks, part)) for tracks, raw in batches]
+    lit = list(chunks(lit_tracks(path), 32))
+    if [len(b) for b in lit] != [len(tracks) for tracks, _ in batches]:
+        raise ConfigError(f"{path}: the lit labels' tracks do not match the model pass's")
+    return [(tracks, blinkers_from_truth(raw, lit_batch, "truth"))
+            for (tracks, raw), lit_batch in zip(batches, lit)]
+
+
 def blinkers_from_truth(raw: Dict[str, np.ndarray], tracks: list, part: str
                         ) -> Dict[str, np.ndarray]:
     """``raw`` with the blinker heads' outputs taken in part from the tracks' labels.
@@ -106,8 +134,8 @@ def blinkers_from_truth(raw: Dict[str, np.ndarray], tracks: list, part: str
     to it; ``truth``: both. Unlabelled frames and frames the model did not step keep the
     heads' outputs; ``model`` returns ``raw`` itself.
     """
-    if part not in BLINKER_PARTS:
-        raise ValueError(f"blinkers must be one of {BLINKER_PARTS}, got {part!r}")
+    if part not in BLINKER_PARTS[:4]:
+        raise ValueError(f"blinkers must be one of {BLINKER_PARTS[:4]}, got {part!r}")
     if part == "model":
         return raw
     out = dict(raw)
@@ -205,6 +233,9 @@ def main() -> None:
     data = [tuple(d.split("=", 1)) for d in args.data]
     if any(len(d) != 2 for d in data):
         parser.error("--data takes NAME=PATH")
+    parts = args.blinkers or ["model"]
+    if "lit" in parts and not all(sources.is_split_dir(Path(p)) for _, p in data):
+        parser.error("--blinkers lit needs split directories only (bags keep no lit labels)")
     configs = args.config or ["{}"]
     shifts = [(s, k) for s in args.brake_shift or [0.0] for k in args.brake_side_shift or [0.0]]
     backend = create_backend(args.backend, str(args.checkpoint), threads=args.threads)
@@ -213,9 +244,8 @@ def main() -> None:
           "FN   brake F1 (rear / side)  brake ON  false ON  switches intent / brake")
     for name, path in data:
         model_batches = model_pass(backend, Path(path), args.cache, args.checkpoint)
-        for part in args.blinkers or ["model"]:
-            batches = [(tracks, blinkers_from_truth(raw, tracks, part))
-                       for tracks, raw in model_batches]
+        for part in parts:
+            batches = with_blinkers(model_batches, part, Path(path))
             rows += _sweep(name, part, batches, configs, shifts)
     if args.json:
         args.json.write_text(json.dumps({"checkpoint": str(args.checkpoint), "rows": rows},

@@ -146,3 +146,21 @@ def test_the_truths_blinkers_through_a_filter_without_delays_give_the_true_inten
     assert any((t.labels[:, TASKS.index("left")] == 1).any() for t in tracks)
     assert sweep.score([(tracks, _uncertain_pass(tracks))], no_delays,
                        0.0)["intent_macro_f1"] < 0.9
+
+
+def test_lit_blinkers_are_a_perfect_per_frame_eye_and_need_a_split(tmp_path):
+    from signal_light_node.errors import ConfigError
+
+    tracks = _split_tracks(tmp_path / "split", seed=5, n_sequences=4, seq_len=40)
+    sweep = _script()
+    (batch,) = sweep.with_blinkers([(tracks, _uncertain_pass(tracks))], "lit", tmp_path / "split")
+    lit = sweep.lit_tracks(tmp_path / "split")
+    column = TASKS.index("left")
+    state = np.concatenate([t.labels[:, column] for t in tracks])
+    flash = np.concatenate([t.labels[:, column] for t in lit])
+    p_on = np.concatenate([batch[1]["left"][i, :len(t), 1] for i, t in enumerate(tracks)])
+    dark_half = (state == 1) & (flash == 0)
+    assert dark_half.any() and (flash == 1).any()
+    assert (p_on[flash == 1] == 1).all() and (p_on[dark_half] == 0).all()
+    with pytest.raises(ConfigError, match="split directory"):
+        sweep.with_blinkers([(tracks, _uncertain_pass(tracks))], "lit", tmp_path)
