@@ -52,7 +52,8 @@ _OFF, _ON, _UNKNOWN = int(LightStatus.OFF), int(LightStatus.ON), int(LightStatus
 #: seen (``sight``), ON or OFF where it can (``state``), both (``truth``), or both from the
 #: lit labels of a split (``lit``: ON in the lit half of a blink, OFF in its dark half, a
 #: perfect per-frame eye with no temporal model).
-BLINKER_PARTS = ("model", "sight", "state", "truth", "lit")
+TRUTH_PARTS = ("model", "sight", "state", "truth")
+BLINKER_PARTS = TRUTH_PARTS + ("lit",)
 
 
 def load_tracks(path: Path, crop: Any) -> list:
@@ -119,8 +120,11 @@ def with_blinkers(batches: Pass, part: str, path: Path) -> Pass:
     if part != "lit":
         return [(tracks, blinkers_from_truth(raw, tracks, part)) for tracks, raw in batches]
     lit = list(chunks(lit_tracks(path), 32))
-    if [len(b) for b in lit] != [len(tracks) for tracks, _ in batches]:
-        raise ConfigError(f"{path}: the lit labels' tracks do not match the model pass's")
+    same = [[(t.track_id, len(t)) for t in b] for b in lit] == \
+        [[(t.track_id, len(t)) for t in tracks] for tracks, _ in batches]
+    if not same:
+        raise ConfigError(f"{path}: the lit labels' tracks do not match the model pass's "
+                          f"(a cached pass of another split of that name?)")
     return [(tracks, blinkers_from_truth(raw, lit_batch, "truth"))
             for (tracks, raw), lit_batch in zip(batches, lit)]
 
@@ -134,8 +138,8 @@ def blinkers_from_truth(raw: Dict[str, np.ndarray], tracks: list, part: str
     to it; ``truth``: both. Unlabelled frames and frames the model did not step keep the
     heads' outputs; ``model`` returns ``raw`` itself.
     """
-    if part not in BLINKER_PARTS[:4]:
-        raise ValueError(f"blinkers must be one of {BLINKER_PARTS[:4]}, got {part!r}")
+    if part not in TRUTH_PARTS:
+        raise ValueError(f"blinkers must be one of {TRUTH_PARTS}, got {part!r}")
     if part == "model":
         return raw
     out = dict(raw)
