@@ -249,7 +249,10 @@ def main() -> None:
     for name, path in data:
         model_batches = model_pass(backend, Path(path), args.cache, args.checkpoint)
         for part in parts:
-            batches = with_blinkers(model_batches, part, Path(path))
+            try:
+                batches = with_blinkers(model_batches, part, Path(path))
+            except ConfigError as exc:
+                parser.error(str(exc))
             rows += _sweep(name, part, batches, configs, shifts)
     if args.json:
         args.json.write_text(json.dumps({"checkpoint": str(args.checkpoint), "rows": rows},
