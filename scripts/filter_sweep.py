@@ -54,6 +54,8 @@ _OFF, _ON, _UNKNOWN = int(LightStatus.OFF), int(LightStatus.ON), int(LightStatus
 #: perfect per-frame eye with no temporal model).
 TRUTH_PARTS = ("model", "sight", "state", "truth")
 BLINKER_PARTS = TRUTH_PARTS + ("lit",)
+#: Tracks per model pass batch; ``--blinkers lit`` batches the lit labels the same way.
+BATCH_TRACKS = 32
 
 
 def load_tracks(path: Path, crop: Any) -> list:
@@ -68,14 +70,15 @@ def load_tracks(path: Path, crop: Any) -> list:
 
 
 def model_pass(backend: Any, path: Path, cache: Optional[Path], checkpoint: Path) -> Pass:
-    """``(tracks, raw outputs)`` per batch of 32 tracks, read from ``cache`` when there."""
+    """``(tracks, raw outputs)`` per batch of :data:`BATCH_TRACKS` tracks, read from
+    ``cache`` when there."""
     key = hashlib.sha1(f"{checkpoint.resolve()}:{checkpoint.stat().st_mtime_ns}:"
                        f"{path.resolve()}".encode()).hexdigest()[:16]
     file = cache / f"{path.name}_{key}.pkl" if cache else None
     if file is not None and file.is_file():
         return pickle.loads(file.read_bytes())
     tracks = load_tracks(path, backend.config.crop_config())
-    batches = [(batch, model_track_probs(backend, batch)) for batch in chunks(tracks, 32)]
+    batches = [(batch, model_track_probs(backend, batch)) for batch in chunks(tracks, BATCH_TRACKS)]
     if file is not None:
         file.parent.mkdir(parents=True, exist_ok=True)
         file.write_bytes(pickle.dumps(batches))
@@ -102,15 +105,20 @@ def _labels(tracks: list, shape: Tuple[int, int], task: str) -> np.ndarray:
     return labels
 
 
+def require_lit_labels(path: Path) -> None:
+    """Raise ConfigError unless ``path`` is a split directory (bags keep no lit labels)."""
+    if not sources.is_split_dir(path):
+        raise ConfigError(f"--blinkers lit needs a split directory: {path} is not one "
+                          f"(bags keep no lit labels)")
+
+
 def lit_tracks(path: Path) -> list:
     """A split's tracks labelled with its lit labels, in the order :func:`load_tracks` gives.
 
     Raises:
-        ConfigError: ``path`` is not a split directory (bags keep no lit labels).
+        ConfigError: ``path`` is not a split directory.
     """
-    if not sources.is_split_dir(path):
-        raise ConfigError(f"--blinkers lit needs a split directory: {path} is not one "
-                          f"(bags keep no lit labels)")
+    require_lit_labels(path)
     return sources.split_tracks(path, None, label_key="lit_labels")
 
 
@@ -119,7 +127,7 @@ def with_blinkers(batches: Pass, part: str, path: Path) -> Pass:
     takes both from the split's lit labels (:func:`lit_tracks`)."""
     if part != "lit":
         return [(tracks, blinkers_from_truth(raw, tracks, part)) for tracks, raw in batches]
-    lit = list(chunks(lit_tracks(path), 32))
+    lit = list(chunks(lit_tracks(path), BATCH_TRACKS))
     same = [[(t.track_id, len(t)) for t in b] for b in lit] == \
         [[(t.track_id, len(t)) for t in tracks] for tracks, _ in batches]
     if not same:
@@ -238,8 +246,11 @@ def main() -> None:
     if any(len(d) != 2 for d in data):
         parser.error("--data takes NAME=PATH")
     parts = args.blinkers or ["model"]
-    if "lit" in parts and not all(sources.is_split_dir(Path(p)) for _, p in data):
-        parser.error("--blinkers lit needs split directories only (bags keep no lit labels)")
+    try:  # before any model pass, which takes minutes
+        for _, path in data if "lit" in parts else []:
+            require_lit_labels(Path(path))
+    except ConfigError as exc:
+        parser.error(str(exc))
     configs = args.config or ["{}"]
     shifts = [(s, k) for s in args.brake_shift or [0.0] for k in args.brake_side_shift or [0.0]]
     backend = create_backend(args.backend, str(args.checkpoint), threads=args.threads)
