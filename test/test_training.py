@@ -492,3 +492,25 @@ def test_track_draws_weigh_side_blink_tracks_and_stay_uniform_at_one():
     assert track_draws([cache], 1.0) == [None]
     p = track_draws([cache], 3.0)[0]
     assert np.allclose(p, [0.6, 0.2, 0.2])
+
+
+def test_hazard_tracks_are_drawn_more_often_with_a_hazard_weight():
+    from types import SimpleNamespace
+    from signal_light_node.labels import Intent, LightStatus as S, View as V
+    from signal_light_node.training.sampling import hazard_tracks
+    from signal_light_node.training.trunk_recipe import track_draws
+
+    labels = _labels([(V.RIGHT, S.UNKNOWN, S.ON), (V.BEHIND, S.ON, S.ON),
+                      (V.BEHIND, S.OFF, S.OFF), (V.BEHIND, S.ON, S.ON)])
+    labels[[1, 3], TASKS.index("intent")] = Intent.HAZARD
+    offsets = np.array([0, 1, 3, 4])  # tracks: side blink / hazard then plain / hazard
+    assert hazard_tracks(labels, offsets).tolist() == [False, True, True]
+    cache = SimpleNamespace(labels=labels, offsets=offsets)
+    assert track_draws([cache], 1.0, 1.0) == [None]
+    assert np.allclose(track_draws([cache], 1.0, 4.0)[0], [1 / 9, 4 / 9, 4 / 9])
+    assert np.allclose(track_draws([cache], 2.0, 4.0)[0], [0.2, 0.4, 0.4])
+    from signal_light_node.training.trunk_recipe import main as recipe_main
+
+    with pytest.raises(SystemExit):
+        recipe_main(["--out", "unused", "--pool", "unused", "--val", "unused",
+                     "--hazard-weight", "0"])

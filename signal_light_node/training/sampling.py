@@ -70,7 +70,18 @@ def side_blink_tracks(labels: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     on = LightStatus.ON
     side = (((view == View.LEFT) & (labels[:, TASKS.index("left")] == on))
             | ((view == View.RIGHT) & (labels[:, TASKS.index("right")] == on)))
-    running = np.concatenate(([0], np.cumsum(side, dtype=np.int64)))
+    return _any_per_track(side, offsets)
+
+
+def hazard_tracks(labels: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Per track (as :func:`side_blink_tracks`): does any of its frames show a HAZARD? Both
+    sides flash in phase there, which a model that learnt one blinker at a time misses."""
+    return _any_per_track(labels[:, _INTENT] == Intent.HAZARD, offsets)
+
+
+def _any_per_track(flags: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Per track, whether any of its frames ``offsets[i]:offsets[i+1]`` is flagged."""
+    running = np.concatenate(([0], np.cumsum(flags, dtype=np.int64)))
     return running[offsets[1:]] > running[offsets[:-1]]
 
 

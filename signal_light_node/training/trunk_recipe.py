@@ -47,7 +47,7 @@ from signal_light_node.training.feature_cache import (FeatureCache, collate_wind
                                                       trunk_fingerprint, write_cache)
 from signal_light_node.training.loss import (brake_judge_loss, lamp_rank_loss, multitask_loss,
                                              share_weights, warmup_frames)
-from signal_light_node.training.sampling import side_blink_tracks
+from signal_light_node.training.sampling import hazard_tracks, side_blink_tracks
 from signal_light_node.training.trunk_finetune import load_trunk_weights
 
 LOG = logging.getLogger("trunk_recipe")
@@ -56,16 +56,18 @@ TASK_WEIGHTS = {"intent": 1.0, "brake": 1.0, "left": 0.5, "right": 0.5, "view": 
 LIT_WEIGHT = 0.5
 
 
-def track_draws(caches: Sequence[FeatureCache], side_blink_weight: float
-                ) -> List[Optional[np.ndarray]]:
+def track_draws(caches: Sequence[FeatureCache], side_blink_weight: float,
+                hazard_weight: float = 1.0) -> List[Optional[np.ndarray]]:
     """Per cache, the probability of drawing each track: tracks with a blinker ON seen from
     its own side (:func:`~signal_light_node.training.sampling.side_blink_tracks`) weigh
-    ``side_blink_weight``, the others 1; None (uniform) at weight 1."""
-    if side_blink_weight == 1.0:
+    ``side_blink_weight``, tracks with a HAZARD (``hazard_tracks``) ``hazard_weight``
+    (a track that is both, the product), the others 1; None (uniform) at weights 1."""
+    if side_blink_weight == 1.0 and hazard_weight == 1.0:
         return [None] * len(caches)
     draws: List[Optional[np.ndarray]] = []
     for cache in caches:
-        weight = np.where(side_blink_tracks(cache.labels, cache.offsets), side_blink_weight, 1.0)
+        weight = (np.where(side_blink_tracks(cache.labels, cache.offsets), side_blink_weight, 1.0)
+                  * np.where(hazard_tracks(cache.labels, cache.offsets), hazard_weight, 1.0))
         draws.append(weight / weight.sum())
     return draws
 
@@ -217,16 +219,18 @@ def train(model: torch.nn.Module, train_caches: Sequence[FeatureCache], val: Fea
           out: Path, steps: int, batch: int, seq_len: int, lr: float, seed: int,
           val_every: int, resume: bool, meta: Dict[str, Any],
           device: Optional[torch.device] = None, judged: bool = False,
-          side_blink_weight: float = 1.0, rank_weight: float = 0.0) -> Dict[str, Any]:
+          side_blink_weight: float = 1.0, rank_weight: float = 0.0,
+          hazard_weight: float = 1.0) -> Dict[str, Any]:
     """The training loop of the module doc (``judged``, ``rank_weight``: see :func:`step_loss`;
-    ``side_blink_weight``: :func:`track_draws`); returns the best validation figures."""
+    ``side_blink_weight``, ``hazard_weight``: :func:`track_draws`); returns the best
+    validation figures."""
     device = device or torch.device("cpu")
     rng = np.random.default_rng(seed)
     model.to(device).freeze_encoder()
     params = [p for p in model.parameters() if p.requires_grad]
     optim = torch.optim.AdamW(params, lr=lr, weight_decay=1e-4)
     weights = {k: v.to(device) for k, v in class_weights(train_caches, model.config).items()}
-    draws = track_draws(train_caches, side_blink_weight)
+    draws = track_draws(train_caches, side_blink_weight, hazard_weight)
     progress: Dict[str, Any] = {"step": 0, "best": {"score": -1.0}, "history": []}
     if resume and (out / "last.state.pt").is_file():
         saved = torch.load(out / "last.state.pt", weights_only=False, map_location=device)
@@ -314,6 +318,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--side-blink-weight", type=float, default=1.0,
                         help="draw tracks with a blinker ON seen from its own side this many "
                              "times as often as the others (1: uniform)")
+    parser.add_argument("--hazard-weight", type=float, default=1.0,
+                        help="draw tracks with a HAZARD this many times as often as the "
+                             "others (1: uniform)")
     parser.add_argument("--rank-weight", type=float, default=0.0,
                         help="weight of ranking each window's frames against each other: a "
                              "brake or blinker ON must score above the same lamp OFF (0: none)")
@@ -336,8 +343,9 @@ def main(argv: Optional[List[str]] = None) -> int:
                      "--trunk-weights")
     if args.look_white_balance < 0:
         parser.error(f"--look-white-balance must be >= 0, got {args.look_white_balance}")
-    if args.side_blink_weight <= 0:
-        parser.error(f"--side-blink-weight must be > 0, got {args.side_blink_weight}")
+    for name in ("side_blink_weight", "hazard_weight"):
+        if getattr(args, name) <= 0:
+            parser.error(f"--{name.replace('_', '-')} must be > 0, got {getattr(args, name)}")
     if args.judge_learn != "all" and args.judge_gain is None:
         parser.error("--judge-learn goes with --judge-gain")
     if args.rank_weight < 0:
@@ -386,7 +394,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     best = train(model, caches, val, args.out, args.steps, args.batch, args.seq_len, args.lr,
                  args.seed, args.val_every, args.resume, meta, device,
                  judged=args.judge_gain is not None, side_blink_weight=args.side_blink_weight,
-                 rank_weight=args.rank_weight)
+                 rank_weight=args.rank_weight, hazard_weight=args.hazard_weight)
     (args.out / "summary.json").write_text(json.dumps(best, indent=1))
     LOG.info("best: %s", best)
     return 0
