@@ -23,7 +23,7 @@ import sys
 from collections import OrderedDict
 from itertools import islice
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 from torch.utils.data import Dataset
@@ -353,12 +353,19 @@ def main(argv: Optional[List[str]] = None) -> int:
     if args.truth_rule != TRUTH_RULES[0]:
         overrides["truth_rule"] = args.truth_rule
     extra = {"renderer_overrides": overrides} if overrides else {}
+    return write_and_summarise(lambda: write_split(
+        args.out, args.seed, args.sequences, args.seq_len,
+        CropConfig(args.crop_size, args.crop_margin, args.crop_fill),
+        full_tracks=args.full_tracks, overwrite=args.overwrite, lighting=args.lighting,
+        lit_maps=args.lit_maps, **extra))
+
+
+def write_and_summarise(write: Callable[[], Path]) -> int:
+    """A command's end: run ``write`` (it returns the new split's manifest path), print the
+    split's summary as JSON and return 0, or print its error in one line and return 2."""
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
-        path = write_split(args.out, args.seed, args.sequences, args.seq_len,
-                           CropConfig(args.crop_size, args.crop_margin, args.crop_fill),
-                           full_tracks=args.full_tracks, overwrite=args.overwrite,
-                           lighting=args.lighting, lit_maps=args.lit_maps, **extra)
+        path = write()
     except SignalLightError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -15,15 +15,13 @@ From the shell::
 from __future__ import annotations
 
 import argparse
-import json
-import logging
 import os
 import sys
 from pathlib import Path
 from typing import Any, List, Optional
 
-from signal_light_node.data.split import SequenceSplit, write_split
-from signal_light_node.errors import ConfigError, SignalLightError
+from signal_light_node.data.split import SequenceSplit, write_and_summarise, write_split
+from signal_light_node.errors import ConfigError
 from signal_light_node.runtime.crops import CropConfig
 from signal_light_node.synth.lamps import STYLE_FAMILIES
 
@@ -87,14 +85,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                         help="style family of the twin (default: the training families)")
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    try:
-        path = write_twin(args.split, args.out, family=args.family, overwrite=args.overwrite)
-    except SignalLightError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    print(json.dumps(SequenceSplit(path.parent).summary(), indent=2))
-    return 0
+    return write_and_summarise(lambda: write_twin(args.split, args.out, family=args.family,
+                                                  overwrite=args.overwrite))
 
 
 if __name__ == "__main__":
