@@ -60,6 +60,9 @@ def test_a_twin_back_in_the_held_out_family_is_the_split_itself(family_split, tm
 def test_refusals(family_split, tmp_path):
     with pytest.raises(ConfigError, match="already drawn in family"):
         write_twin(family_split, tmp_path / "same", family=HELD_OUT_FAMILY)
+    write_twin(family_split, tmp_path / "own", progress=False)
+    with pytest.raises(ConfigError, match="already drawn in the training families"):
+        write_twin(tmp_path / "own", tmp_path / "again")
     with pytest.raises(ConfigError, match="family must be one of"):
         write_twin(family_split, tmp_path / "bad", family=7)
     assert main([str(tmp_path / "missing"), str(tmp_path / "out")]) == 2

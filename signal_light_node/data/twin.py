@@ -61,8 +61,9 @@ def write_twin(split_dir: "str | os.PathLike[str]", out_dir: "str | os.PathLike[
     stream = _tuples(dict(manifest.get("stream", {})))
     overrides = dict(stream.pop("renderer_overrides", {}))
     if overrides.get("family") == family:
-        raise ConfigError(f"{split_dir} is already drawn in family {family}; a twin needs "
-                          "another")
+        what = "the training families" if family is None else f"family {family}"
+        raise ConfigError(f"{split_dir} is already drawn in {what}; a twin needs another "
+                          "family (--family)")
     overrides.pop("family", None)
     if family is not None:
         overrides["family"] = family
