@@ -22,7 +22,6 @@ from typing import Any, List, Optional
 
 from signal_light_node.data.split import SequenceSplit, write_and_summarise, write_split
 from signal_light_node.errors import ConfigError
-from signal_light_node.runtime.crops import CropConfig
 from signal_light_node.synth.lamps import STYLE_FAMILIES
 
 
@@ -57,7 +56,8 @@ def write_twin(split_dir: "str | os.PathLike[str]", out_dir: "str | os.PathLike[
     """
     if family is not None and family not in STYLE_FAMILIES:
         raise ConfigError(f"family must be one of {STYLE_FAMILIES} or None, got {family!r}")
-    manifest = SequenceSplit(split_dir).manifest
+    split = SequenceSplit(split_dir)
+    manifest = split.manifest
     stream = _tuples(dict(manifest.get("stream", {})))
     overrides = dict(stream.pop("renderer_overrides", {}))
     if overrides.get("family") == family:
@@ -67,10 +67,8 @@ def write_twin(split_dir: "str | os.PathLike[str]", out_dir: "str | os.PathLike[
     overrides.pop("family", None)
     if family is not None:
         overrides["family"] = family
-    crop = manifest["crop"]
-    return write_split(out_dir, seed=manifest["seed"], n_sequences=manifest["n_sequences"],
-                       seq_len=manifest["seq_len"],
-                       crop=CropConfig(crop["size"], crop["margin"], crop.get("fill", False)),
+    return write_split(out_dir, seed=manifest["seed"], n_sequences=len(split),
+                       seq_len=split.seq_len, crop=split.crop,
                        full_tracks=manifest["full_tracks"], overwrite=overwrite,
                        progress=progress, **stream,
                        **({"renderer_overrides": overrides} if overrides else {}))
