@@ -106,7 +106,7 @@ def test_trunk_config_is_validated():
                                       "cell_periods": True, "cell_pooled": True},
                                      {"frequency_evidence": False, "lamp_detail": 2,
                                       "lamp_area": True},
-                                     FLOOR, JUDGE])
+                                     FLOOR, JUDGE, dict(JUDGE, side_contrast=True)])
 def test_stepping_frame_by_frame_equals_the_sequence(changes):
     model = _model(**changes)
     crops = torch.rand(3, 6, 3, 64, 64, generator=torch.Generator().manual_seed(1))
@@ -253,6 +253,37 @@ def test_pooled_cell_periods_are_the_raw_amplitudes_largest_over_periods():
     assert torch.allclose(pooled[0].reshape(len(lamps.CELL_CHANNELS), 2),
                           per_period[0].amax(-1))  # raw kind, largest over periods
     assert torch.equal(pooled[1][0], full[1][0, :len(lamps.CELL_CHANNELS)])
+
+
+def _contrast_amplitudes(frames):
+    """Largest :func:`lamps.contrast_step` amplitude per signal over periods, last frame."""
+    k = lamps.contrast_features() // len(lamps.PERIODS)
+    resonators, level = torch.zeros(1, 2, k, len(lamps.PERIODS)), torch.zeros(1, k)
+    for t, crop in enumerate(frames):
+        signals = lamps.contrast_signals(lamps.lamp_maps(crop[None], 8))
+        seen = torch.full((1, 1), float(t > 0))
+        vector, resonators, level = lamps.contrast_step(signals, resonators, level, seen)
+    return vector.reshape(k, len(lamps.PERIODS)).amax(1)
+
+
+def test_side_contrast_sees_one_side_flash_and_not_the_whole_crop_change():
+    one_side = [_vehicle(t, (t % 8) < 4) for t in range(48)]
+    steady = [_vehicle(t, True) for t in range(48)]
+    # The whole crop brightening and dimming at the blink's period: exposure, not a blinker.
+    pumped = [_vehicle(t, False) * (1.3 if (t % 8) < 4 else 1.0) for t in range(48)]
+    flash, still, common = (_contrast_amplitudes(f) for f in (one_side, steady, pumped))
+    warm = lamps.CONTRAST_CHANNELS.index(3)
+    assert float(flash[warm]) > float(still[warm]) + 2.0
+    assert float(flash[warm]) > float(common[warm]) + 2.0
+
+
+def test_side_contrast_adds_its_state_and_vector():
+    plain = _model(**JUDGE)
+    contrast = _model(**dict(JUDGE, side_contrast=True))
+    assert len(contrast.initial_state(2)) == len(plain.initial_state(2)) + 1
+    assert contrast.n_vector == plain.n_vector + lamps.contrast_features(True)
+    with pytest.raises(ConfigError, match="side_contrast"):
+        trunk_config(side_contrast=True, encoder="cnn")
 
 
 def test_relative_evidence_is_zero_for_a_new_track_and_fades_for_a_steady_map():
@@ -463,6 +494,7 @@ def test_checkpoint_round_trip_needs_no_wheel(tmp_path, monkeypatch):
                                      dict(JUDGE, expert_dark=0.9),
                                      dict(JUDGE, expert_red=True),
                                      dict(JUDGE, expert_red=True, high_lamp=True),
+                                     dict(JUDGE, side_contrast=True),
                                      dict(temperatures={"left": 1.5},
                                           on_offsets={"left": -1.0, "brake": 0.5})])
 def test_onnx_export_steps_like_torch(tmp_path, changes):

@@ -131,6 +131,11 @@ class ModelConfig:
         cell_pooled: With ``cell_periods``, only each cell's raw amplitude, pooled over
             the periods (4 track-vector values, 2 map channels): no per-period or
             per-noise-level detail for the heads to fit to one renderer's frame rates.
+        side_contrast: Give the trunk network blink periods of the left image half's
+            brightest lamp cell minus the right half's (peak brightness, red and warm
+            excess, and with ``lamp_area`` the lit red share; ``model.lamp_evidence.
+            contrast_step``): one side flashing against the other, where what lights the
+            whole crop cancels. Their log amplitudes join the track vector.
         lamp_detail: The lamp maps are computed on a grid this many times finer than the
             trunk's and stacked into channels per trunk cell (space to depth), so a small
             lamp keeps its own cell; 1 keeps one lamp-map cell per trunk cell.
@@ -228,6 +233,7 @@ class ModelConfig:
     lamp_detail: int = 1
     cell_periods: bool = False
     cell_pooled: bool = False
+    side_contrast: bool = False
     lamp_area: bool = False
     track_floor: bool = False
     brake_expert: bool = False
@@ -261,8 +267,8 @@ class ModelConfig:
         # bool("false") is True: refuse anything but a real boolean (CLI values are JSON).
         for name in ("use_attention", "temporal_input", "relative_evidence", "frequency_evidence",
                      "lit_head", "lit_periods", "blink_levels", "lit_share", "blink_amplitudes",
-                     "cell_periods", "cell_pooled", "lamp_area", "track_floor", "brake_expert",
-                     "expert_red", "high_lamp", "lit_map_head", "crop_fill"):
+                     "cell_periods", "cell_pooled", "side_contrast", "lamp_area", "track_floor",
+                     "brake_expert", "expert_red", "high_lamp", "lit_map_head", "crop_fill"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"model config {name} must be true or false, got "
                                   f"{getattr(self, name)!r}")
@@ -328,6 +334,9 @@ class ModelConfig:
         if self.members > 1 and self.encoder == "cnn":
             raise ConfigError("model config members > 1 needs the trunk encoder "
                               "(members share its per-frame trunk)")
+        if self.side_contrast and self.encoder == "cnn":
+            raise ConfigError("model config side_contrast reads the lamp maps: it needs the "
+                              "trunk encoder (the CNN has no lamp maps)")
         if self.lamp_area and self.encoder == "cnn":
             raise ConfigError("model config lamp_area adds lamp-map channels: it needs the "
                               "trunk encoder (the CNN has no lamp maps)")

@@ -19,6 +19,9 @@ with the per-track memory passed in and returned (it lives in the model's state)
   periodic energy near that period over the last few periods, and the phase agreement of
   the left and right resonators tells a hazard (in phase) from noise. A steady lamp,
   however bright, drives none of them after its onset.
+* :func:`contrast_step`: the same resonators on the left half's brightest lamp cell
+  minus the right half's: a blinker flashes one side against the other, where light
+  that changes the whole crop (exposure, a brake, the box's scale) drives nothing.
 * :func:`floor_step`: the lit area of the whole crop and of its halves against the
   track's own floor and ceiling (a minimum that rises slowly and a maximum that falls
   slowly): at night a brake is a step in lit area over the vehicle's own tail-lamp
@@ -199,6 +202,38 @@ def resonator_step(signals: Tensor, resonators: Tensor, level: Tensor, seen: Ten
 def resonator_features(n_signals: int, n_periods: int) -> int:
     """Length of :func:`resonator_step`'s features for ``n_signals`` (= 2K) signals."""
     return (n_signals + n_signals // 2) * n_periods
+
+
+#: Lamp-map channels whose left-minus-right contrast drives :func:`contrast_step`: peak
+#: brightness, peak red and peak warm excess (and, with the lit area, the lit red share).
+CONTRAST_CHANNELS = (1, 2, 3)
+
+
+def contrast_signals(fine_maps: Tensor, area: bool = False) -> Tensor:
+    """``[N, K]``: the left image half's largest cell minus the right half's, per channel of
+    :data:`CONTRAST_CHANNELS` (and the lit red share with ``area``) of ``[N, C, F, F]``
+    fine lamp maps. A blinker modulates one side; light that changes the whole crop
+    (exposure, a brake lit on both sides, the box's scale) cancels."""
+    channels = list(CONTRAST_CHANNELS) + ([LAMP_CHANNELS + 1] if area else [])
+    chosen = fine_maps[:, channels]
+    half = chosen.shape[3] // 2
+    left = chosen[..., :half].amax(dim=(2, 3))
+    right = chosen[..., chosen.shape[3] - half:].amax(dim=(2, 3))
+    return left - right
+
+
+def contrast_features(area: bool = False) -> int:
+    """Length of :func:`contrast_step`'s features."""
+    return (len(CONTRAST_CHANNELS) + int(area)) * len(PERIODS)
+
+
+def contrast_step(signals: Tensor, resonators: Tensor, level: Tensor, seen: Tensor
+                  ) -> Tuple[Tensor, Tensor, Tensor]:
+    """One frame of resonators over :func:`contrast_signals` ``[N, K]``: ``[N, K * P]`` log
+    amplitudes per blink period (:data:`PERIODS`), the new ``[N, 2, K, P]`` resonators and
+    the new ``[N, K]`` level."""
+    resonators, level = resonate(signals, resonators, level, seen, PERIODS)
+    return log_amplitude(resonators).flatten(1), resonators, level
 
 
 #: Regions whose lit area :func:`floor_step` follows: the whole crop, its left and right half

@@ -20,6 +20,8 @@ One step for ``N`` tracks::
          (with ``lit_share``, also its blink share over a window of past frames)
       -> with ``cell_periods``: resonators on every fine lamp-map cell; the largest
          amplitudes per image half join the track vector, a per-cell map the evidence
+      -> with ``side_contrast``: resonators on the left half's brightest lamp cell minus
+         the right half's; their amplitudes join the track vector
       -> with ``track_floor``: the lit area of the crop and its halves against the
          track's own floor and ceiling joins the track vector
          (with ``brake_expert``, a linear judge of it adds its logit to the brake's)
@@ -31,7 +33,8 @@ The state is a tuple of pairs like :class:`~signal_light_node.model.network.Ligh
 so the state bank, the backends and the ONNX export carry it unchanged: the ConvLSTM
 ``(h, c)`` pairs, then ``(previous z, running mean of z)``, ``(previous and mean lamp
 maps, seen)``, ``(resonators, signal level)``, the lit lamps' and the cells'
-``(resonators, memory)`` and the lit area's ``(floor, ceiling)`` as the options ask for.
+``(resonators, memory)``, the left-against-right contrast's ``(resonators, level)`` and the
+lit area's ``(floor, ceiling)`` as the options ask for.
 """
 
 from __future__ import annotations
@@ -269,6 +272,7 @@ class TrunkLightNet(TrunkFront):
              + sum(self.lit_sizes[:self.level_lamps]) if config.lit_periods else 0) + \
             (len(LIT_TASKS) if config.lit_share else 0) + \
             (n_cell_vector if config.cell_periods else 0) + \
+            (lamps.contrast_features(config.lamp_area) if config.side_contrast else 0) + \
             (lamps.floor_features(config.high_lamp) if config.track_floor else 0)
         self.freq: Optional[nn.Sequential] = None
         if self.n_vector:
@@ -328,6 +332,9 @@ class TrunkLightNet(TrunkFront):
         if self.config.cell_periods:
             s = self.n_cell_signals
             shapes.append(((2 * s * len(lamps.PERIODS), 1, 1), (3 * s, 1, 1)))
+        if self.config.side_contrast:
+            k = lamps.contrast_features(self.config.lamp_area) // len(lamps.PERIODS)
+            shapes.append(((2 * k * len(lamps.PERIODS), 1, 1), (k, 1, 1)))
         if self.config.track_floor:
             shares = (lamps.floor_regions(self.config.high_lamp) * lamps.AREA_CHANNELS, 1, 1)
             shapes.append((shares, shares))
@@ -392,6 +399,11 @@ class TrunkLightNet(TrunkFront):
             vector.append(cell_vector)
             new_history.append(cell_history)
             evidence = torch.cat((evidence, cell_map), 1)
+        if cfg.side_contrast:
+            contrast_vector, contrast_history = self._contrast(maps, rest.pop(0),
+                                                               seen.reshape(n, 1))
+            vector.append(contrast_vector)
+            new_history.append(contrast_history)
         if cfg.track_floor:  # last in the vector: _expert reads it from the end
             floor_vector, floor_history = self._floor(maps, rest.pop(0), seen.reshape(n, 1))
             vector.append(floor_vector)
@@ -438,6 +450,18 @@ class TrunkLightNet(TrunkFront):
             pooled=self.config.cell_pooled)
         return vector, lamps.space_to_depth(cell_map, detail), \
             (resonators.reshape(n, -1, 1, 1), memory.reshape(n, -1, 1, 1))
+
+    def _contrast(self, maps: Tensor, history: Tuple[Tensor, Tensor], seen: Tensor
+                  ) -> Tuple[Tensor, Tuple[Tensor, Tensor]]:
+        """The track vector's left-against-right blink part and the new history."""
+        n = maps.shape[0]
+        signals = lamps.contrast_signals(lamps.depth_to_space(maps, self.config.lamp_detail),
+                                         self.config.lamp_area)
+        resonators, level = history
+        vector, resonators, level = lamps.contrast_step(
+            signals, resonators.reshape(n, 2, signals.shape[1], len(lamps.PERIODS)),
+            level.reshape(n, -1), seen)
+        return vector, (resonators.reshape(n, -1, 1, 1), level.reshape(n, -1, 1, 1))
 
     def _floor(self, maps: Tensor, history: Tuple[Tensor, Tensor], seen: Tensor
                ) -> Tuple[Tensor, Tuple[Tensor, Tensor]]:
