@@ -257,7 +257,7 @@ def test_pooled_cell_periods_are_the_raw_amplitudes_largest_over_periods():
 
 def _contrast_amplitudes(frames):
     """Largest :func:`lamps.contrast_step` amplitude per signal over periods, last frame."""
-    k = lamps.contrast_features() // len(lamps.PERIODS)
+    k = len(lamps.contrast_channels())
     resonators, level = torch.zeros(1, 2, k, len(lamps.PERIODS)), torch.zeros(1, k)
     for t, crop in enumerate(frames):
         signals = lamps.contrast_signals(lamps.lamp_maps(crop[None], 8))

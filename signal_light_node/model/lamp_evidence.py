@@ -39,7 +39,7 @@ The frame rate is not known to a step, so the periods are in frames (``PERIODS``
 from __future__ import annotations
 
 import math
-from typing import Sequence, Tuple
+from typing import List, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -214,17 +214,21 @@ def contrast_signals(fine_maps: Tensor, area: bool = False) -> Tensor:
     :data:`CONTRAST_CHANNELS` (and the lit red share with ``area``) of ``[N, C, F, F]``
     fine lamp maps. A blinker modulates one side; light that changes the whole crop
     (exposure, a brake lit on both sides, the box's scale) cancels."""
-    channels = list(CONTRAST_CHANNELS) + ([LAMP_CHANNELS + 1] if area else [])
-    chosen = fine_maps[:, channels]
+    chosen = fine_maps[:, contrast_channels(area)]
     half = chosen.shape[3] // 2
     left = chosen[..., :half].amax(dim=(2, 3))
     right = chosen[..., chosen.shape[3] - half:].amax(dim=(2, 3))
     return left - right
 
 
+def contrast_channels(area: bool = False) -> List[int]:
+    """The lamp-map channels :func:`contrast_signals` reads (the lit red share's last)."""
+    return list(CONTRAST_CHANNELS) + ([LAMP_CHANNELS + 1] if area else [])
+
+
 def contrast_features(area: bool = False) -> int:
     """Length of :func:`contrast_step`'s features."""
-    return (len(CONTRAST_CHANNELS) + int(area)) * len(PERIODS)
+    return len(contrast_channels(area)) * len(PERIODS)
 
 
 def contrast_step(signals: Tensor, resonators: Tensor, level: Tensor, seen: Tensor

@@ -333,7 +333,7 @@ class TrunkLightNet(TrunkFront):
             s = self.n_cell_signals
             shapes.append(((2 * s * len(lamps.PERIODS), 1, 1), (3 * s, 1, 1)))
         if self.config.side_contrast:
-            k = lamps.contrast_features(self.config.lamp_area) // len(lamps.PERIODS)
+            k = len(lamps.contrast_channels(self.config.lamp_area))
             shapes.append(((2 * k * len(lamps.PERIODS), 1, 1), (k, 1, 1)))
         if self.config.track_floor:
             shares = (lamps.floor_regions(self.config.high_lamp) * lamps.AREA_CHANNELS, 1, 1)
