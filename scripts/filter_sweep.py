@@ -15,7 +15,10 @@ among them, ``training.night_bound``'s false brakes). With ``--blinkers PART`` t
 heads' outputs are taken in part from the truth (:data:`BLINKER_PARTS`), which tells where
 the intent is lost: in whether a blinker can be seen, in ON against OFF, or in the filter
 itself (docs/model.md, "Where the intent is lost"); ``--blinkers lit`` gives them a perfect
-per-frame eye instead (a split's lit labels). Usage::
+per-frame eye instead (a split's lit labels). ``--blinker-lag ONSET OFFSET`` makes the truth's
+blinker states late as a causal detector must be (ON from ``ONSET`` seconds into an episode
+until ``OFFSET`` seconds after it ends): what a perfect but causal eye would give (docs/model.md,
+"What a causal eye could reach"). Usage::
 
     python scripts/filter_sweep.py --checkpoint signal_light_node/weights/default.pt \\
         --data cal=runs/fillf/family_cal_split --data night=bags/night_tail_lamps \\
@@ -122,11 +125,13 @@ def lit_tracks(path: Path) -> list:
     return sources.split_tracks(path, None, label_key="lit_labels")
 
 
-def with_blinkers(batches: Pass, part: str, path: Path) -> Pass:
-    """``batches`` with :func:`blinkers_from_truth`'s ``part`` of their labels; ``lit``
-    takes both from the split's lit labels (:func:`lit_tracks`)."""
+def with_blinkers(batches: Pass, part: str, path: Path,
+                  lag: Tuple[float, float] = (0.0, 0.0)) -> Pass:
+    """``batches`` with :func:`blinkers_from_truth`'s ``part`` of their labels (made late by
+    ``lag`` where the truth's states are taken); ``lit`` takes both from the split's lit
+    labels (:func:`lit_tracks`)."""
     if part != "lit":
-        return [(tracks, blinkers_from_truth(raw, tracks, part)) for tracks, raw in batches]
+        return [(tracks, blinkers_from_truth(raw, tracks, part, lag)) for tracks, raw in batches]
     lit = list(chunks(lit_tracks(path), BATCH_TRACKS))
     same = [[(t.track_id, len(t)) for t in b] for b in lit] == \
         [[(t.track_id, len(t)) for t in tracks] for tracks, _ in batches]
@@ -137,14 +142,37 @@ def with_blinkers(batches: Pass, part: str, path: Path) -> Pass:
             for (tracks, raw), lit_batch in zip(batches, lit)]
 
 
-def blinkers_from_truth(raw: Dict[str, np.ndarray], tracks: list, part: str
-                        ) -> Dict[str, np.ndarray]:
+def late_labels(tracks: list, labels: np.ndarray, onset: float, offset: float) -> np.ndarray:
+    """``labels`` (tracks x frames) of a blinker with every ON episode made late: ON from
+    ``onset`` seconds after it starts until ``offset`` seconds after it ends, in whole frames
+    of each track's median frame interval (an episode shorter than ``onset`` is missed);
+    UNKNOWN and unlabelled frames kept."""
+    out = labels.copy()
+    for i, track in enumerate(tracks):
+        n = len(track)
+        row = labels[i, :n]
+        gaps = np.diff(np.asarray(track.stamps_ns[:n], np.float64)) / 1e9
+        frame = float(np.median(gaps)) if n > 1 else 0.0
+        on = row == _ON
+        late = []
+        for seconds in (onset, offset):
+            k = min(int(round(seconds / frame)) if frame > 0 else 0, n)
+            late.append(np.concatenate((np.zeros(k, bool), on[:n - k])))  # on, k frames ago
+        published = (on & late[0]) | (~on & late[1])
+        known = on | (row == _OFF)
+        out[i, :n] = np.where(known, np.where(published, _ON, _OFF), row)
+    return out
+
+
+def blinkers_from_truth(raw: Dict[str, np.ndarray], tracks: list, part: str,
+                        lag: Tuple[float, float] = (0.0, 0.0)) -> Dict[str, np.ndarray]:
     """``raw`` with the blinker heads' outputs taken in part from the tracks' labels.
 
     ``sight``: P(UNKNOWN) is 1 where the label is UNKNOWN, else 0, the heads' ON:OFF ratio
     kept; ``state``: where the label is ON or OFF, the judged mass 1 - P(UNKNOWN) goes all
-    to it; ``truth``: both. Unlabelled frames and frames the model did not step keep the
-    heads' outputs; ``model`` returns ``raw`` itself.
+    to it, with ``lag`` (onset, offset seconds) the labels made late first
+    (:func:`late_labels`); ``truth``: both. Unlabelled frames and frames the model did not
+    step keep the heads' outputs; ``model`` returns ``raw`` itself.
     """
     if part not in TRUTH_PARTS:
         raise ValueError(f"blinkers must be one of {TRUTH_PARTS}, got {part!r}")
@@ -154,6 +182,8 @@ def blinkers_from_truth(raw: Dict[str, np.ndarray], tracks: list, part: str
     for task in ("left", "right"):
         p = raw[task].copy()
         label = _labels(tracks, p.shape[:2], task)
+        if any(lag):
+            label = late_labels(tracks, label, *lag)
         if part in ("sight", "truth"):
             judged = p[..., :2].sum(-1, keepdims=True)
             p[..., :2] = np.where(judged > 0, p[..., :2] / np.maximum(judged, 1e-9), 0.5)
@@ -238,6 +268,9 @@ def main() -> None:
                         help="more ON log-odds per unit of the view head's side mass")
     parser.add_argument("--blinkers", action="append", choices=BLINKER_PARTS, default=None,
                         help="what of the blinker heads' outputs to take from the truth")
+    parser.add_argument("--blinker-lag", type=float, nargs=2, default=(0.0, 0.0),
+                        metavar=("ONSET", "OFFSET"),
+                        help="seconds the truth's blinker states come late (state, truth)")
     parser.add_argument("--cache", type=Path, default=None)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--json", type=Path, default=None)
@@ -246,6 +279,12 @@ def main() -> None:
     if any(len(d) != 2 for d in data):
         parser.error("--data takes NAME=PATH")
     parts = args.blinkers or ["model"]
+    lag = tuple(args.blinker_lag)
+    if min(lag) < 0:
+        parser.error("--blinker-lag takes seconds >= 0")
+    if any(lag) and not {"state", "truth"} & set(parts):
+        parser.error("--blinker-lag makes the truth's states late: it needs --blinkers state "
+                     "or truth")
     try:  # before any model pass, which takes minutes
         for _, path in data if "lit" in parts else []:
             require_lit_labels(Path(path))
@@ -261,7 +300,7 @@ def main() -> None:
         model_batches = model_pass(backend, Path(path), args.cache, args.checkpoint)
         for part in parts:
             try:
-                batches = with_blinkers(model_batches, part, Path(path))
+                batches = with_blinkers(model_batches, part, Path(path), lag)
             except ConfigError as exc:
                 parser.error(str(exc))
             rows += _sweep(name, part, batches, configs, shifts)

@@ -148,6 +148,39 @@ def test_the_truths_blinkers_through_a_filter_without_delays_give_the_true_inten
                        0.0)["intent_macro_f1"] < 0.9
 
 
+class _TimedTrack(_Track):
+    def __init__(self, left, fps=10.0):
+        super().__init__(left, left)
+        self.stamps_ns = (np.arange(len(left)) * 1e9 / fps).astype(np.int64)
+
+
+def test_late_labels_start_and_end_each_episode_late_and_keep_unknown():
+    sweep = _script()
+    #        frame: 0  1  2  3  4  5  6  7  8  9
+    left = np.array([0, 1, 1, 1, 1, 0, 0, 2, 0, 0])
+    track = _TimedTrack(left)
+    labels = np.full((1, 12), -1)
+    labels[0, :10] = left
+    late = sweep.late_labels([track], labels, 0.2, 0.1)  # 2 frames in, 1 frame after
+    assert late[0].tolist() == [0, 0, 0, 1, 1, 1, 0, 2, 0, 0, -1, -1]
+    assert sweep.late_labels([track], labels, 0.0, 0.0).tolist() == labels.tolist()
+    # an episode shorter than the onset lag is missed whole
+    assert (sweep.late_labels([track], labels, 0.5, 0.0)[0, :10] != 1).all()
+
+
+def test_a_blinker_lag_lowers_the_truths_intent(tmp_path):
+    # seed 7: a right blinker switched on after the warm-up, off and on again
+    tracks = _split_tracks(tmp_path / "split", seed=7, n_sequences=4, seq_len=40)
+    sweep = _script()
+    no_delays = IntentFilterConfig(confirm_s=0.0, hold_s=0.0, visibility_confirm_s=0.0,
+                                   flash_min_evidence=0.0)
+    on_time = sweep.blinkers_from_truth(_uncertain_pass(tracks), tracks, "truth")
+    assert sweep.score([(tracks, on_time)], no_delays, 0.0)["intent_macro_f1"] == \
+        pytest.approx(1.0)
+    late = sweep.blinkers_from_truth(_uncertain_pass(tracks), tracks, "truth", (0.3, 0.3))
+    assert sweep.score([(tracks, late)], no_delays, 0.0)["intent_macro_f1"] < 0.99
+
+
 def test_lit_blinkers_are_a_perfect_per_frame_eye_and_need_a_split(tmp_path):
     from signal_light_node.errors import ConfigError
 
