@@ -203,7 +203,7 @@ def test_rows_are_fixed_size_and_not_modified_in_place():
     rows = IntentFilter.initial_rows(3)
     assert rows.shape == (3, ROW_WIDTH)
     assert ROW_WIDTH == (3 + visibility_hold.FIELDS) * len(LIGHT_TASKS) + flash_gate.WIDTH \
-        + brake_onset.FIELDS
+        + brake_onset.FIELDS + 1  # the intent head's published class
     before = rows.copy()
     probs = {t: np.repeat(p, 3, axis=0) for t, p in _probs(0.9, 0.9).items()}
     out = IntentFilter(CONFIG).step(probs, 0, rows, np.full((3, 2), 50.0))
@@ -237,3 +237,60 @@ def test_bad_inputs_are_config_errors():
     del probs["view"]
     with pytest.raises(ConfigError, match="view"):
         filt.step(probs, 0, filt.initial_rows(1))
+
+
+def _head_track(intents, config):
+    """Filter one track whose intent head says ``intents`` (rows of 5 probabilities); the
+    blinker heads say OFF throughout."""
+    filt = IntentFilter(config)
+    rows = filt.initial_rows(1)
+    outs = []
+    for t, p in enumerate(intents):
+        probs = dict(_probs(0.0, 0.0), intent=np.asarray(p, float)[None])
+        out = filt.step(probs, int(t * 1e8), rows)
+        rows = out.rows
+        outs.append(out)
+    return outs
+
+
+def test_intent_from_the_head_switches_only_past_the_margin():
+    head = IntentFilterConfig(intent_source="head", intent_margin=0.2, visibility_confirm_s=0.0)
+    off, left = Intent.OFF, Intent.LEFT
+    intents = [[0.7, 0.3, 0, 0, 0],   # first frame: the most likely
+               [0.45, 0.55, 0, 0, 0],  # LEFT leads by 0.10: kept OFF
+               [0.3, 0.7, 0, 0, 0],   # by 0.40: LEFT
+               [0.55, 0.45, 0, 0, 0],  # OFF leads by 0.10: kept LEFT
+               [0.8, 0.2, 0, 0, 0]]   # by 0.60: OFF
+    outs = _head_track(intents, head)
+    assert _states(outs, "intent").tolist() == [off, off, left, left, off]
+    for out in outs:  # the published class is the most likely published one
+        p = out.probs["intent"][0]
+        assert p[out.states["intent"][0]] == pytest.approx(p.max())
+        assert p.sum() == pytest.approx(1.0)
+    # with no margin it is the head's argmax; from the lights, the blinkers' OFF
+    no_margin = IntentFilterConfig(intent_source="head", intent_margin=0.0,
+                                   visibility_confirm_s=0.0)
+    assert _states(_head_track(intents, no_margin), "intent").tolist() == \
+        [off, left, left, off, off]
+    assert set(_states(_head_track(intents, CONFIG), "intent").tolist()) == {off}
+
+
+def test_intent_from_the_head_leaves_the_lights_as_the_filter_publishes_them():
+    stamps = np.arange(0, 4.0, 0.05)
+    left = _square(stamps)
+    lights, head = CONFIG, IntentFilterConfig(
+        **{**CONFIG.__dict__, "intent_source": "head"})
+    a, b = _run(stamps, left, np.zeros_like(left), lights), \
+        _run(stamps, left, np.zeros_like(left), head)
+    for task in ("left", "right", "brake"):
+        assert _states(a, task).tolist() == _states(b, task).tolist()
+    assert (_states(a, "intent") == Intent.LEFT).any()
+    assert (_states(b, "intent") == Intent.UNKNOWN).all()  # _probs' intent head: UNKNOWN
+
+
+@pytest.mark.parametrize("changes,match", [({"intent_source": "model"}, "intent_source"),
+                                           ({"intent_margin": 1.0}, "intent_margin"),
+                                           ({"intent_margin": -0.1}, "intent_margin")])
+def test_intent_source_settings_are_checked(changes, match):
+    with pytest.raises(ConfigError, match=match):
+        IntentFilterConfig(**changes)

@@ -73,7 +73,8 @@ def add_intent_filter_options(group: ArgumentContainer) -> None:
 
     Defaults come from ``intent_filter.IntentFilterConfig`` (as the node's parameters do).
     """
-    from signal_light_node.runtime.intent_filter import BRAKE_SIGHTS, SIGHTS, IntentFilterConfig
+    from signal_light_node.runtime.intent_filter import (BRAKE_SIGHTS, INTENT_SOURCES, SIGHTS,
+                                                         IntentFilterConfig)
 
     d = IntentFilterConfig()
     group.add_argument("--intent-filter", action=argparse.BooleanOptionalAction,
@@ -129,6 +130,13 @@ def add_intent_filter_options(group: ArgumentContainer) -> None:
     group.add_argument("--filter-brake-hysteresis", type=float, default=d.brake_hysteresis,
                        metavar="L", help="ON log-odds a brake keeps while it was last "
                        "published ON (0: none)")
+    group.add_argument("--filter-intent-source", choices=INTENT_SOURCES, default=d.intent_source,
+                       help="where the published intent comes from: the published blinkers "
+                            "(lights) or the model's intent head with a switch margin (head)")
+    group.add_argument("--filter-intent-margin", type=float, default=d.intent_margin,
+                       metavar="P", help="with --filter-intent-source head: another intent "
+                       "is published once its probability is this much above the "
+                       "published one's")
 
 
 def intent_filter_from_args(args: argparse.Namespace) -> Any:

@@ -25,8 +25,9 @@ from signal_light_node.io.topics import camera_name_problem
 from signal_light_node.model.backends.registry import known_backends
 from signal_light_node.runtime.backend import (AUTO_BACKEND, DEFAULT_BACKEND, DEFAULT_PRECISION,
                                                PRECISIONS)
-from signal_light_node.runtime.intent_filter import (BRAKE_SIGHTS, SIGHTS, IntentFilterConfig,
-                                                     config_from, parameter_name)
+from signal_light_node.runtime.intent_filter import (BRAKE_SIGHTS, INTENT_SOURCES, SIGHTS,
+                                                     IntentFilterConfig, config_from,
+                                                     parameter_name)
 from signal_light_node.labels import LIGHT_CODES
 
 LOG = logging.getLogger(__name__)
@@ -96,6 +97,10 @@ class DetectorParams:
             been seen released (< 0: stricter for vehicles first seen with lamps lit).
         filter_brake_hysteresis: ON log-odds a brake keeps while it was last published ON
             (0: none).
+        filter_intent_source: Where the published intent comes from: ``lights`` (the
+            published blinkers) or ``head`` (the model's intent head with a switch margin).
+        filter_intent_margin: With ``head``: how much more probable another intent must be
+            before it is published.
         publish_debug_image: Publish the annotated frame on ``~/output/debug/image``.
         publish_markers: Publish the results drawn for RViz on ``~/output/markers``
             (``visualization_msgs/MarkerArray``, see :mod:`signal_light_node.outputs.markers`).
@@ -143,6 +148,8 @@ class DetectorParams:
     filter_brake_onset_rise: float = IntentFilterConfig.brake_onset_rise
     filter_brake_unreleased_shift: float = IntentFilterConfig.brake_unreleased_shift
     filter_brake_hysteresis: float = IntentFilterConfig.brake_hysteresis
+    filter_intent_source: str = IntentFilterConfig.intent_source
+    filter_intent_margin: float = IntentFilterConfig.intent_margin
     publish_debug_image: bool = False
     publish_markers: bool = False
     diagnostics_period_s: float = 1.0
@@ -305,6 +312,14 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
                                          "published ON: a release must be clearer than an "
                                          "onset (fewer brake flickers); 0 = none.",
                                          low=0.0, high=10.0),
+    "filter_intent_source": ParamSpec("Where the published intent comes from: lights (derived "
+                                      "from the published blinkers) or head (the model's "
+                                      "own intent head, switched on filter_intent_margin).",
+                                      choices=INTENT_SOURCES),
+    "filter_intent_margin": ParamSpec("With filter_intent_source head: another intent is "
+                                      "published once its probability is this much above "
+                                      "the published one's (0 = the head's most likely "
+                                      "every frame).", low=0.0, high=0.99),
     "publish_debug_image": ParamSpec("Publish the annotated frame on ~/output/debug/image "
                                      "(costs CPU)."),
     "publish_markers": ParamSpec("Publish the results drawn for RViz on ~/output/markers "

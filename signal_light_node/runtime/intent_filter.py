@@ -24,7 +24,11 @@ stamps (scenes run at 10-30 fps, so frame counts mean nothing):
   three still sum to 1. A frame the model judges UNKNOWN passes through unchanged;
 * the intent is derived from the published left and right states with
   :func:`~signal_light_node.labels.intent_from_lights` (HAZARD only when both sides are
-  ON), its probability from the two published distributions taken as independent;
+  ON), its probability from the two published distributions taken as independent; or,
+  with ``intent_source: head``, it is the model's own intent head with a switch margin: a
+  new class is published once its probability beats the published class's by
+  ``intent_margin`` (the head already bridges a blink's dark halves, so it needs no hold;
+  docs/model.md, "The intent head instead of the filter's intent");
 * the brake is held the same way over ``brake_hold_s`` (without confirmation), or
   passed through as the model says it when that is 0; with ``brake_released_below``, a
   track whose brake has been seen released gets ``brake_onset_shift`` more ON log-odds
@@ -40,7 +44,8 @@ stamps (scenes run at 10-30 fps, so frame counts mean nothing):
 Everything is vectorised over the tracks of a frame. The per-track state is a fixed
 row of :data:`ROW_WIDTH` floats (per light: stamp of the last strong frame, stamp of
 the episode's first strong frame, last strong P(ON); then the flash gate's ring of lamp
-levels; then whether the brake has been seen released), owned by the caller: the
+levels; then whether the brake has been seen released; last the intent head's published
+class), owned by the caller: the
 :class:`~signal_light_node.runtime.state_bank.StateBank` in the engine, the evaluation's own
 array per batch of tracks. The filter itself keeps no per-track state.
 """
@@ -65,16 +70,19 @@ _FIELDS = 3
 _HOLD_WIDTH = _FIELDS * len(LIGHT_TASKS)
 #: Floats of the visibility hold, all lights.
 _VISIBILITY_WIDTH = visibility_hold.FIELDS * len(LIGHT_TASKS)
-#: Floats per track: the hold's, the visibility hold's, the flash gate's ring, then the
-#: brake onset's.
-ROW_WIDTH = _HOLD_WIDTH + _VISIBILITY_WIDTH + flash_gate.WIDTH + brake_onset.FIELDS
-_RING_END = ROW_WIDTH - brake_onset.FIELDS
+#: Floats per track: the hold's, the visibility hold's, the flash gate's ring, the brake
+#: onset's, then the intent head's published class (NaN: none yet).
+ROW_WIDTH = _HOLD_WIDTH + _VISIBILITY_WIDTH + flash_gate.WIDTH + brake_onset.FIELDS + 1
+_RING_END = _HOLD_WIDTH + _VISIBILITY_WIDTH + flash_gate.WIDTH
+_INTENT_AT = ROW_WIDTH - 1
 
 #: Where a light's UNKNOWN comes from (``IntentFilterConfig.blinker_sight``,
 #: ``brake_sight``).
 SIGHTS = ("model", "geometry")
 #: ... and for the brake also ``rear``: judged only where the view head sees the rear.
 BRAKE_SIGHTS = SIGHTS + ("rear",)
+#: Where the published intent comes from (``IntentFilterConfig.intent_source``).
+INTENT_SOURCES = ("lights", "head")
 
 _OFF, _ON, _UNKNOWN = int(LightStatus.OFF), int(LightStatus.ON), int(LightStatus.UNKNOWN)
 _LEFT, _RIGHT = LIGHT_TASKS.index("left"), LIGHT_TASKS.index("right")
@@ -182,6 +190,12 @@ class IntentFilterConfig:
             0: none.
         cover_max: With ``geometry``: the share of a box that may be covered before the
             model's own UNKNOWN counts again.
+        intent_source: Where the published intent comes from: ``lights`` (derived from the
+            published blinkers) or ``head`` (the model's intent head, switched with
+            ``intent_margin``).
+        intent_margin: With ``head``: a class other than the published one is published
+            once its probability is this much above the published one's (fewer switches;
+            0: the head's most likely class every frame).
     """
 
     enabled: bool = True
@@ -200,6 +214,8 @@ class IntentFilterConfig:
     brake_onset_rise: float = 0.0
     brake_unreleased_shift: float = 0.0
     brake_hysteresis: float = 0.0
+    intent_source: str = "lights"
+    intent_margin: float = 0.2
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, (bool, np.bool_)):
@@ -220,7 +236,8 @@ class IntentFilterConfig:
         if self.flash_min_evidence > 0 and self.flash_window_s <= 0:
             raise ConfigError("flash_window_s must be > 0 while the flash gate is on "
                               "(flash_min_evidence > 0)")
-        for name, allowed in (("blinker_sight", SIGHTS), ("brake_sight", BRAKE_SIGHTS)):
+        for name, allowed in (("blinker_sight", SIGHTS), ("brake_sight", BRAKE_SIGHTS),
+                              ("intent_source", INTENT_SOURCES)):
             if getattr(self, name) not in allowed:
                 raise ConfigError(f"{name} must be one of {', '.join(allowed)}, got "
                                   f"{getattr(self, name)!r}")
@@ -249,6 +266,11 @@ class IntentFilterConfig:
         if not _is_finite_number(value) or value < 0.0:
             raise ConfigError(f"brake_hysteresis must be a number >= 0 (0: none), got {value!r}")
         object.__setattr__(self, "brake_hysteresis", float(value))
+        value = self.intent_margin
+        if not _is_finite_number(value) or not 0.0 <= value < 1.0:
+            raise ConfigError(f"intent_margin must be a probability margin in [0, 1), got "
+                              f"{value!r}")
+        object.__setattr__(self, "intent_margin", float(value))
 
     @property
     def brake_onset_settings(self) -> brake_onset.Settings:
@@ -285,7 +307,12 @@ class IntentFilterConfig:
                      f"over {self.cover_max:g}")
         return (f"on (blinkers ON from P(ON) >= {self.on_threshold:g} over >= "
                 f"{self.confirm_s:g} s, held {self.hold_s:g} s after the last; {gate}{seen}; "
-                f"intent from the held blinkers; {brake})")
+                f"{self._intent_source()}; {brake})")
+
+    def _intent_source(self) -> str:
+        if self.intent_source == "head":
+            return f"intent from the intent head, switched on a margin of {self.intent_margin:g}"
+        return "intent from the held blinkers"
 
 
 @dataclass(frozen=True)
@@ -346,8 +373,8 @@ class IntentFilter:
         rows[:, :, (_LAST, _START)] = np.nan
         return np.concatenate([rows.reshape(n, _HOLD_WIDTH),
                                visibility_hold.initial_rows(n, len(LIGHT_TASKS)),
-                               flash_gate.initial_rows(n), brake_onset.initial_rows(n)],
-                              axis=1)
+                               flash_gate.initial_rows(n), brake_onset.initial_rows(n),
+                               np.full((n, 1), np.nan)], axis=1)
 
     def step(self, probs: Mapping[str, np.ndarray], stamps_ns: Union[int, np.ndarray],
              rows: np.ndarray, lamp_levels: Optional[np.ndarray] = None,
@@ -380,7 +407,8 @@ class IntentFilter:
         state = rows[:, :_HOLD_WIDTH].reshape(n, len(LIGHT_TASKS), _FIELDS).copy()
         shown = rows[:, _HOLD_WIDTH:_HOLD_WIDTH + _VISIBILITY_WIDTH]
         ring = rows[:, _HOLD_WIDTH + _VISIBILITY_WIDTH:_RING_END]
-        released = rows[:, _RING_END:]
+        released = rows[:, _RING_END:_INTENT_AT]
+        intent_row = rows[:, _INTENT_AT:]
         if cover is not None and self.uses_cover:
             p = self._judge_sight(p, probs["view"], np.asarray(cover).reshape(n))
         if lamp_levels is not None and self.config.flash_min_evidence > 0:
@@ -402,10 +430,15 @@ class IntentFilter:
             keep = self._filtered[i]
             out_probs[task] = q[:, i] if keep else p[:, i]
             out_states[task] = light_states[:, i] if keep else raw[task]
-        out_probs["intent"], out_states["intent"] = _intent(out_probs, out_states)
+        if self.config.intent_source == "head":
+            out_probs["intent"], out_states["intent"] = head_intent(
+                probs["intent"], intent_row[:, 0], self.config.intent_margin)
+            intent_row = out_states["intent"].astype(np.float64)[:, None]
+        else:
+            out_probs["intent"], out_states["intent"] = _intent(out_probs, out_states)
         return FilterOutput(out_probs, {t: out_states[t] for t in TASKS},
-                            np.concatenate([state.reshape(n, _HOLD_WIDTH), shown, ring, released],
-                                           axis=1))
+                            np.concatenate([state.reshape(n, _HOLD_WIDTH), shown, ring, released,
+                                            intent_row], axis=1))
 
     def _judge_sight(self, p: np.ndarray, view: np.ndarray, cover: np.ndarray) -> np.ndarray:
         """``p`` with the UNKNOWN of the lights whose sight is ``geometry`` from
@@ -478,6 +511,24 @@ def _publish(p: np.ndarray, on: np.ndarray, held: np.ndarray) -> tuple:
     states = np.where(on, _ON, np.where(q_off >= q_unknown, _OFF, _UNKNOWN))
     passed = p.argmax(axis=-1) == _UNKNOWN
     return np.where(passed[..., None], p, q), np.where(passed, _UNKNOWN, states).astype(np.int64)
+
+
+def head_intent(probs: np.ndarray, published: np.ndarray, margin: float) -> tuple:
+    """The intent head's ``[N, 5]`` probabilities and ``[N]`` classes with a switch margin.
+
+    A track keeps its ``published`` class (NaN: none yet, the most likely is taken) until
+    another class's probability is more than ``margin`` above it. The published
+    probabilities agree with the class: its probability is raised to the largest, the rows
+    renormalised.
+    """
+    p = np.asarray(probs, np.float64)
+    rows = np.arange(p.shape[0])
+    best = p.argmax(axis=1)
+    current = np.where(np.isnan(published), best, np.nan_to_num(published)).astype(np.int64)
+    states = np.where(p[rows, best] > p[rows, current] + margin, best, current)
+    q = p.copy()
+    q[rows, states] = p[rows, best]
+    return q / q.sum(axis=1, keepdims=True), states
 
 
 def _intent(probs: Mapping[str, np.ndarray], states: Mapping[str, np.ndarray]) -> tuple:
