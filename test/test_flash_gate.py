@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from signal_light_node.labels import TASKS, LightStatus, View
+from signal_light_node.labels import TASKS, Intent, LightStatus, View
 from signal_light_node.runtime import flash_gate
 from signal_light_node.runtime.intent_filter import IntentFilter, IntentFilterConfig
 
@@ -135,6 +135,35 @@ def test_a_steady_lamp_is_never_a_blinker_a_flashing_one_is():
     no_gate = IntentFilterConfig(flash_min_evidence=0.0)
     assert not IntentFilter(no_gate).gates_flashes
     assert _left_states(no_gate, steady)[-10:] == [int(LightStatus.ON)] * 10
+
+
+def test_veto_intent_needs_the_flash_of_every_side_it_names():
+    intent = np.array([[0.1, 0.3, 0.3, 0.2, 0.1]] * 3)  # OFF LEFT RIGHT HAZARD UNKNOWN
+    evidence = np.array([[0.5, 0.05], [0.05, 0.05], [0.5, 0.5]])
+    out = flash_gate.veto_intent(intent, evidence, 0.1)
+    np.testing.assert_allclose(out[0], [0.6, 0.3, 0.0, 0.0, 0.1])  # only the left flashes
+    np.testing.assert_allclose(out[1], [0.9, 0.0, 0.0, 0.0, 0.1])  # neither
+    np.testing.assert_allclose(out[2], intent[2])  # both
+    np.testing.assert_allclose(intent[0], [0.1, 0.3, 0.3, 0.2, 0.1])  # not modified
+
+
+def test_the_intent_head_too_must_see_a_steady_lamp_flash():
+    head = IntentFilterConfig(intent_source="head")
+    steady = [_crop(left=RED)] * 20
+    flashing = [_crop(left=AMBER) if (k // 4) % 2 else _crop() for k in range(20)]
+
+    def intents(crops):
+        filt = IntentFilter(head)
+        rows, out_states = filt.initial_rows(1), []
+        for k, crop in enumerate(crops):
+            probs = dict(_model_says_left(), intent=np.array([[0.05, 0.9, 0.0, 0.0, 0.05]]))
+            out = filt.step(probs, int(k * 1e8), rows, flash_gate.lamp_levels(crop[None]))
+            rows = out.rows
+            out_states.append(int(out.states["intent"][0]))
+        return out_states
+
+    assert set(intents(steady)) == {int(Intent.OFF)}
+    assert intents(flashing)[-10:] == [int(Intent.LEFT)] * 10
 
 
 def test_describe_names_the_gate():

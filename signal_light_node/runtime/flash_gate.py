@@ -33,7 +33,7 @@ from typing import Tuple
 
 import numpy as np
 
-from signal_light_node.labels import LightStatus, View
+from signal_light_node.labels import Intent, LightStatus, View
 
 _OFF, _ON = int(LightStatus.OFF), int(LightStatus.ON)
 #: Levels kept per track: 1.5 s at 32 fps. At higher frame rates the window is the last
@@ -148,4 +148,21 @@ def veto(lights: np.ndarray, evidence: np.ndarray, min_evidence: float,
         weak = evidence[:, side] < min_evidence
         out[weak, column, _OFF] += out[weak, column, _ON]
         out[weak, column, _ON] = 0.0
+    return out
+
+
+#: The sides (left, right) whose flash each blinking intent needs.
+_INTENT_SIDES = {Intent.LEFT: (0,), Intent.RIGHT: (1,), Intent.HAZARD: (0, 1)}
+
+
+def veto_intent(intent: np.ndarray, evidence: np.ndarray, min_evidence: float) -> np.ndarray:
+    """``[N, 5]`` intent distributions with the mass of LEFT, RIGHT and HAZARD moved to OFF
+    wherever a side they need has flash evidence under ``min_evidence`` (``evidence``
+    ``[N, 2]`` from :func:`side_evidence`): the intent head, too, must see a blinker flash.
+    ``intent`` is not modified."""
+    out = np.array(intent, np.float64, copy=True)
+    for intent_class, sides in _INTENT_SIDES.items():
+        weak = (evidence[:, list(sides)] < min_evidence).any(axis=1)
+        out[weak, int(Intent.OFF)] += out[weak, int(intent_class)]
+        out[weak, int(intent_class)] = 0.0
     return out

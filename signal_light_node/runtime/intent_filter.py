@@ -28,7 +28,8 @@ stamps (scenes run at 10-30 fps, so frame counts mean nothing):
   with ``intent_source: head``, it is the model's own intent head with a switch margin: a
   new class is published once its probability beats the published class's by
   ``intent_margin`` (the head already bridges a blink's dark halves, so it needs no hold;
-  docs/model.md, "The intent head instead of the filter's intent");
+  docs/model.md, "The intent head instead of the filter's intent"), its blinking classes
+  behind the same flash gate as the blinkers;
 * the brake is held the same way over ``brake_hold_s`` (without confirmation), or
   passed through as the model says it when that is 0; with ``brake_released_below``, a
   track whose brake has been seen released gets ``brake_onset_shift`` more ON log-odds
@@ -411,6 +412,7 @@ class IntentFilter:
         intent_row = rows[:, _INTENT_AT:]
         if cover is not None and self.uses_cover:
             p = self._judge_sight(p, probs["view"], np.asarray(cover).reshape(n))
+        evidence = None
         if lamp_levels is not None and self.config.flash_min_evidence > 0:
             ring = flash_gate.push(ring, now, np.asarray(lamp_levels, np.float64).reshape(n, 2))
             evidence = flash_gate.side_evidence(
@@ -431,8 +433,10 @@ class IntentFilter:
             out_probs[task] = q[:, i] if keep else p[:, i]
             out_states[task] = light_states[:, i] if keep else raw[task]
         if self.config.intent_source == "head":
+            head = probs["intent"] if evidence is None else flash_gate.veto_intent(
+                probs["intent"], evidence, self.config.flash_min_evidence)
             out_probs["intent"], out_states["intent"] = head_intent(
-                probs["intent"], intent_row[:, 0], self.config.intent_margin)
+                head, intent_row[:, 0], self.config.intent_margin)
             intent_row = out_states["intent"].astype(np.float64)[:, None]
         else:
             out_probs["intent"], out_states["intent"] = _intent(out_probs, out_states)
