@@ -243,7 +243,7 @@ def _blink_frames(n=40, fps=10.0, hz=1.5, stop_s=2.5):
 
 def test_engine_publishes_the_filtered_lights_and_intent():
     # The filter stepped by hand below gets no box cover: the brake keeps the model's sight.
-    config = IntentFilterConfig(brake_sight="model")
+    config = IntentFilterConfig(brake_sight="model", intent_source="lights")
     on = LightStateEngine(_BlinkModel(), EngineConfig(intent_filter=config))
     raw = LightStateEngine(_BlinkModel(), EngineConfig(
         intent_filter=IntentFilterConfig(enabled=False)))

@@ -136,9 +136,11 @@ def blink_track(name, fps, n, masked=()):
 
 def test_evaluation_applies_the_engine_filter_with_each_tracks_stamps():
     tracks = [blink_track("slow", 10.0, 50, masked=[12]), blink_track("fast", 30.0, 150)]
-    preds = predict_track_batch(BlinkModel(), tracks, torch.device("cpu"))
+    # The intent from the held blinkers: the hold over the tracks' stamps is what is tested.
+    lights = IntentFilterConfig(intent_source="lights")
+    preds = predict_track_batch(BlinkModel(), tracks, torch.device("cpu"), lights)
     for track, pred in zip(tracks, preds):
-        filt = IntentFilter()
+        filt = IntentFilter(lights)
         rows = filt.initial_rows(1)
         for i in np.flatnonzero(track.mask):
             b = track.crops[i].mean() / 255 * 0.98

@@ -140,7 +140,7 @@ def test_the_truths_blinkers_through_a_filter_without_delays_give_the_true_inten
     sweep = _script()
     raw = sweep.blinkers_from_truth(_uncertain_pass(tracks), tracks, "truth")
     no_delays = IntentFilterConfig(confirm_s=0.0, hold_s=0.0, visibility_confirm_s=0.0,
-                                   flash_min_evidence=0.0)
+                                   flash_min_evidence=0.0, intent_source="lights")
     assert sweep.score([(tracks, raw)], no_delays, 0.0)["intent_macro_f1"] == pytest.approx(1.0)
     # the heads as they were (every blinker OFF) miss the split's blinks
     assert any((t.labels[:, TASKS.index("left")] == 1).any() for t in tracks)
@@ -173,7 +173,7 @@ def test_a_blinker_lag_lowers_the_truths_intent(tmp_path):
     tracks = _split_tracks(tmp_path / "split", seed=7, n_sequences=4, seq_len=40)
     sweep = _script()
     no_delays = IntentFilterConfig(confirm_s=0.0, hold_s=0.0, visibility_confirm_s=0.0,
-                                   flash_min_evidence=0.0)
+                                   flash_min_evidence=0.0, intent_source="lights")
     on_time = sweep.blinkers_from_truth(_uncertain_pass(tracks), tracks, "truth")
     assert sweep.score([(tracks, on_time)], no_delays, 0.0)["intent_macro_f1"] == \
         pytest.approx(1.0)
