@@ -195,8 +195,8 @@ class IntentFilterConfig:
             head, switched with ``intent_margin``, its blinking classes behind the flash
             gate) or ``lights`` (derived from the published blinkers, so the two always
             agree). ``head`` published 2.3-3.7 points more intent macro-F1 on the
-            training renderer's splits and 3.2 on the second generator, with fewer false
-            intents on steady night lamps (docs/model.md).
+            training renderer's splits and 3.2 on the second generator, with about as
+            many false intents on steady night tail lamps (docs/model.md).
         intent_margin: With ``head``: a class other than the published one is published
             once its probability is this much above the published one's (fewer switches;
             0: the head's most likely class every frame).
