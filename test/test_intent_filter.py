@@ -33,14 +33,18 @@ def _probs(left: float, right: float, brake: float = 0.0, unknown: float = 0.02)
             "view": np.array([[1.0, 0, 0, 0]])}
 
 
-def _run(stamps_s, left, right, config=CONFIG, brake=None):
-    """Filter one track frame by frame; returns the outputs per frame."""
+def _run(stamps_s, left, right, config=CONFIG, brake=None, intents=None):
+    """Filter one track frame by frame; returns the outputs per frame. ``intents``: the
+    intent head's 5 probabilities per frame (default: UNKNOWN, as ``_probs`` says)."""
     filt = IntentFilter(config)
     rows = filt.initial_rows(1)
     outs = []
     brake = np.zeros(len(stamps_s)) if brake is None else brake
-    for t, a, b, c in zip(stamps_s, left, right, brake):
-        out = filt.step(_probs(a, b, c), int(round(t * 1e9)), rows)
+    for k, (t, a, b, c) in enumerate(zip(stamps_s, left, right, brake)):
+        probs = _probs(a, b, c)
+        if intents is not None:
+            probs["intent"] = np.asarray(intents[k], float)[None]
+        out = filt.step(probs, int(round(t * 1e9)), rows)
         rows = out.rows
         outs.append(out)
     return outs
@@ -245,17 +249,10 @@ def test_bad_inputs_are_config_errors():
 
 
 def _head_track(intents, config):
-    """Filter one track whose intent head says ``intents`` (rows of 5 probabilities); the
-    blinker heads say OFF throughout."""
-    filt = IntentFilter(config)
-    rows = filt.initial_rows(1)
-    outs = []
-    for t, p in enumerate(intents):
-        probs = dict(_probs(0.0, 0.0), intent=np.asarray(p, float)[None])
-        out = filt.step(probs, int(t * 1e8), rows)
-        rows = out.rows
-        outs.append(out)
-    return outs
+    """Filter one track whose intent head says ``intents`` (rows of 5 probabilities) at
+    10 fps; the blinker heads say OFF throughout."""
+    off = np.zeros(len(intents))
+    return _run(np.arange(len(intents)) * 0.1, off, off, config, intents=intents)
 
 
 def test_intent_from_the_head_switches_only_past_the_margin():
