@@ -3,6 +3,8 @@ and the intent filter's veto of a steady lamp."""
 
 from __future__ import annotations
 
+from typing import Optional
+
 import numpy as np
 import pytest
 
@@ -111,15 +113,17 @@ def _model_says_left(p_on: float = 0.9) -> dict:
     return probs
 
 
-def _left_states(config: IntentFilterConfig, crops) -> list:
-    """The published left blinker, frame by frame at 10 fps, the model sure it is ON."""
+def _published(config: IntentFilterConfig, crops, task: str = "left",
+                 probs: Optional[dict] = None) -> list:
+    """The published ``task`` (default the left blinker), frame by frame at 10 fps, the
+    model sure the left blinker is ON (or saying ``probs``)."""
     filt = IntentFilter(config)
     rows, states = filt.initial_rows(1), []
     for k, crop in enumerate(crops):
         levels = flash_gate.lamp_levels(crop[None]) if filt.gates_flashes else None
-        out = filt.step(_model_says_left(), int(k * 1e8), rows, levels)
+        out = filt.step(probs or _model_says_left(), int(k * 1e8), rows, levels)
         rows = out.rows
-        states.append(int(out.states["left"][0]))
+        states.append(int(out.states[task][0]))
     return states
 
 
@@ -128,13 +132,13 @@ def test_a_steady_lamp_is_never_a_blinker_a_flashing_one_is():
     flashing = [_crop(left=AMBER) if (k // 4) % 2 else _crop() for k in range(20)]
     gate = IntentFilterConfig()
     assert gate.flash_min_evidence > 0 and IntentFilter(gate).gates_flashes
-    assert set(_left_states(gate, steady)) == {int(LightStatus.OFF)}
-    flashed = _left_states(gate, flashing)
+    assert set(_published(gate, steady)) == {int(LightStatus.OFF)}
+    flashed = _published(gate, flashing)
     assert flashed[-10:] == [int(LightStatus.ON)] * 10
     # Without the gate the model's word stands, steady lamp or not.
     no_gate = IntentFilterConfig(flash_min_evidence=0.0)
     assert not IntentFilter(no_gate).gates_flashes
-    assert _left_states(no_gate, steady)[-10:] == [int(LightStatus.ON)] * 10
+    assert _published(no_gate, steady)[-10:] == [int(LightStatus.ON)] * 10
 
 
 def test_veto_intent_needs_the_flash_of_every_side_it_names():
@@ -151,19 +155,9 @@ def test_the_intent_head_too_must_see_a_steady_lamp_flash():
     head = IntentFilterConfig(intent_source="head")
     steady = [_crop(left=RED)] * 20
     flashing = [_crop(left=AMBER) if (k // 4) % 2 else _crop() for k in range(20)]
-
-    def intents(crops):
-        filt = IntentFilter(head)
-        rows, out_states = filt.initial_rows(1), []
-        for k, crop in enumerate(crops):
-            probs = dict(_model_says_left(), intent=np.array([[0.05, 0.9, 0.0, 0.0, 0.05]]))
-            out = filt.step(probs, int(k * 1e8), rows, flash_gate.lamp_levels(crop[None]))
-            rows = out.rows
-            out_states.append(int(out.states["intent"][0]))
-        return out_states
-
-    assert set(intents(steady)) == {int(Intent.OFF)}
-    assert intents(flashing)[-10:] == [int(Intent.LEFT)] * 10
+    says_left = dict(_model_says_left(), intent=np.array([[0.05, 0.9, 0.0, 0.0, 0.05]]))
+    assert set(_published(head, steady, "intent", says_left)) == {int(Intent.OFF)}
+    assert _published(head, flashing, "intent", says_left)[-10:] == [int(Intent.LEFT)] * 10
 
 
 def test_describe_names_the_gate():
