@@ -214,6 +214,19 @@ def side_brake_f1(report: Dict[str, Any]) -> Optional[float]:
     return _on_f1(metrics_from_confusion("brake", sum(sides))) if sides else None
 
 
+def blinker_f1(report: Dict[str, Any]) -> Optional[float]:
+    """The blinkers' ON F1, left and right pooled (None without a judged blinker)."""
+    lights = [np.asarray(report["overall"][t]["confusion"]) for t in ("left", "right")
+              if t in report["overall"]]
+    return _on_f1(metrics_from_confusion("left", sum(lights))) if lights else None
+
+
+def pooled_ratio(switches: Dict[str, Any], tasks: Tuple[str, ...]) -> Optional[float]:
+    """Predicted over true changes of ``tasks`` pooled (None when the truth never changed)."""
+    true = sum(switches[t]["true"] for t in tasks)
+    return sum(switches[t]["predicted"] for t in tasks) / true if true else None
+
+
 def brake_false_on(report: Dict[str, Any]) -> Optional[float]:
     """The share of true brake-OFF frames published ON (None without such a frame)."""
     brake = report["overall"].get("brake")
@@ -246,7 +259,9 @@ def score(batches: Pass, config: IntentFilterConfig, shift: float, side: float =
             "brake_on_of_judged": brake_on / judged if judged else None,
             "brake_false_on": brake_false_on(report),
             "intent_switches": switches["intent"].get("ratio"),
-            "brake_switches": switches["brake"].get("ratio")}
+            "brake_switches": switches["brake"].get("ratio"),
+            "blinker_f1": blinker_f1(report),
+            "blinker_switches": pooled_ratio(switches, ("left", "right"))}
 
 
 def _pct(value: Optional[float]) -> str:
@@ -295,7 +310,8 @@ def main() -> None:
     backend = create_backend(args.backend, str(args.checkpoint), threads=args.threads)
     rows = []
     print("data        blinkers config                             shift  side  intent  FP    "
-          "FN   brake F1 (rear / side)  brake ON  false ON  switches intent / brake")
+          "FN   brake F1 (rear / side)  brake ON  false ON  switches intent / brake  "
+          "blinker F1 / switches")
     for name, path in data:
         model_batches = model_pass(backend, Path(path), args.cache, args.checkpoint)
         for part in parts:
@@ -324,7 +340,8 @@ def _sweep(name: str, part: str, batches: Pass, configs: List[str],
                   f"{_pct(r['intent_fp'])} {_pct(r['intent_fn'])}  {_pct(r['brake_f1'])} "
                   f"({_pct(r['brake_f1_rear'])} / {_pct(r['brake_f1_side'])})  "
                   f"{_pct(r['brake_on_of_judged'])}  {_pct(r['brake_false_on'])}  "
-                  f"{_ratio(r['intent_switches'])} / {_ratio(r['brake_switches'])}", flush=True)
+                  f"{_ratio(r['intent_switches'])} / {_ratio(r['brake_switches'])}  "
+                  f"{_pct(r['blinker_f1'])} / {_ratio(r['blinker_switches'])}", flush=True)
     return rows
 
 

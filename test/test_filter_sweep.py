@@ -148,6 +148,20 @@ def test_the_truths_blinkers_through_a_filter_without_delays_give_the_true_inten
                        0.0)["intent_macro_f1"] < 0.9
 
 
+def test_blinker_f1_and_switches_pool_left_and_right(tmp_path):
+    tracks = _split_tracks(tmp_path / "split", seed=5, n_sequences=4, seq_len=40)
+    sweep = _script()
+    no_delays = IntentFilterConfig(confirm_s=0.0, hold_s=0.0, visibility_confirm_s=0.0,
+                                   flash_min_evidence=0.0, intent_source="lights")
+    truth = sweep.score([(tracks, sweep.blinkers_from_truth(_uncertain_pass(tracks), tracks,
+                                                            "truth"))], no_delays, 0.0)
+    assert truth["blinker_f1"] == pytest.approx(1.0)
+    assert sweep.score([(tracks, _uncertain_pass(tracks))], no_delays, 0.0)["blinker_f1"] == 0.0
+    switches = {"left": {"predicted": 3, "true": 1}, "right": {"predicted": 1, "true": 3}}
+    assert sweep.pooled_ratio(switches, ("left", "right")) == pytest.approx(1.0)
+    assert sweep.pooled_ratio({"left": {"predicted": 2, "true": 0}}, ("left",)) is None
+
+
 class _TimedTrack(_Track):
     def __init__(self, left, fps=10.0):
         super().__init__(left, left)

@@ -144,10 +144,12 @@ def test_model_unknown_passes_through_and_the_hold_goes_on():
     assert filt.step(_probs(0.1, 0.0), int(0.4e9), out.rows).states["left"][0] == ON
 
 
-@pytest.mark.parametrize("source", ["lights", "head"])
-def test_probabilities_sum_to_one_and_agree_with_the_states(source):
+@pytest.mark.parametrize("source,blinkers", [("lights", "filter"), ("head", "filter"),
+                                              ("head", "intent")])
+def test_probabilities_sum_to_one_and_agree_with_the_states(source, blinkers):
     rng = np.random.default_rng(4)
-    n, filt = 64, IntentFilter(IntentFilterConfig(brake_hold_s=0.3, intent_source=source))
+    n, filt = 64, IntentFilter(IntentFilterConfig(brake_hold_s=0.3, intent_source=source,
+                                                  blinker_source=blinkers))
     rows = filt.initial_rows(n)
     for k in range(40):
         probs = {t: rng.dirichlet(np.full(len(Intent) if t == "intent" else 4 if t == "view"
@@ -290,9 +292,62 @@ def test_intent_from_the_head_leaves_the_lights_as_the_filter_publishes_them():
     assert (_states(b, "intent") == Intent.UNKNOWN).all()  # _probs' intent head: UNKNOWN
 
 
+#: Blinkers read off the intent head, which switches on its argmax (no margin).
+FROM_INTENT = IntentFilterConfig(intent_source="head", intent_margin=0.0, blinker_source="intent",
+                                 visibility_confirm_s=0.0)
+_OFF, _LEFT, _RIGHT, _HAZARD, _UNKNOWN = (np.eye(len(Intent))[i] for i in
+                                          (Intent.OFF, Intent.LEFT, Intent.RIGHT, Intent.HAZARD,
+                                           Intent.UNKNOWN))
+
+
+def test_blinkers_read_off_the_intent_name_its_sides():
+    intents = [_OFF, _LEFT, _LEFT, _HAZARD, _RIGHT, _OFF]
+    outs = _head_track(intents, FROM_INTENT)  # the blinker heads say OFF throughout
+    assert _states(outs, "left").tolist() == [OFF, ON, ON, ON, OFF, OFF]
+    assert _states(outs, "right").tolist() == [OFF, OFF, OFF, ON, ON, OFF]
+    np.testing.assert_array_equal(_states(outs, "intent"),
+                                  INTENT_OF[_states(outs, "left"), _states(outs, "right")])
+    for out in outs:  # the published class of each blinker is its most likely
+        for task in ("left", "right"):
+            p = out.probs[task][0]
+            assert p[out.states[task][0]] == pytest.approx(p.max())
+    # the filter's own blinkers from the same heads: OFF throughout
+    own = _head_track(intents, IntentFilterConfig(**{**FROM_INTENT.__dict__,
+                                                     "blinker_source": "filter"}))
+    assert set(_states(own, "left").tolist()) == set(_states(own, "right").tolist()) == {OFF}
+
+
+def test_a_judged_intent_holds_back_the_blinker_the_filter_would_publish_on():
+    stamps = np.arange(0, 4.0, 0.05)
+    left = _square(stamps)
+    outs = _run(stamps, left, np.zeros_like(left), FROM_INTENT, intents=[_OFF] * len(stamps))
+    assert set(_states(outs, "left").tolist()) == {OFF}
+    # where the intent is UNKNOWN the filter's own hold stands
+    own = _run(stamps, left, np.zeros_like(left), FROM_INTENT, intents=[_UNKNOWN] * len(stamps))
+    held = _run(stamps, left, np.zeros_like(left), IntentFilterConfig(
+        **{**FROM_INTENT.__dict__, "blinker_source": "filter"}))
+    assert (_states(own, "left") == ON).any()
+    assert _states(own, "left").tolist() == _states(held, "left").tolist()
+
+
+def test_a_blinker_that_cannot_be_seen_stays_unknown_whatever_the_intent():
+    filt = IntentFilter(FROM_INTENT)
+    probs = _probs(0.0, 0.0, unknown=0.9)
+    probs["intent"] = _LEFT[None]
+    out = filt.step(probs, 0, filt.initial_rows(1))
+    assert out.states["left"][0] == out.states["right"][0] == UNKNOWN
+    assert out.states["intent"][0] == Intent.LEFT
+    # a first ON frame (not yet confirmed) the filter holds back to UNKNOWN stays UNKNOWN
+    probs["left"] = np.array([[0.1, 0.5, 0.4]])
+    assert filt.step(probs, 0, filt.initial_rows(1)).states["left"][0] == UNKNOWN
+
+
 @pytest.mark.parametrize("changes,match", [({"intent_source": "model"}, "intent_source"),
                                            ({"intent_margin": 1.0}, "intent_margin"),
-                                           ({"intent_margin": -0.1}, "intent_margin")])
+                                           ({"intent_margin": -0.1}, "intent_margin"),
+                                           ({"blinker_source": "head"}, "blinker_source"),
+                                           ({"blinker_source": "intent",
+                                             "intent_source": "lights"}, "intent_source")])
 def test_intent_source_settings_are_checked(changes, match):
     with pytest.raises(ConfigError, match=match):
         IntentFilterConfig(**changes)

@@ -73,7 +73,8 @@ def add_intent_filter_options(group: ArgumentContainer) -> None:
 
     Defaults come from ``intent_filter.IntentFilterConfig`` (as the node's parameters do).
     """
-    from signal_light_node.runtime.intent_filter import (BRAKE_SIGHTS, INTENT_SOURCES, SIGHTS,
+    from signal_light_node.runtime.intent_filter import (BLINKER_SOURCES, BRAKE_SIGHTS,
+                                                         INTENT_SOURCES, SIGHTS,
                                                          IntentFilterConfig)
 
     d = IntentFilterConfig()
@@ -137,6 +138,11 @@ def add_intent_filter_options(group: ArgumentContainer) -> None:
                        metavar="P", help="with --filter-intent-source head: another intent "
                        "is published once its probability is this much above the "
                        "published one's")
+    group.add_argument("--filter-blinker-source", choices=BLINKER_SOURCES,
+                       default=d.blinker_source,
+                       help="where the published blinkers come from: the hold over the "
+                            "blinker heads (filter) or the published intent (intent; needs "
+                            "--filter-intent-source head)")
 
 
 def intent_filter_from_args(args: argparse.Namespace) -> Any:

@@ -25,7 +25,8 @@ from signal_light_node.io.topics import camera_name_problem
 from signal_light_node.model.backends.registry import known_backends
 from signal_light_node.runtime.backend import (AUTO_BACKEND, DEFAULT_BACKEND, DEFAULT_PRECISION,
                                                PRECISIONS)
-from signal_light_node.runtime.intent_filter import (BRAKE_SIGHTS, INTENT_SOURCES, SIGHTS,
+from signal_light_node.runtime.intent_filter import (BLINKER_SOURCES, BRAKE_SIGHTS,
+                                                     INTENT_SOURCES, SIGHTS,
                                                      IntentFilterConfig, config_from,
                                                      parameter_name)
 from signal_light_node.labels import LIGHT_CODES
@@ -101,6 +102,8 @@ class DetectorParams:
             published blinkers) or ``head`` (the model's intent head with a switch margin).
         filter_intent_margin: With ``head``: how much more probable another intent must be
             before it is published.
+        filter_blinker_source: Where the published blinkers come from: ``filter`` (the hold
+            over the blinker heads) or ``intent`` (read off the published intent head).
         publish_debug_image: Publish the annotated frame on ``~/output/debug/image``.
         publish_markers: Publish the results drawn for RViz on ``~/output/markers``
             (``visualization_msgs/MarkerArray``, see :mod:`signal_light_node.outputs.markers`).
@@ -150,6 +153,7 @@ class DetectorParams:
     filter_brake_hysteresis: float = IntentFilterConfig.brake_hysteresis
     filter_intent_source: str = IntentFilterConfig.intent_source
     filter_intent_margin: float = IntentFilterConfig.intent_margin
+    filter_blinker_source: str = IntentFilterConfig.blinker_source
     publish_debug_image: bool = False
     publish_markers: bool = False
     diagnostics_period_s: float = 1.0
@@ -320,6 +324,11 @@ PARAM_SPECS: Dict[str, ParamSpec] = {
                                       "published once its probability is this much above "
                                       "the published one's (0 = the head's most likely "
                                       "every frame).", low=0.0, high=0.99),
+    "filter_blinker_source": ParamSpec("Where the published blinkers come from: filter (the "
+                                       "hold over the blinker heads) or intent (with "
+                                       "filter_intent_source head: ON where the published "
+                                       "intent names the side, so the two agree).",
+                                       choices=BLINKER_SOURCES),
     "publish_debug_image": ParamSpec("Publish the annotated frame on ~/output/debug/image "
                                      "(costs CPU)."),
     "publish_markers": ParamSpec("Publish the results drawn for RViz on ~/output/markers "

@@ -29,7 +29,9 @@ stamps (scenes run at 10-30 fps, so frame counts mean nothing):
   docs/model.md, "The intent head instead of the filter's intent"); or, with
   ``intent_source: lights``, it is derived from the published left and right states with
   :func:`~signal_light_node.labels.intent_from_lights` (HAZARD only when both sides are
-  ON), its probability from the two published distributions taken as independent;
+  ON), its probability from the two published distributions taken as independent; with
+  ``blinker_source: intent`` the judged blinkers are read off the head's published intent
+  instead (:func:`blinkers_from_intent`), so the two agree;
 * the brake is held the same way over ``brake_hold_s`` (without confirmation), or
   passed through as the model says it when that is 0; with ``brake_released_below``, a
   track whose brake has been seen released gets ``brake_onset_shift`` more ON log-odds
@@ -84,9 +86,13 @@ SIGHTS = ("model", "geometry")
 BRAKE_SIGHTS = SIGHTS + ("rear",)
 #: Where the published intent comes from (``IntentFilterConfig.intent_source``).
 INTENT_SOURCES = ("lights", "head")
+#: Where the published blinkers come from (``IntentFilterConfig.blinker_source``).
+BLINKER_SOURCES = ("filter", "intent")
 
 _OFF, _ON, _UNKNOWN = int(LightStatus.OFF), int(LightStatus.ON), int(LightStatus.UNKNOWN)
 _LEFT, _RIGHT = LIGHT_TASKS.index("left"), LIGHT_TASKS.index("right")
+#: The intents that name each blinker's side, in ``(_LEFT, _RIGHT)`` order.
+_NAMING = ((int(Intent.LEFT), int(Intent.HAZARD)), (int(Intent.RIGHT), int(Intent.HAZARD)))
 
 #: ``INTENT_OF[left_state, right_state]``: the one rule of ``labels.intent_from_lights``.
 INTENT_OF = np.array([[int(intent_from_lights(a, b)) for b in LightStatus] for a in LightStatus],
@@ -200,6 +206,12 @@ class IntentFilterConfig:
         intent_margin: With ``head``: a class other than the published one is published
             once its probability is this much above the published one's (fewer switches;
             0: the head's most likely class every frame).
+        blinker_source: Where the published blinkers come from: ``filter`` (the hold over
+            the blinker heads) or ``intent`` (with ``intent_source: head``: a blinker the
+            filter judges is ON where the published intent names its side, left for LEFT
+            or HAZARD, right for RIGHT or HAZARD, and held back where the judged intent
+            does not; the filter's own where the intent is UNKNOWN; so blinkers and intent
+            agree).
     """
 
     enabled: bool = True
@@ -220,6 +232,7 @@ class IntentFilterConfig:
     brake_hysteresis: float = 0.0
     intent_source: str = "head"
     intent_margin: float = 0.2
+    blinker_source: str = "filter"
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, (bool, np.bool_)):
@@ -241,7 +254,8 @@ class IntentFilterConfig:
             raise ConfigError("flash_window_s must be > 0 while the flash gate is on "
                               "(flash_min_evidence > 0)")
         for name, allowed in (("blinker_sight", SIGHTS), ("brake_sight", BRAKE_SIGHTS),
-                              ("intent_source", INTENT_SOURCES)):
+                              ("intent_source", INTENT_SOURCES),
+                              ("blinker_source", BLINKER_SOURCES)):
             if getattr(self, name) not in allowed:
                 raise ConfigError(f"{name} must be one of {', '.join(allowed)}, got "
                                   f"{getattr(self, name)!r}")
@@ -275,6 +289,9 @@ class IntentFilterConfig:
             raise ConfigError(f"intent_margin must be a probability margin in [0, 1), got "
                               f"{value!r}")
         object.__setattr__(self, "intent_margin", float(value))
+        if self.blinker_source == "intent" and self.intent_source != "head":
+            raise ConfigError("blinker_source intent reads the blinkers off the intent head: "
+                              "it needs intent_source head")
 
     @property
     def brake_onset_settings(self) -> brake_onset.Settings:
@@ -315,7 +332,9 @@ class IntentFilterConfig:
 
     def _intent_source(self) -> str:
         if self.intent_source == "head":
-            return f"intent from the intent head, switched on a margin of {self.intent_margin:g}"
+            blinkers = ", blinkers read off it" if self.blinker_source == "intent" else ""
+            return (f"intent from the intent head, switched on a margin of "
+                    f"{self.intent_margin:g}{blinkers}")
         return "intent from the held blinkers"
 
 
@@ -429,18 +448,23 @@ class IntentFilter:
             p, shown = visibility_hold.step(p, now, shown, self.config.visibility_confirm_s)
         on = self._advance(state, p, now[:, None])
         q, light_states = _publish(p, on, state[..., _HELD])
+        intent = None
+        if self.config.intent_source == "head":
+            head = probs["intent"] if evidence is None else flash_gate.veto_intent(
+                probs["intent"], evidence, self.config.flash_min_evidence)
+            intent = head_intent(head, intent_row[:, 0], self.config.intent_margin)
+            intent_row = intent[1].astype(np.float64)[:, None]
+            if self.config.blinker_source == "intent":
+                on = blinkers_from_intent(on, light_states, intent[1])
+                q, light_states = _publish(p, on, state[..., _HELD])
         raw = argmax_states({t: p[:, i] for i, t in enumerate(LIGHT_TASKS)})
         out_probs, out_states = dict(probs), {"view": np.asarray(probs["view"]).argmax(1)}
         for i, task in enumerate(LIGHT_TASKS):
             keep = self._filtered[i]
             out_probs[task] = q[:, i] if keep else p[:, i]
             out_states[task] = light_states[:, i] if keep else raw[task]
-        if self.config.intent_source == "head":
-            head = probs["intent"] if evidence is None else flash_gate.veto_intent(
-                probs["intent"], evidence, self.config.flash_min_evidence)
-            out_probs["intent"], out_states["intent"] = head_intent(
-                head, intent_row[:, 0], self.config.intent_margin)
-            intent_row = out_states["intent"].astype(np.float64)[:, None]
+        if intent is not None:
+            out_probs["intent"], out_states["intent"] = intent
         else:
             out_probs["intent"], out_states["intent"] = _intent(out_probs, out_states)
         return FilterOutput(out_probs, {t: out_states[t] for t in TASKS},
@@ -536,6 +560,21 @@ def head_intent(probs: np.ndarray, published: np.ndarray, margin: float) -> tupl
     q = p.copy()
     q[rows, states] = p[rows, best]
     return q / q.sum(axis=1, keepdims=True), states
+
+
+def blinkers_from_intent(on: np.ndarray, states: np.ndarray, intent: np.ndarray) -> np.ndarray:
+    """The ``[N, lights]`` ON mask with the blinkers read off the published intent.
+
+    A blinker whose published ``states`` is judged (OFF or ON) is ON where ``intent`` (``[N]``
+    classes) names its side and held back where it is judged and does not; where the intent
+    is UNKNOWN, or the blinker is not judged, ``on`` stands.
+    """
+    on = on.copy()
+    judged_intent = intent != int(Intent.UNKNOWN)
+    for side, naming in zip((_LEFT, _RIGHT), _NAMING):
+        judged = judged_intent & (states[:, side] != _UNKNOWN)
+        on[judged, side] = np.isin(intent[judged], naming)
+    return on
 
 
 def _intent(probs: Mapping[str, np.ndarray], states: Mapping[str, np.ndarray]) -> tuple:
