@@ -459,6 +459,20 @@ def test_the_recipe_adds_the_ranking_at_its_weight():
                      "--rank-weight", "-1"])
 
 
+def test_the_recipe_weighs_the_intent_loss_by_its_option():
+    from signal_light_node.training.trunk_recipe import TASK_WEIGHTS, main as recipe_main, step_loss
+
+    model, batch = _recipe_model_and_batch(t=8)
+    plain, parts = step_loss(model, batch, {})
+    doubled, doubled_parts = step_loss(model, batch, {},
+                                       task_weights=dict(TASK_WEIGHTS, intent=2.0))
+    assert parts == doubled_parts  # the parts are unweighted
+    assert float((doubled - plain).detach()) == pytest.approx(parts["intent"], rel=1e-4)
+    with pytest.raises(SystemExit):
+        recipe_main(["--out", "unused", "--pool", "unused", "--val", "unused",
+                     "--intent-weight", "0"])
+
+
 def _labels(rows):
     """Frames of (view, left, right) as labels [N, len(TASKS)], other tasks OFF."""
     from signal_light_node.labels import TASKS

@@ -131,7 +131,8 @@ EXPERT_WEIGHT = 0.5
 
 
 def step_loss(model: torch.nn.Module, batch: Dict[str, torch.Tensor],
-              weights: Dict[str, torch.Tensor], judged: bool = False, rank_weight: float = 0.0
+              weights: Dict[str, torch.Tensor], judged: bool = False, rank_weight: float = 0.0,
+              task_weights: Optional[Dict[str, float]] = None
               ) -> Tuple[torch.Tensor, Dict[str, float]]:
     """The loss of one batch of windows: the task heads (blinkers and intent past each
     window's warm-up) plus, with a lit head, each lamp's per-frame lit state, and with a
@@ -140,7 +141,7 @@ def step_loss(model: torch.nn.Module, batch: Dict[str, torch.Tensor],
     published logits, the judge's included, and the judge has no loss. ``rank_weight``
     > 0 adds that much of :func:`.lamp_rank_loss` over the brake and blinker heads: within
     a window, a frame whose lamp is ON must score above one of the same vehicle where it
-    is OFF."""
+    is OFF. ``task_weights``: each head's loss weight (default :data:`TASK_WEIGHTS`)."""
     logits, _ = model.sequence_features(batch["features"], batch["maps"])
     warm = warmup_frames(batch["fps"].tolist(), 2, 0.4).to(batch["labels"].device)
     judge = None if judged else logits.get("expert_brake")
@@ -148,8 +149,8 @@ def step_loss(model: torch.nn.Module, batch: Dict[str, torch.Tensor],
         # Apart, so that neither learns to cancel the other (docs/model.md, "A brake
         # judge of its own").
         logits = dict(logits, brake=logits["main_brake"])
-    loss, parts = multitask_loss(logits, batch["labels"], batch["mask"], TASK_WEIGHTS, weights,
-                                 warm)
+    loss, parts = multitask_loss(logits, batch["labels"], batch["mask"],
+                                 task_weights or TASK_WEIGHTS, weights, warm)
     if judge is not None:
         judge_loss = brake_judge_loss(judge, batch["labels"], batch["mask"])
         loss = loss + EXPERT_WEIGHT * judge_loss
@@ -220,8 +221,10 @@ def train(model: torch.nn.Module, train_caches: Sequence[FeatureCache], val: Fea
           val_every: int, resume: bool, meta: Dict[str, Any],
           device: Optional[torch.device] = None, judged: bool = False,
           side_blink_weight: float = 1.0, rank_weight: float = 0.0,
-          hazard_weight: float = 1.0) -> Dict[str, Any]:
-    """The training loop of the module doc (``judged``, ``rank_weight``: see :func:`step_loss`;
+          hazard_weight: float = 1.0, task_weights: Optional[Dict[str, float]] = None
+          ) -> Dict[str, Any]:
+    """The training loop of the module doc (``judged``, ``rank_weight``, ``task_weights``: see
+    :func:`step_loss`;
     ``side_blink_weight``, ``hazard_weight``: :func:`track_draws`); returns the best
     validation figures."""
     device = device or torch.device("cpu")
@@ -245,7 +248,7 @@ def train(model: torch.nn.Module, train_caches: Sequence[FeatureCache], val: Fea
         for group in optim.param_groups:
             group["lr"] = _lr(progress["step"], steps, lr)
         b = {k: v.to(device) for k, v in _batch(train_caches, rng, batch, seq_len, draws).items()}
-        loss, parts = step_loss(model, b, weights, judged, rank_weight)
+        loss, parts = step_loss(model, b, weights, judged, rank_weight, task_weights)
         optim.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, 5.0)
@@ -324,6 +327,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--rank-weight", type=float, default=0.0,
                         help="weight of ranking each window's frames against each other: a "
                              "brake or blinker ON must score above the same lamp OFF (0: none)")
+    parser.add_argument("--intent-weight", type=float, default=TASK_WEIGHTS["intent"],
+                        help="weight of the intent head's loss (the other heads' stay as "
+                        "they are)")
     parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     parser.add_argument("--trunk-weights", type=Path, default=None,
                         help="start from this per-frame stage's trunk (trunk_finetune's "
@@ -343,7 +349,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                      "--trunk-weights")
     if args.look_white_balance < 0:
         parser.error(f"--look-white-balance must be >= 0, got {args.look_white_balance}")
-    for name in ("side_blink_weight", "hazard_weight"):
+    for name in ("side_blink_weight", "hazard_weight", "intent_weight"):
         if getattr(args, name) <= 0:
             parser.error(f"--{name.replace('_', '-')} must be > 0, got {getattr(args, name)}")
     if args.judge_learn != "all" and args.judge_gain is None:
@@ -394,7 +400,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     best = train(model, caches, val, args.out, args.steps, args.batch, args.seq_len, args.lr,
                  args.seed, args.val_every, args.resume, meta, device,
                  judged=args.judge_gain is not None, side_blink_weight=args.side_blink_weight,
-                 rank_weight=args.rank_weight, hazard_weight=args.hazard_weight)
+                 rank_weight=args.rank_weight, hazard_weight=args.hazard_weight,
+                 task_weights=dict(TASK_WEIGHTS, intent=args.intent_weight))
     (args.out / "summary.json").write_text(json.dumps(best, indent=1))
     LOG.info("best: %s", best)
     return 0
