@@ -36,10 +36,13 @@ BRAKE_CHOICES: Sequence[Dict[str, float]] = (
     {"brake_released_below": 0.2, "brake_onset_shift": 0.5, "brake_onset_rise": 3.0,
      "brake_unreleased_shift": -1.5, "brake_hysteresis": 0.5},
 )
-#: Every setting tried: blinker hold x visibility hold x brake.
+#: Every setting tried: the intent head's switch margin x visibility hold x brake. The
+#: blinkers' hold is not tried: with the intent from the intent head (the default) it moves
+#: neither the intent nor the brake, which is all the fit's objective scores.
 FILTER_GRID: List[Dict[str, float]] = [
-    {"hold_s": hold, "visibility_confirm_s": seen, **brake}
-    for hold, seen, brake in itertools.product((0.4, 0.6, 0.8), (0.0, 0.2, 0.4), BRAKE_CHOICES)]
+    {"intent_margin": margin, "visibility_confirm_s": seen, **brake}
+    for margin, seen, brake in itertools.product((0.1, 0.2, 0.3), (0.0, 0.2, 0.4),
+                                                 BRAKE_CHOICES)]
 #: A setting may make the intent or brake change at most this many times as often as the
 #: truth does on the fit tracks (or as often as the defaults do, where that is more).
 MAX_SWITCHES = 1.5
