@@ -570,6 +570,42 @@ def test_a_look_with_white_balance_is_cached_apart_and_reused(tmp_path):
     assert (clean / "maps.npy").stat().st_mtime_ns == stamp
 
 
+def test_a_mirrored_look_flips_the_crops_and_swaps_the_labels(tmp_path):
+    from signal_light_node.data.split import write_split
+    from signal_light_node.labels import Intent, TASKS
+    from signal_light_node.training.feature_cache import MANIFEST, FeatureCache, write_cache
+    from signal_light_node.training.trunk_recipe import look_name
+
+    split = tmp_path / "split"
+    write_split(split, seed=5, n_sequences=1, seq_len=8, crop=trunk_config().crop_config(),
+                progress=False)
+    model = _model()
+    plain = FeatureCache.load(write_cache(split, model, tmp_path / look_name("split", 0)))
+    path = write_cache(split, model, tmp_path / look_name("split", 0, mirror=True), mirror=True)
+    assert path.name == "split_look0_mirror"
+    assert json.loads((path / MANIFEST).read_text())["mirror"] is True
+    mirrored = FeatureCache.load(path)
+    left, right, intent = (TASKS.index(t) for t in ("left", "right", "intent"))
+    for name in ("labels", "lit_labels"):
+        ours, theirs = getattr(plain, name), getattr(mirrored, name)
+        assert np.array_equal(ours[:, left], theirs[:, right])
+        assert np.array_equal(ours[:, right], theirs[:, left])
+    swap = {int(Intent.LEFT): int(Intent.RIGHT), int(Intent.RIGHT): int(Intent.LEFT)}
+    assert [swap.get(int(v), int(v)) for v in plain.labels[:, intent]] == \
+        [int(v) for v in mirrored.labels[:, intent]]
+    # The lamp maps of a flipped crop are the plain maps flipped: the columns of each
+    # trunk cell's fine grid reverse, so compare the cells' mean over the fine grid.
+    a = plain.maps.astype(np.float32).mean(axis=1)
+    b = mirrored.maps.astype(np.float32).mean(axis=1)
+    assert np.allclose(a, b[..., ::-1], atol=2e-2) and not np.allclose(a, b, atol=2e-2)
+    # The plain look is not taken for the mirrored one, nor the other way round.
+    stamp = (path / "maps.npy").stat().st_mtime_ns
+    write_cache(split, model, path, mirror=True)
+    assert (path / "maps.npy").stat().st_mtime_ns == stamp
+    write_cache(split, model, path)
+    assert json.loads((path / MANIFEST).read_text())["mirror"] is False
+
+
 def test_trunk_recipe_trains_resumes_and_calibrates(tmp_path):
     from signal_light_node.data.split import write_split
     from signal_light_node.training import calibrate, trunk_recipe
@@ -612,6 +648,10 @@ def test_cache_only_writes_the_caches_a_member_then_reuses_and_trains_nothing(tm
                                   "--val-every", "1"] + common) == 0
     assert "cache exists, reused" in caplog.text
     assert (tmp_path / "member" / "last.pt").is_file()
+    assert not list((tmp_path / "cache").glob("*/pool_1_look0_mirror"))
+    assert trunk_recipe.main(["--out", str(tmp_path / "caches"), "--cache-only",
+                              "--mirror"] + common) == 0
+    assert list((tmp_path / "cache").glob("*/pool_1_look0_mirror/cache.json"))
 
 
 def test_every_flag_the_recipe_script_passes_to_the_temporal_stage_exists(capsys):

