@@ -126,6 +126,12 @@ LOOKS=${LOOKS:-1}
 # The looks' camera also draws per-channel gains in exp(+-LOOK_WHITE_BALANCE) (0: none;
 # docs/model.md, "Orange blinkers by day").
 LOOK_WHITE_BALANCE=${LOOK_WHITE_BALANCE:-0}
+# MIRROR=1 (default 0) caches every look of every pool once more mirrored, left and right
+# swapped, for the temporal part (trunk_recipe --mirror; docs/model.md, "Mirrored tracks in
+# the temporal part").
+MIRROR=${MIRROR:-0}
+[[ "$MIRROR" == 0 || "$MIRROR" == 1 ]] || {
+  echo "train_trunk.sh: MIRROR must be 0 or 1, not '$MIRROR'" >&2; exit 2; }
 STEPS=${STEPS:-3000}
 # MEMBER_FILE (default best): which file of each run is joined and calibrated: best (best.pt,
 # its best validation step) or last (last.pt, its last step; docs/model.md, "The last step of
@@ -251,6 +257,7 @@ member_threads=$(( THREADS / MEMBER_JOBS > 0 ? THREADS / MEMBER_JOBS : 1 ))
 # What every temporal run reads: the pools' and validation split's feature caches.
 recipe_inputs=(--cache "$DATA/cache" "${pools[@]}" --val "$DATA/val_split" --looks "$LOOKS"
                --look-white-balance "$LOOK_WHITE_BALANCE")
+[[ "$MIRROR" == 1 ]] && recipe_inputs+=(--mirror)
 
 member_dir() {  # seed -> the member's run directory
   if (( n_seeds > 1 )); then echo "$RUN/trunk_s$1"; else echo "$RUN/trunk"; fi

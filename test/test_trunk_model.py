@@ -585,6 +585,8 @@ def test_a_mirrored_look_flips_the_crops_and_swaps_the_labels(tmp_path):
     assert path.name == "split_look0_mirror"
     assert json.loads((path / MANIFEST).read_text())["mirror"] is True
     mirrored = FeatureCache.load(path)
+    # Mapped, not read: members side by side share the pages of many looks.
+    assert isinstance(mirrored.features, np.memmap) and isinstance(mirrored.maps, np.memmap)
     left, right, intent = (TASKS.index(t) for t in ("left", "right", "intent"))
     for name in ("labels", "lit_labels"):
         ours, theirs = getattr(plain, name), getattr(mirrored, name)
@@ -668,14 +670,15 @@ def test_every_flag_the_recipe_script_passes_to_the_temporal_stage_exists(capsys
         lines = call.split("\n")
         end = next(i for i, line in enumerate(lines) if not line.rstrip().endswith("\\"))
         passed |= set(re.findall(r"(--[a-z][a-z-]*)", "\n".join(lines[:end + 1])))
-    inputs = script[script.index("recipe_inputs=("):]  # flags every call takes, set apart
-    passed |= set(re.findall(r"(--[a-z][a-z-]*)", inputs[:inputs.index(")")]))
+    # flags every call takes, set apart, and those a setting adds to them
+    for inputs in re.findall(r"recipe_inputs\+?=\(([^)]*)\)", script):
+        passed |= set(re.findall(r"(--[a-z][a-z-]*)", inputs))
     with pytest.raises(SystemExit):
         trunk_recipe.main(["--help"])
     known = set(re.findall(r"(--[a-z][a-z-]*)", capsys.readouterr().out))
     # a member, its judged fine-tune, and the caches written once before members side by side
     assert len(calls) == 3 and {"--tune-from", "--judge-gain", "--model", "--cache-only",
-                                "--look-white-balance", "--val"} <= passed
+                                "--look-white-balance", "--val", "--mirror"} <= passed
     assert passed <= known, passed - known
 
 

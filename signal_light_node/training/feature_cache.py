@@ -43,6 +43,8 @@ from signal_light_node.model.inference import inference_copy
 
 LOG = logging.getLogger(__name__)
 MANIFEST = "cache.json"
+#: The large per-frame arrays, memory-mapped on load.
+MAPPED = ("features", "maps")
 
 
 def trunk_fingerprint(model: torch.nn.Module) -> str:
@@ -184,8 +186,11 @@ class FeatureCache:
         if fingerprint is not None and info.get("trunk") != fingerprint:
             raise ConfigError(f"{path} was cached with another trunk ({info.get('trunk')}, "
                               f"this model's is {fingerprint})")
-        arrays = {k: np.load(path / f"{k}.npy") for k in
-                  ("features", "maps", "labels", "lit_labels", "lengths", "fps", "lighting")}
+        # The per-frame arrays are mapped, not read: members trained side by side then
+        # share one copy in the page cache (many pools, looks and mirrors add up to GBs).
+        arrays = {k: np.load(path / f"{k}.npy", mmap_mode="r" if k in MAPPED else None)
+                  for k in ("features", "maps", "labels", "lit_labels", "lengths", "fps",
+                            "lighting")}
         offsets = np.concatenate(([0], np.cumsum(arrays["lengths"]))).astype(np.int64)
         return cls(offsets=offsets, **arrays)
 
