@@ -304,12 +304,25 @@ member_failed() {  # stop the members still training, then fail
 
 echo "== 2/5 trunk features cached, temporal part trained from scratch: $STEPS steps," \
   "seeds $SEEDS ($MEMBER_JOBS at a time, $member_threads thread(s) each)"
+# The caches first, once (members started together would each write them at once): on the
+# CPU one writer per thread, each over every THREADS-th cache on one thread (reading the
+# crops and drawing the looks are one thread's work; the trunk runs in onnxruntime there).
+cache_jobs=$([[ "$DEVICE" == cpu ]] && echo "$THREADS" || echo 1)
+writers=()
+echo "caches: $cache_jobs writer(s), logs in $RUN/cache_*.log"
+for ((share = 0; share < cache_jobs; share++)); do
+  python -m signal_light_node.training.trunk_recipe --out "$RUN" "${recipe_inputs[@]}" \
+    --model "$MODEL" --threads $(( THREADS / cache_jobs )) --device "$DEVICE" "${trunk[@]}" \
+    --cache-only --cache-share "$share/$cache_jobs" > "$RUN/cache_$share.log" 2>&1 &
+  writers+=($!)
+done
+for pid in "${writers[@]}"; do
+  wait "$pid" || { echo "train_trunk.sh: a cache writer failed; see $RUN/cache_*.log" >&2
+                   kill "${writers[@]}" 2>/dev/null || true; exit 1; }
+done
 if (( MEMBER_JOBS == 1 )); then
   for seed in $SEEDS; do train_member "$seed" "$THREADS"; done
 else
-  # The caches first, once: members started together would each write them at once.
-  python -m signal_light_node.training.trunk_recipe --out "$RUN" "${recipe_inputs[@]}" \
-    --model "$MODEL" --threads "$THREADS" --device "$DEVICE" "${trunk[@]}" --cache-only
   running=0
   for seed in $SEEDS; do
     if (( running == MEMBER_JOBS )); then wait -n || member_failed; running=$((running - 1)); fi

@@ -608,6 +608,63 @@ def test_a_mirrored_look_flips_the_crops_and_swaps_the_labels(tmp_path):
     assert json.loads((path / MANIFEST).read_text())["mirror"] is False
 
 
+def test_the_onnxruntime_trunk_pass_gives_the_torch_pass_features():
+    from signal_light_node.model.inference import inference_copy
+    from signal_light_node.training.trunk_pass import trunk_pass
+
+    net = inference_copy(_model(**JUDGE))
+    crops = np.random.default_rng(2).integers(0, 256, (5, 64, 64, 3), dtype=np.uint8)
+    ours = trunk_pass(net, "torch", batch=2)(crops)
+    theirs = trunk_pass(net, "onnxruntime", batch=3)(crops)
+    for a, b in zip(ours, theirs):
+        assert a.dtype == b.dtype == np.float16 and a.shape == b.shape and a.shape[0] == 5
+        a, b = a.astype(np.float32), b.astype(np.float32)
+        scale = np.abs(a).max()
+        assert scale > 0 and np.abs(a - b).max() <= 0.02 * scale
+    with pytest.raises(ConfigError, match="backend must be one of"):
+        trunk_pass(net, "tensorrt")
+
+
+def test_a_cache_remembers_where_its_trunk_ran_and_side_by_side_writers_keep_one(tmp_path):
+    from signal_light_node.data.split import write_split
+    from signal_light_node.training import feature_cache
+    from signal_light_node.training.feature_cache import MANIFEST, FeatureCache, write_cache
+
+    split = tmp_path / "split"
+    write_split(split, seed=5, n_sequences=1, seq_len=8, crop=trunk_config().crop_config(),
+                progress=False)
+    model = _model()
+    path = write_cache(split, model, tmp_path / "split_look0", backend="onnxruntime")
+    assert json.loads((path / MANIFEST).read_text())["backend"] == "onnxruntime"
+    from_onnx = FeatureCache.load(path).features.astype(np.float32)
+    stamp = (path / "maps.npy").stat().st_mtime_ns
+    write_cache(split, model, path, backend="onnxruntime")
+    assert (path / "maps.npy").stat().st_mtime_ns == stamp
+    # Written on the other backend, not reused; the features agree to float16's grain.
+    write_cache(split, model, path)
+    info = json.loads((path / MANIFEST).read_text())
+    assert info["backend"] == "torch"
+    assert np.allclose(FeatureCache.load(path).features.astype(np.float32), from_onnx,
+                       atol=2e-2, rtol=1e-2)
+    # A cache written before the option ran in torch: reused as such.
+    del info["backend"]
+    (path / MANIFEST).write_text(json.dumps(info))
+    stamp = (path / "maps.npy").stat().st_mtime_ns
+    write_cache(split, model, path)
+    assert (path / "maps.npy").stat().st_mtime_ns == stamp
+    # Another process put the same cache in place first: it stays, ours goes.
+    info["backend"] = "torch"
+    ours = tmp_path / "split_look0.tmp1"
+    ours.mkdir()
+    feature_cache._publish(ours, path, info)
+    assert not ours.exists() and (path / "maps.npy").stat().st_mtime_ns == stamp
+    # A stale cache of other inputs is replaced.
+    ours.mkdir()
+    (ours / "marker").write_text("new")
+    feature_cache._publish(ours, path, dict(info, mirror=True))
+    assert (path / "marker").read_text() == "new" and not ours.exists()
+
+
 def test_trunk_recipe_trains_resumes_and_calibrates(tmp_path):
     from signal_light_node.data.split import write_split
     from signal_light_node.training import calibrate, trunk_recipe
@@ -656,6 +713,34 @@ def test_cache_only_writes_the_caches_a_member_then_reuses_and_trains_nothing(tm
     assert list((tmp_path / "cache").glob("*/pool_1_look0_mirror/cache.json"))
 
 
+def test_cache_writers_side_by_side_each_write_their_share(tmp_path):
+    """train_trunk.sh starts one writer per thread: each writes every K-th cache."""
+    from signal_light_node.data.split import write_split
+    from signal_light_node.training import trunk_recipe
+
+    for seed in (1, 2):
+        write_split(tmp_path / f"pool_{seed}", seed=seed, n_sequences=1, seq_len=6,
+                    crop=trunk_config().crop_config(), full_tracks=True, progress=False)
+    common = ["--out", str(tmp_path / "caches"), "--cache-only", "--pool",
+              str(tmp_path / "pool_1"), "--pool", str(tmp_path / "pool_2"), "--val",
+              str(tmp_path / "pool_1"), "--cache", str(tmp_path / "cache"), "--looks", "0",
+              "--mirror", "--threads", "1"]
+
+    def written():
+        return sorted(p.parent.name for p in (tmp_path / "cache").glob("*/*/cache.json"))
+    assert trunk_recipe.main(common + ["--cache-share", "1/2"]) == 0
+    # pools x looks x mirrors in order: pool_1, pool_1 mirrored, pool_2, pool_2 mirrored
+    assert written() == ["pool_1_look0_mirror", "pool_2_look0_mirror"]
+    assert trunk_recipe.main(common + ["--cache-share", "0/2"]) == 0
+    assert written() == ["pool_1", "pool_1_look0", "pool_1_look0_mirror", "pool_2_look0",
+                         "pool_2_look0_mirror"]  # and the validation split's, "pool_1"
+    for bad in ("2/2", "1", "a/b"):
+        with pytest.raises(SystemExit):
+            trunk_recipe.main(common + ["--cache-share", bad])
+    with pytest.raises(SystemExit):  # a run that trains needs every cache
+        trunk_recipe.main(common[3:] + ["--out", str(tmp_path / "m"), "--cache-share", "0/2"])
+
+
 def test_every_flag_the_recipe_script_passes_to_the_temporal_stage_exists(capsys):
     """scripts/train_trunk.sh calls trunk_recipe three times (the caches, a member, its judged
     fine-tune); a renamed flag would only fail after hours of training."""
@@ -678,7 +763,8 @@ def test_every_flag_the_recipe_script_passes_to_the_temporal_stage_exists(capsys
     known = set(re.findall(r"(--[a-z][a-z-]*)", capsys.readouterr().out))
     # a member, its judged fine-tune, and the caches written once before members side by side
     assert len(calls) == 3 and {"--tune-from", "--judge-gain", "--model", "--cache-only",
-                                "--look-white-balance", "--val", "--mirror"} <= passed
+                                "--look-white-balance", "--val", "--mirror",
+                                "--cache-share"} <= passed
     assert passed <= known, passed - known
 
 

@@ -10,7 +10,8 @@ trunk again: one pass over a split writes a cache directory
 * ``labels.npy`` / ``lit_labels.npy`` int8 ``[F, 5]``, ``lengths.npy``, ``fps.npy``,
   ``lighting.npy`` per track;
 * ``cache.json``: the split it came from, the trunk's config and a hash of its weights,
-  and the augmentation seed (a cache made for other weights is refused, not reused).
+  the augmentation seed and where the trunk ran (a cache made for other weights is
+  refused, not reused).
 
 ``augment_seed`` applies one random camera response and shape warp per track
 (``data.camera_response``, ``data.shape_warp``) before the trunk sees it, so a pool can be
@@ -40,6 +41,7 @@ from signal_light_node.data.stream import mirror_sequence
 from signal_light_node.errors import ConfigError
 from signal_light_node.labels import TASKS
 from signal_light_node.model.inference import inference_copy
+from signal_light_node.training.trunk_pass import trunk_pass
 
 LOG = logging.getLogger(__name__)
 MANIFEST = "cache.json"
@@ -76,28 +78,14 @@ def split_tracks(split_dir: Path, mirror: bool = False) -> Iterator[Dict[str, An
                "lighting": str(item["meta"]["lighting"])}
 
 
-@torch.inference_mode()
-def _frame_features(net: torch.nn.Module, crops: np.ndarray, batch: int
-                    ) -> Tuple[np.ndarray, np.ndarray]:
-    feats, maps = [], []
-    device = next(net.parameters()).device
-    for start in range(0, len(crops), batch):
-        x = torch.from_numpy(np.ascontiguousarray(crops[start:start + batch])).permute(0, 3, 1, 2)
-        x = x.to(device)
-        f, m = net.frame_features(x.float().mul_(1.0 / 255.0).contiguous(
-            memory_format=torch.channels_last))
-        feats.append(f.half().cpu().numpy())
-        maps.append(m.half().cpu().numpy())
-    return np.concatenate(feats), np.concatenate(maps)
-
-
 def write_cache(split_dir: "str | os.PathLike[str]", model: torch.nn.Module,
                 out_dir: "str | os.PathLike[str]", augment_seed: Optional[int] = None,
-                batch: int = 512, white_balance: float = 0.0, mirror: bool = False) -> Path:
+                batch: int = 512, white_balance: float = 0.0, mirror: bool = False,
+                backend: str = "torch", threads: int = 1) -> Path:
     """Cache the per-frame features of every track of ``split_dir`` (see the module doc).
 
-    Reuses an existing cache made from the same split, trunk, seed, white balance and
-    mirroring. The split must have been cropped as the model crops
+    Reuses an existing cache made from the same split, trunk, seed, white balance,
+    mirroring and backend. The split must have been cropped as the model crops
     (``ModelConfig.crop_config``).
 
     Args:
@@ -105,6 +93,9 @@ def write_cache(split_dir: "str | os.PathLike[str]", model: torch.nn.Module,
             (``CameraResponse.draw``); 0 draws none, as caches made before it.
         mirror: Cache every track mirrored (flipped crops, swapped labels), before any
             augmentation.
+        backend: Where the trunk runs (:data:`~.trunk_pass.PASS_BACKENDS`); a cache made
+            on another backend is made again, not reused.
+        threads: The onnxruntime pass's threads.
 
     Returns:
         The cache directory.
@@ -118,18 +109,14 @@ def write_cache(split_dir: "str | os.PathLike[str]", model: torch.nn.Module,
         white_balance = 0.0  # the clean look draws no camera: one cache whatever is asked
     info = {"split": str(split_dir.resolve()), "trunk": trunk_fingerprint(model),
             "augment_seed": augment_seed, "white_balance": float(white_balance),
-            "mirror": bool(mirror), "config": model.config.to_dict()}
-    if (out / MANIFEST).is_file():
-        old = json.loads((out / MANIFEST).read_text())
-        old.setdefault("white_balance", 0.0)  # caches written before the options had none
-        old.setdefault("mirror", False)
-        keys = ("split", "trunk", "augment_seed", "white_balance", "mirror")
-        if all(old.get(k) == info[k] for k in keys):
-            LOG.info("%s: cache exists, reused", out)
-            return out
-    net = inference_copy(model.eval())
+            "mirror": bool(mirror), "backend": backend, "config": model.config.to_dict()}
+    if _holds(out, info):
+        LOG.info("%s: cache exists, reused", out)
+        return out
+    run = trunk_pass(inference_copy(model.eval()), backend, batch, threads)
     rng = np.random.default_rng(augment_seed) if augment_seed is not None else None
-    tmp = out.with_name(out.name + ".tmp")
+    # Per process: runs that cache the same split side by side each write their own.
+    tmp = out.with_name(f"{out.name}.tmp{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     columns: Dict[str, List[Any]] = {k: [] for k in ("features", "maps", "labels", "lit_labels",
@@ -138,7 +125,7 @@ def write_cache(split_dir: "str | os.PathLike[str]", model: torch.nn.Module,
         crops = track["crops"]
         if rng is not None:
             crops = randomise_camera(warp_sequence(crops, rng), rng, white_balance)
-        f, m = _frame_features(net, crops, batch)
+        f, m = run(crops)
         columns["features"].append(f)
         columns["maps"].append(m)
         columns["labels"].append(track["labels"].astype(np.int8))
@@ -153,10 +140,41 @@ def write_cache(split_dir: "str | os.PathLike[str]", model: torch.nn.Module,
     info["frames"] = int(sum(columns["lengths"]))
     info["tracks"] = len(columns["lengths"])
     (tmp / MANIFEST).write_text(json.dumps(info, indent=1))
-    shutil.rmtree(out, ignore_errors=True)
-    os.replace(tmp, out)
+    _publish(tmp, out, info)
     LOG.info("%s: %d tracks, %d frames cached", out, info["tracks"], info["frames"])
     return out
+
+
+#: What makes two caches of a split the same (the manifest's keys).
+CACHE_KEYS = ("split", "trunk", "augment_seed", "white_balance", "mirror", "backend")
+
+
+#: The keys' values in caches written before the options existed.
+OLD_DEFAULTS = {"white_balance": 0.0, "mirror": False, "backend": "torch"}
+
+
+def _same_cache(old: Dict[str, Any], info: Dict[str, Any]) -> bool:
+    old = dict(OLD_DEFAULTS, **old)
+    return all(old.get(k) == info[k] for k in CACHE_KEYS)
+
+
+def _holds(out: Path, info: Dict[str, Any]) -> bool:
+    manifest = out / MANIFEST
+    return manifest.is_file() and _same_cache(json.loads(manifest.read_text()), info)
+
+
+def _publish(tmp: Path, out: Path, info: Dict[str, Any]) -> None:
+    """Move a written cache into place; where another process has just put the same cache
+    there, keep that one (it may be loading it)."""
+    if not _holds(out, info):
+        shutil.rmtree(out, ignore_errors=True)  # a stale cache of other inputs
+        try:
+            os.replace(tmp, out)
+            return
+        except OSError:
+            if not _holds(out, info):
+                raise
+    shutil.rmtree(tmp, ignore_errors=True)
 
 
 @dataclass

@@ -50,6 +50,7 @@ from signal_light_node.training.loss import (brake_judge_loss, lamp_rank_loss, m
                                              share_weights, warmup_frames)
 from signal_light_node.training.sampling import hazard_tracks, side_blink_tracks
 from signal_light_node.training.trunk_finetune import load_trunk_weights
+from signal_light_node.training.trunk_pass import PASS_BACKENDS
 
 LOG = logging.getLogger("trunk_recipe")
 TASK_WEIGHTS = {"intent": 1.0, "brake": 1.0, "left": 0.5, "right": 0.5, "view": 0.5}
@@ -296,6 +297,25 @@ def look_name(pool: str, look: int, white_balance: float = 0.0, mirror: bool = F
     return name + "_mirror" if mirror else name
 
 
+def cache_share(text: str, cache_only: bool) -> Tuple[int, int]:
+    """``J/K`` of ``--cache-share`` as ``(J, K)``.
+
+    Raises:
+        ConfigError: Not two integers with 0 <= J < K, or a share other than 0/1 for a
+            run that trains (it needs every cache).
+    """
+    try:
+        share, shares = (int(part) for part in text.split("/"))
+    except ValueError:
+        raise ConfigError(f"--cache-share must be J/K, got {text!r}") from None
+    if not 0 <= share < shares:
+        raise ConfigError(f"--cache-share J/K needs 0 <= J < K, got {text!r}")
+    if shares > 1 and not cache_only:
+        raise ConfigError("--cache-share goes with --cache-only: a run that trains reads "
+                          "every cache")
+    return share, shares
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True)
@@ -324,6 +344,10 @@ def main(argv: Optional[List[str]] = None) -> int:
                         help="write the feature caches of the pools and the validation split, "
                              "then stop: members trained side by side then share them instead "
                              "of each writing them at once")
+    parser.add_argument("--cache-share", default="0/1", metavar="J/K",
+                        help="with --cache-only: write only every K-th cache from the J-th "
+                             "(pools x looks x mirrors; the validation split's in share 0), so "
+                             "that K writers side by side share the work")
     parser.add_argument("--side-blink-weight", type=float, default=1.0,
                         help="draw tracks with a blinker ON seen from its own side this many "
                              "times as often as the others (1: uniform)")
@@ -337,6 +361,10 @@ def main(argv: Optional[List[str]] = None) -> int:
                         help="weight of the intent head's loss (the other heads' stay as "
                         "they are)")
     parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
+    parser.add_argument("--cache-backend", choices=PASS_BACKENDS, default=None,
+                        help="where the trunk runs to write the caches (default: onnxruntime "
+                             "on the CPU, about three times faster there, torch on a GPU); a "
+                             "cache of the other is written again, not reused")
     parser.add_argument("--trunk-weights", type=Path, default=None,
                         help="start from this per-frame stage's trunk (trunk_finetune's "
                              "best.pt) or a model file's (the shipped default.pt)")
@@ -362,6 +390,10 @@ def main(argv: Optional[List[str]] = None) -> int:
         parser.error("--judge-learn goes with --judge-gain")
     if args.rank_weight < 0:
         parser.error(f"--rank-weight must be >= 0, got {args.rank_weight}")
+    try:
+        share, shares = cache_share(args.cache_share, args.cache_only)
+    except ConfigError as exc:
+        parser.error(str(exc))
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -383,17 +415,22 @@ def main(argv: Optional[List[str]] = None) -> int:
         LOG.info("trunk from %s (per-frame step %s)", args.trunk_weights, frames["step"])
     model = model.to(device)
     fingerprint = trunk_fingerprint(model)
+    backend = args.cache_backend or ("torch" if device.type == "cuda" else "onnxruntime")
     cache_root = (args.cache or args.out.parent / "cache") / fingerprint
+    looks = [(pool, look, mirror) for pool in args.pool for look in range(args.looks + 1)
+             for mirror in ((False, True) if args.mirror else (False,))]
     caches = []
-    mirrors = (False, True) if args.mirror else (False,)
-    for pool in args.pool:
-        for look in range(args.looks + 1):
-            for mirror in mirrors:
-                name = look_name(pool.name, look, args.look_white_balance, mirror)
-                path = write_cache(pool, model, cache_root / name, look_seed(pool.name, look),
-                                   white_balance=args.look_white_balance, mirror=mirror)
-                caches.append(FeatureCache.load(path, fingerprint))
-    val = FeatureCache.load(write_cache(args.val, model, cache_root / args.val.name), fingerprint)
+    for index, (pool, look, mirror) in enumerate(looks):
+        if index % shares != share:
+            continue
+        name = look_name(pool.name, look, args.look_white_balance, mirror)
+        path = write_cache(pool, model, cache_root / name, look_seed(pool.name, look),
+                           white_balance=args.look_white_balance, mirror=mirror,
+                           backend=backend, threads=args.threads)
+        caches.append(FeatureCache.load(path, fingerprint))
+    if share == 0:
+        val = FeatureCache.load(write_cache(args.val, model, cache_root / args.val.name,
+                                            backend=backend, threads=args.threads), fingerprint)
     if args.cache_only:
         LOG.info("feature caches ready in %s", cache_root)
         return 0
