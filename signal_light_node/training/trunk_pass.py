@@ -22,6 +22,7 @@ import torch
 from torch import Tensor, nn
 
 from signal_light_node.errors import ConfigError
+from signal_light_node.model.interface import to_input
 
 LOG = logging.getLogger(__name__)
 
@@ -34,7 +35,8 @@ TrunkPass = Callable[[np.ndarray], Tuple[np.ndarray, np.ndarray]]
 
 class _FrameFeatures(nn.Module):
     """uint8 ``[N, S, S, 3]`` crops in, the network's per-frame features and lamp maps out,
-    converted as the torch pass converts them."""
+    the crops converted as :func:`~signal_light_node.model.interface.to_input` does it (its
+    array checks and memory layout are not graph operations)."""
 
     def __init__(self, net: nn.Module) -> None:
         super().__init__()
@@ -45,21 +47,26 @@ class _FrameFeatures(nn.Module):
         return self.net.frame_features(x)
 
 
+def _in_batches(crops: np.ndarray, batch: int,
+                run: Callable[[np.ndarray], Tuple[np.ndarray, np.ndarray]]
+                ) -> Tuple[np.ndarray, np.ndarray]:
+    """``run`` over ``batch`` crops at a time; its outputs joined as float16."""
+    feats, maps = [], []
+    for start in range(0, len(crops), batch):
+        f, m = run(crops[start:start + batch])
+        feats.append(f.astype(np.float16, copy=False))
+        maps.append(m.astype(np.float16, copy=False))
+    return np.concatenate(feats), np.concatenate(maps)
+
+
 def _torch_pass(net: nn.Module, batch: int) -> TrunkPass:
     device = next(net.parameters()).device
 
     @torch.inference_mode()
-    def run(crops: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-        feats, maps = [], []
-        for start in range(0, len(crops), batch):
-            x = torch.from_numpy(np.ascontiguousarray(crops[start:start + batch]))
-            x = x.permute(0, 3, 1, 2).to(device)
-            f, m = net.frame_features(x.float().mul_(1.0 / 255.0).contiguous(
-                memory_format=torch.channels_last))
-            feats.append(f.half().cpu().numpy())
-            maps.append(m.half().cpu().numpy())
-        return np.concatenate(feats), np.concatenate(maps)
-    return run
+    def one(crops: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        f, m = net.frame_features(to_input(crops).to(device))
+        return f.half().cpu().numpy(), m.half().cpu().numpy()
+    return lambda crops: _in_batches(crops, batch, one)
 
 
 def _onnx_pass(net: nn.Module, batch: int, threads: int) -> TrunkPass:
@@ -85,14 +92,10 @@ def _onnx_pass(net: nn.Module, batch: int, threads: int) -> TrunkPass:
         options.inter_op_num_threads = 1
         session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
 
-    def run(crops: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-        feats, maps = [], []
-        for start in range(0, len(crops), batch):
-            f, m = session.run(None, {"crops": np.ascontiguousarray(crops[start:start + batch])})
-            feats.append(f.astype(np.float16))
-            maps.append(m.astype(np.float16))
-        return np.concatenate(feats), np.concatenate(maps)
-    return run
+    def one(crops: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        f, m = session.run(None, {"crops": np.ascontiguousarray(crops)})
+        return f, m
+    return lambda crops: _in_batches(crops, batch, one)
 
 
 def trunk_pass(net: nn.Module, backend: str = "torch", batch: int = 512, threads: int = 1
