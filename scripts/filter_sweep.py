@@ -11,8 +11,11 @@ evaluate`` scores it (no grace). Besides the headline it prints brake F1 on rear
 alone, the one face from which a brake is always in sight, and on side views, and the share
 of judged frames published braking (on a bag whose vehicles never brake, the false brakes)
 and the share of brake-OFF frames published ON (on night negatives with braking vehicles
-among them, ``training.night_bound``'s false brakes). With ``--blinkers PART`` the blinker
-heads' outputs are taken in part from the truth (:data:`BLINKER_PARTS`), which tells where
+among them, ``training.night_bound``'s false brakes), the same share of judged blinker
+frames published ON, the view head's accuracy and the share of lamps published UNKNOWN
+where their truth is OFF or ON (``evaluation.metrics.unknown_where_visible``). With
+``--blinkers PART`` the blinker heads' outputs are taken in part from the truth
+(:data:`BLINKER_PARTS`), which tells where
 the intent is lost: in whether a blinker can be seen, in ON against OFF, or in the filter
 itself (docs/model.md, "Where the intent is lost"); ``--blinkers lit`` gives them a perfect
 per-frame eye instead (a split's lit labels). ``--blinker-lag ONSET OFFSET`` makes the truth's
@@ -40,7 +43,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 
 from signal_light_node.errors import ConfigError
-from signal_light_node.evaluation.metrics import metrics_from_confusion
+from signal_light_node.evaluation.metrics import metrics_from_confusion, unknown_where_visible
 from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
 from signal_light_node.evaluation.streaming import chunks, model_track_probs, score_batch
 from signal_light_node.labels import TASKS, LightStatus
@@ -241,13 +244,14 @@ def score(batches: Pass, config: IntentFilterConfig, shift: float, side: float =
     """Intent and brake figures of one pass under one setting (no grace); ``shift`` and
     ``side`` as :func:`shift_brake`'s."""
     scorer = TrackScorer(EvalSettings())
-    brake_on = judged = 0
-    column = TASKS.index("brake")
+    published = {task: [0, 0] for task in ("brake", "left", "right")}  # ON, judged
     for tracks, raw in batches:
         for pred in score_batch(scorer, tracks, shift_brake(raw, shift, side), config):
-            brake = pred[pred[:, column] >= 0, column]
-            brake_on += int((brake == _ON).sum())
-            judged += int((brake != 2).sum())
+            for task, counts in published.items():
+                column = pred[:, TASKS.index(task)]
+                column = column[column >= 0]
+                counts[0] += int((column == _ON).sum())
+                counts[1] += int((column != _UNKNOWN).sum())
     result = scorer.result()
     report, switches = result["no_grace"], result["switches"]
     summary = report["summary"]
@@ -256,12 +260,20 @@ def score(batches: Pass, config: IntentFilterConfig, shift: float, side: float =
             "intent_fn": summary["intent_fn_rate"],
             "brake_f1": _on_f1(report["overall"].get("brake")), "brake_f1_rear": _on_f1(rear),
             "brake_f1_side": side_brake_f1(report),
-            "brake_on_of_judged": brake_on / judged if judged else None,
+            "brake_on_of_judged": _share(*published["brake"]),
+            "blinker_on_of_judged": _share(published["left"][0] + published["right"][0],
+                                           published["left"][1] + published["right"][1]),
+            "view_accuracy": (report["overall"].get("view") or {}).get("accuracy"),
+            "unknown_visible": unknown_where_visible(report["overall"]),
             "brake_false_on": brake_false_on(report),
             "intent_switches": switches["intent"].get("ratio"),
             "brake_switches": switches["brake"].get("ratio"),
             "blinker_f1": blinker_f1(report),
             "blinker_switches": pooled_ratio(switches, ("left", "right"))}
+
+
+def _share(part: int, whole: int) -> Optional[float]:
+    return part / whole if whole else None
 
 
 def _pct(value: Optional[float]) -> str:
@@ -311,7 +323,7 @@ def main() -> None:
     rows = []
     print("data        blinkers config                             shift  side  intent  FP    "
           "FN   brake F1 (rear / side)  brake ON  false ON  switches intent / brake  "
-          "blinker F1 / switches")
+          "blinker F1 / switches  blinker ON  view acc.  UNKNOWN visible")
     for name, path in data:
         model_batches = model_pass(backend, Path(path), args.cache, args.checkpoint)
         for part in parts:
@@ -341,7 +353,9 @@ def _sweep(name: str, part: str, batches: Pass, configs: List[str],
                   f"({_pct(r['brake_f1_rear'])} / {_pct(r['brake_f1_side'])})  "
                   f"{_pct(r['brake_on_of_judged'])}  {_pct(r['brake_false_on'])}  "
                   f"{_ratio(r['intent_switches'])} / {_ratio(r['brake_switches'])}  "
-                  f"{_pct(r['blinker_f1'])} / {_ratio(r['blinker_switches'])}", flush=True)
+                  f"{_pct(r['blinker_f1'])} / {_ratio(r['blinker_switches'])}  "
+                  f"{_pct(r['blinker_on_of_judged'])}  {_pct(r['view_accuracy'])}  "
+                  f"{_pct(r['unknown_visible'])}", flush=True)
     return rows
 
 

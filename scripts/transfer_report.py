@@ -60,16 +60,12 @@ def _on_class(overall: Dict[str, Any], task: str, key: str) -> Optional[float]:
 
 def figures(metrics: Dict[str, Any]) -> Dict[str, Optional[float]]:
     """The table's figures from an ``evaluate`` metrics.json."""
+    from signal_light_node.evaluation.metrics import unknown_where_visible
+
     report = metrics["no_grace"]
     summary, overall = report["summary"], report["overall"]
     switches = metrics.get("switches", {}).get("intent", {})
     brake_switches = metrics.get("switches", {}).get("brake", {})
-    unknown = visible = 0
-    for task in ("brake", "left", "right"):
-        confusion = overall.get(task, {}).get("confusion") or []
-        for row in confusion[:2]:  # true OFF, true ON: the lamp is there to be judged
-            visible += sum(row)
-            unknown += row[2] if len(row) > 2 else 0
     return {"intent_f1": summary["intent_macro_f1"], "intent_fp": summary["intent_fp_rate"],
             "intent_fn": summary["intent_fn_rate"], "brake_acc": summary["brake_accuracy"],
             "brake_f1": _on_class(overall, "brake", "f1"),
@@ -77,7 +73,7 @@ def figures(metrics: Dict[str, Any]) -> Dict[str, Optional[float]]:
             "left_f1": _on_class(overall, "left", "f1"),
             "right_f1": _on_class(overall, "right", "f1"),
             "switches": switches.get("ratio"), "brake_switches": brake_switches.get("ratio"),
-            "unknown_visible": unknown / visible if visible else None,
+            "unknown_visible": unknown_where_visible(overall),
             "scored_frames": metrics.get("counts", {}).get("scored")}
 
 

@@ -162,6 +162,27 @@ def test_blinker_f1_and_switches_pool_left_and_right(tmp_path):
     assert sweep.pooled_ratio({"left": {"predicted": 2, "true": 0}}, ("left",)) is None
 
 
+def test_a_pass_blind_to_every_lamp_is_unknown_where_visible_and_names_one_view(tmp_path):
+    tracks = _split_tracks(tmp_path / "split", seed=5, n_sequences=4, seq_len=40)
+    sweep = _script()
+    no_delays = IntentFilterConfig(confirm_s=0.0, hold_s=0.0, visibility_confirm_s=0.0,
+                                   flash_min_evidence=0.0, intent_source="lights",
+                                   brake_sight="model")
+    blind = _uncertain_pass(tracks)
+    for task in ("brake", "left", "right"):
+        blind[task][...] = (0.0, 0.0, 1.0)
+    r = sweep.score([(tracks, blind)], no_delays, 0.0)
+    assert r["unknown_visible"] == pytest.approx(1.0)
+    assert r["blinker_on_of_judged"] is None  # nothing judged
+    assert r["view_accuracy"] < 1.0  # always BEHIND, where the split has other views
+    views = sweep._labels(tracks, blind["view"].shape[:2], "view")
+    named = dict(blind, view=np.eye(4, dtype=np.float32)[np.maximum(views, 0)])
+    assert sweep.score([(tracks, named)], no_delays, 0.0)["view_accuracy"] == pytest.approx(1.0)
+    seen = sweep.score([(tracks, sweep.blinkers_from_truth(_uncertain_pass(tracks), tracks,
+                                                           "truth"))], no_delays, 0.0)
+    assert seen["unknown_visible"] < 0.5
+    assert 0.0 < seen["blinker_on_of_judged"] < 1.0
+
 class _TimedTrack(_Track):
     def __init__(self, left, fps=10.0):
         super().__init__(left, left)

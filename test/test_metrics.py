@@ -190,3 +190,15 @@ def test_switches_markdown_lists_tasks_and_the_most_flickering_tracks():
     assert "| intent | 11 | 0 | – |" in md and "| brake | 1 | 1 | 1.00 |" in md
     assert "(2 of 5, most changes first)" in md
     assert md.index("| t3 | 5 | 0 |") < md.index("| t2 | 4 | 0 |") and "| t1 |" not in md
+
+
+def test_unknown_where_visible_pools_the_lights_true_off_and_on_rows():
+    overall = {  # rows: true OFF, ON, UNKNOWN; columns: published OFF, ON, UNKNOWN
+        "brake": {"confusion": [[6, 1, 3], [0, 8, 2], [0, 0, 50]]},
+        "left": {"confusion": [[10, 0, 0], [0, 0, 0], [0, 0, 9]]},
+        "intent": {"confusion": [[0, 0, 0, 0, 99]] * 5},  # not a light: left out
+    }
+    assert M.unknown_where_visible(overall) == pytest.approx(5 / 30)
+    assert M.unknown_where_visible(overall, ("left",)) == 0.0
+    assert M.unknown_where_visible({"brake": {"confusion": [[0, 0, 0], [0, 0, 0], [0, 0, 4]]}}) \
+        is None

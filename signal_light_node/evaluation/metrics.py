@@ -415,6 +415,29 @@ class SwitchCounter:
                               for k, (p, t) in self._per_track.items()}}
 
 
+def unknown_where_visible(overall: Mapping[str, Mapping[str, object]],
+                          tasks: Sequence[str] = ("brake", "left", "right")) -> Optional[float]:
+    """The share of frames published UNKNOWN among those whose truth is OFF or ON.
+
+    A lamp whose truth is OFF or ON is there to be judged, so an UNKNOWN on it is a miss
+    of sight, not a state; the lights' frames are pooled.
+
+    Args:
+        overall: A report's ``overall`` section (task name -> :func:`metrics_from_confusion`).
+        tasks: The light heads pooled; a task missing from ``overall`` is left out.
+
+    Returns:
+        The share, or ``None`` where no such frame was scored.
+    """
+    unknown = visible = 0
+    for task in tasks:
+        confusion = overall.get(task, {}).get("confusion") or []
+        for row in list(confusion)[:2]:  # true OFF, true ON
+            visible += sum(row)
+            unknown += row[2] if len(row) > 2 else 0
+    return unknown / visible if visible else None
+
+
 def roc_auc(positive: ArrayLike, negative: ArrayLike) -> Optional[float]:
     """Area under the ROC curve of scores of positives against negatives (the chance that a
     random positive scores above a random negative; ties count as the rank order gives);
