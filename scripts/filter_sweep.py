@@ -15,9 +15,9 @@ among them, ``training.night_bound``'s false brakes), the same share of judged b
 frames published ON, the view head's accuracy and the share of lamps published UNKNOWN
 where their truth is OFF or ON (``evaluation.metrics.unknown_where_visible``). With
 ``--blinkers PART`` the blinker heads' outputs are taken in part from the truth
-(:data:`BLINKER_PARTS`), which tells where
-the intent is lost: in whether a blinker can be seen, in ON against OFF, or in the filter
-itself (docs/model.md, "Where the intent is lost"); ``--blinkers lit`` gives them a perfect
+(:data:`BLINKER_PARTS`), which tells where the intent is lost: in whether a blinker can be
+seen, in ON against OFF, or in the filter itself (docs/model.md, "Where the intent is
+lost"); ``--blinkers lit`` gives them a perfect
 per-frame eye instead (a split's lit labels). ``--blinker-lag ONSET OFFSET`` makes the truth's
 blinker states late as a causal detector must be (ON from ``ONSET`` seconds into an episode
 until ``OFFSET`` seconds after it ends): what a perfect but causal eye would give (docs/model.md,
