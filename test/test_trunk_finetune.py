@@ -318,6 +318,24 @@ def test_a_trunk_of_another_shape_is_refused(split, tmp_path):
         load_trunk_weights(other, tmp_path / "bad.pt")
 
 
+def test_a_trunk_of_another_crop_size_loads_only_when_asked(split, tmp_path):
+    """A trunk trained on 64-pixel crops goes on at 96 pixels with ``any_size``; without
+    it the size is refused, and the stride is refused either way."""
+    out = tmp_path / "frames"
+    assert trunk_finetune.main(["--out", str(out), "--pool", str(split), "--val", str(split),
+                                "--tracks", "2", "--per-track", "2", "--steps", "1",
+                                "--threads", "1"]) == 0
+    larger = build_model(trunk_config(input_size=96))
+    with pytest.raises(ConfigError, match="input_size"):
+        load_trunk_weights(larger, out / "best.pt")
+    load_trunk_weights(larger, out / "best.pt", any_size=True)
+    trained = torch.load(out / "best.pt", map_location="cpu", weights_only=False)["trunk"]
+    assert all(torch.equal(v, trained[k]) for k, v in larger.trunk.state_dict().items())
+    with pytest.raises(ConfigError, match="trunk_stride"):
+        load_trunk_weights(build_model(trunk_config(trunk_stride=8)), out / "best.pt",
+                           any_size=True)
+
+
 def test_a_model_files_trunk_loads_as_a_per_frame_one(tmp_path):
     """A run can start from the shipped file's trunk on a machine without the per-frame
     file: the trunk it loads is the shipped one, fingerprint and all."""

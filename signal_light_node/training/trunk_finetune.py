@@ -266,11 +266,19 @@ def _trunk_of_model_file(saved: Dict[str, Any]) -> Optional[Dict[str, Any]]:
             "validation": None}
 
 
-def load_trunk_weights(model: nn.Module, path: "str | Path") -> Dict[str, Any]:
+def load_trunk_weights(model: nn.Module, path: "str | Path", any_size: bool = False
+                       ) -> Dict[str, Any]:
     """Put a trunk into ``model`` (a trunk network of the same config): a per-frame
     checkpoint's, or a whole model file's (a shipped ``default.pt``, whose trunk is frozen
     as trained, so that a run can start from it on a machine without the per-frame file);
     returns what the file says of itself (step, validation).
+
+    Args:
+        model: The trunk network to load into.
+        path: The per-frame checkpoint or model file.
+        any_size: Accept a trunk trained on crops of another ``input_size`` (same stride):
+            its tensors fit, only the fixed "same" padding is the model's. For a start
+            that goes on training at the new size, never for a trunk used as trained.
 
     Raises:
         ConfigError: The file is neither, or its trunk does not fit.
@@ -281,7 +289,7 @@ def load_trunk_weights(model: nn.Module, path: "str | Path") -> Dict[str, Any]:
     if not isinstance(saved, dict) or "trunk" not in saved:
         raise ConfigError(f"{path} is not a per-frame trunk checkpoint (trunk_finetune) nor "
                           f"a model file with a trunk")
-    for key in ("input_size", "trunk_stride"):
+    for key in ("trunk_stride",) if any_size else ("input_size", "trunk_stride"):
         if saved["config"].get(key) != getattr(model.config, key):
             raise ConfigError(f"{path}: trunk {key} {saved['config'].get(key)} differs from "
                               f"the model's {getattr(model.config, key)}")
@@ -378,6 +386,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--init-trunk", type=Path, default=None,
                         help="start from this trunk (a per-frame checkpoint or a model file "
                              "such as the shipped default.pt) instead of ImageNet's")
+    parser.add_argument("--init-any-size", action="store_true",
+                        help="let --init-trunk be a trunk trained on crops of another size "
+                        "(the same stride), to go on training it at this model's input_size")
     parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument("--trunk-lr-scale", type=float, default=0.3)
     parser.add_argument("--seed", type=int, default=1)
@@ -408,7 +419,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     model = build_model(trunk_config(**json.loads(args.model)), pretrained=True)
     resuming = args.resume and (args.out / "last.state.pt").is_file()
     if args.init_trunk is not None and not resuming:  # a resumed run has its own trunk
-        start = load_trunk_weights(model, args.init_trunk)
+        start = load_trunk_weights(model, args.init_trunk, any_size=args.init_any_size)
         LOG.info("trunk from %s (per-frame step %s)", args.init_trunk, start["step"])
     run = FineTune(model, args.train_from, args.lr, args.trunk_lr_scale, device,
                    pairs=args.pair_gap > 0, rank_weight=args.rank_weight, group=args.per_track)
