@@ -305,11 +305,18 @@ def test_a_grey_share_outside_zero_to_one_is_refused(split, tmp_path, share, cap
     assert not (tmp_path / "frames").exists()
 
 
-def test_a_trunk_of_another_shape_is_refused(split, tmp_path):
-    out = tmp_path / "frames"
+@pytest.fixture(scope="module")
+def one_step_run(split, tmp_path_factory):
+    """The directory of a one-step per-frame run on ``split`` (64-pixel crops)."""
+    out = tmp_path_factory.mktemp("one_step") / "frames"
     assert trunk_finetune.main(["--out", str(out), "--pool", str(split), "--val", str(split),
                                 "--tracks", "2", "--per-track", "2", "--steps", "1",
                                 "--threads", "1"]) == 0
+    return out
+
+
+def test_a_trunk_of_another_shape_is_refused(one_step_run, tmp_path):
+    out = one_step_run
     other = build_model(trunk_config(trunk_stride=8))
     with pytest.raises(ConfigError, match="trunk_stride"):
         load_trunk_weights(other, out / "best.pt")
@@ -318,13 +325,10 @@ def test_a_trunk_of_another_shape_is_refused(split, tmp_path):
         load_trunk_weights(other, tmp_path / "bad.pt")
 
 
-def test_a_trunk_of_another_crop_size_loads_only_when_asked(split, tmp_path):
+def test_a_trunk_of_another_crop_size_loads_only_when_asked(one_step_run):
     """A trunk trained on 64-pixel crops goes on at 96 pixels with ``any_size``; without
     it the size is refused, and the stride is refused either way."""
-    out = tmp_path / "frames"
-    assert trunk_finetune.main(["--out", str(out), "--pool", str(split), "--val", str(split),
-                                "--tracks", "2", "--per-track", "2", "--steps", "1",
-                                "--threads", "1"]) == 0
+    out = one_step_run
     larger = build_model(trunk_config(input_size=96))
     with pytest.raises(ConfigError, match="input_size"):
         load_trunk_weights(larger, out / "best.pt")
