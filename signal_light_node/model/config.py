@@ -330,7 +330,7 @@ class ModelConfig:
             raise ConfigError(f"model config feature_channels must be a positive integer, "
                               f"got {self.feature_channels!r}")
         for name, low in (("lit_hidden", 0), ("lit_cells", 0), ("lamp_detail", 1),
-                          ("members", 1)):
+                          ("members", 1), ("feature_grid", 0)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ConfigError(f"model config {name} must be an integer >= {low}, got {value!r}")
@@ -400,9 +400,7 @@ class ModelConfig:
         return side
 
     def _check_feature_grid(self) -> None:
-        grid = self.feature_grid
-        if isinstance(grid, bool) or not isinstance(grid, int) or grid < 0:
-            raise ConfigError(f"model config feature_grid must be an integer >= 0, got {grid!r}")
+        grid = self.feature_grid  # an integer >= 0, checked with the other counts
         if grid and self.encoder == "cnn":
             raise ConfigError("model config feature_grid pools the trunk's features: it needs "
                               "the trunk encoder")
