@@ -490,6 +490,17 @@ def test_lamp_area_caches_apart_from_the_plain_lamp_maps():
     assert trunk_fingerprint(area) != trunk_fingerprint(plain)
 
 
+def test_a_pooled_feature_grid_caches_apart_from_the_trunks_own_map():
+    from signal_light_node.training.feature_cache import trunk_fingerprint
+
+    own = _model(input_size=96)
+    pooled = _model(input_size=96, feature_grid=4)
+    pooled.trunk.load_state_dict(own.trunk.state_dict())
+    assert trunk_fingerprint(pooled) != trunk_fingerprint(own)
+    # At the trunk's own side nothing is averaged: the features, and the cache, are the same.
+    assert trunk_fingerprint(_model(feature_grid=4)) == trunk_fingerprint(_model())
+
+
 def test_checkpoint_round_trip_needs_no_wheel(tmp_path, monkeypatch):
     model = _model()
     path = save_checkpoint(tmp_path / "m.pt", model, model.config)

@@ -58,6 +58,8 @@ def trunk_fingerprint(model: torch.nn.Module) -> str:
         per_frame.append(cfg.lamp_detail)
     if cfg.lamp_area:  # two more lamp-map channels; left out when off, likewise
         per_frame.append("lamp_area")
+    if cfg.feature_grid not in (0, cfg.trunk_side):  # the trunk's map averaged down
+        per_frame.append(["feature_grid", cfg.feature_grid])
     digest.update(json.dumps(per_frame).encode())
     for name, value in sorted(model.trunk.state_dict().items()):
         digest.update(name.encode())
