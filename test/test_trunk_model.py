@@ -113,6 +113,20 @@ def test_a_larger_crop_keeps_the_temporal_grid_through_feature_grid():
         trunk_config(input_size=96, feature_grid=5)
 
 
+def test_a_crop_between_sizes_needs_feature_grid_for_its_finer_lamp_maps():
+    """At 80 pixels the trunk's 5 x 5 map has no whole lamp_detail-2 cells; averaged to
+    4 x 4 it does (10-pixel cells), and that is the only size check left then."""
+    with pytest.raises(ConfigError, match="trunk_stride x lamp_detail"):
+        trunk_config(**dict(JUDGE, input_size=80))
+    model = _model(**dict(JUDGE, input_size=80, feature_grid=4))
+    assert model.config.trunk_side == 5 and model.grid == 4
+    with torch.no_grad():
+        logits, _ = model.step_logits(torch.rand(2, 3, 80, 80), model.initial_state(2))
+    assert logits["view"].shape[0] == 2
+    with pytest.raises(ConfigError, match=r"multiple of trunk_stride \(16\)"):
+        trunk_config(**dict(JUDGE, input_size=88, feature_grid=4))
+
+
 @pytest.mark.parametrize("changes", [{}, {"relative_evidence": False},
                                      {"frequency_evidence": False}, {"trunk_stride": 8},
                                      {"lit_periods": False},

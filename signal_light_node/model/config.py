@@ -334,7 +334,10 @@ class ModelConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ConfigError(f"model config {name} must be an integer >= {low}, got {value!r}")
-        if self.encoder != "cnn" and self.input_size % (self.trunk_stride * self.lamp_detail):
+        # Without feature_grid the lamp maps are cut on the trunk's own map, whose cells
+        # must then split by lamp_detail; with it, _check_feature_grid checks the grid's.
+        if self.encoder != "cnn" and not self.feature_grid \
+                and self.input_size % (self.trunk_stride * self.lamp_detail):
             raise ConfigError(f"model config input_size ({self.input_size}) must be a multiple "
                               f"of trunk_stride x lamp_detail for the trunk encoder")
         self._check_feature_grid()
