@@ -44,6 +44,7 @@ from signal_light_node.model.config import ModelConfig, trunk_config
 from signal_light_node.model.registry import build_model
 from signal_light_node.model.trunk_network import LIT_TASKS
 from signal_light_node.evaluation.metrics import confusion_matrix, macro_f1, per_class_scores
+from signal_light_node.training.faint import FaintFlashes, faint_batch
 from signal_light_node.training.feature_cache import (FeatureCache, collate_windows, track_logits,
                                                       trunk_fingerprint, write_cache)
 from signal_light_node.training.loss import (brake_judge_loss, lamp_rank_loss, multitask_loss,
@@ -125,6 +126,9 @@ def _lr(step: int, steps: int, lr: float, warm: int = 50) -> float:
         return lr * (step + 1) / warm
     return lr * 0.5 * (1.0 + math.cos(math.pi * min(1.0, (step - warm) / max(1, steps - warm))))
 
+
+#: Stream id of the faint-flash draws (:mod:`.faint`), apart from the windows' generator.
+FAINT_STREAM = 53
 
 #: Heads ``--rank-weight`` ranks within each window (:func:`step_loss`).
 RANKED_LAMPS = ("brake", "left", "right")
@@ -223,12 +227,13 @@ def train(model: torch.nn.Module, train_caches: Sequence[FeatureCache], val: Fea
           val_every: int, resume: bool, meta: Dict[str, Any],
           device: Optional[torch.device] = None, judged: bool = False,
           side_blink_weight: float = 1.0, rank_weight: float = 0.0,
-          hazard_weight: float = 1.0, task_weights: Optional[Dict[str, float]] = None
-          ) -> Dict[str, Any]:
+          hazard_weight: float = 1.0, task_weights: Optional[Dict[str, float]] = None,
+          faint: FaintFlashes = FaintFlashes()) -> Dict[str, Any]:
     """The training loop of the module doc (``judged``, ``rank_weight``, ``task_weights``: see
     :func:`step_loss`;
-    ``side_blink_weight``, ``hazard_weight``: :func:`track_draws`); returns the best
-    validation figures."""
+    ``side_blink_weight``, ``hazard_weight``: :func:`track_draws`; ``faint``:
+    :mod:`.faint`, drawn from a generator of its own per step so that the windows drawn
+    are those of a run without it); returns the best validation figures."""
     device = device or torch.device("cpu")
     rng = np.random.default_rng(seed)
     model.to(device).freeze_encoder()
@@ -249,7 +254,9 @@ def train(model: torch.nn.Module, train_caches: Sequence[FeatureCache], val: Fea
     while progress["step"] < steps:
         for group in optim.param_groups:
             group["lr"] = _lr(progress["step"], steps, lr)
-        b = {k: v.to(device) for k, v in _batch(train_caches, rng, batch, seq_len, draws).items()}
+        b = faint_batch(_batch(train_caches, rng, batch, seq_len, draws), faint,
+                        np.random.default_rng([seed, progress["step"], FAINT_STREAM]))
+        b = {k: v.to(device) for k, v in b.items()}
         loss, parts = step_loss(model, b, weights, judged, rank_weight, task_weights)
         optim.zero_grad(set_to_none=True)
         loss.backward()
@@ -360,6 +367,11 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--intent-weight", type=float, default=TASK_WEIGHTS["intent"],
                         help="weight of the intent head's loss (the other heads' stay as "
                         "they are)")
+    parser.add_argument("--faint-share", type=float, default=0.0,
+                        help="share of the windows whose changes over time are shrunk "
+                             "towards their mean (training.faint; 0: none)")
+    parser.add_argument("--faint-low", type=float, default=0.3,
+                        help="with --faint-share: the smallest shrink factor drawn")
     parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     parser.add_argument("--cache-backend", choices=PASS_BACKENDS, default=None,
                         help="where the trunk runs to write the caches (default: onnxruntime "
@@ -392,6 +404,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         parser.error(f"--rank-weight must be >= 0, got {args.rank_weight}")
     try:
         share, shares = cache_share(args.cache_share, args.cache_only)
+        faint = FaintFlashes(args.faint_share, args.faint_low)
     except ConfigError as exc:
         parser.error(str(exc))
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
@@ -446,7 +459,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                  args.seed, args.val_every, args.resume, meta, device,
                  judged=args.judge_gain is not None, side_blink_weight=args.side_blink_weight,
                  rank_weight=args.rank_weight, hazard_weight=args.hazard_weight,
-                 task_weights=dict(TASK_WEIGHTS, intent=args.intent_weight))
+                 task_weights=dict(TASK_WEIGHTS, intent=args.intent_weight), faint=faint)
     (args.out / "summary.json").write_text(json.dumps(best, indent=1))
     LOG.info("best: %s", best)
     return 0
