@@ -375,15 +375,15 @@ def _judge_gradients(model, batch, judge_bias: float, head_bias: float, judged: 
             None if judge is None else judge.clone(), parts)
 
 
-def _recipe_model_and_batch(t: int = 5):
-    """The trunk recipe's model (brake judge and all, no dropout) and a random batch of two
-    windows of ``t`` cached frames."""
+def _recipe_model_and_batch(t: int = 5, **changes):
+    """The trunk recipe's model (brake judge and all, no dropout; ``changes`` on its config)
+    and a random batch of two windows of ``t`` cached frames."""
     from signal_light_node.model.config import trunk_config
     from signal_light_node.model.registry import build_model
 
     torch.manual_seed(0)
     model = build_model(trunk_config(frequency_evidence=False, lamp_detail=2, lamp_area=True,
-                                     track_floor=True, brake_expert=True)).train()
+                                     track_floor=True, brake_expert=True, **changes)).train()
     gen = torch.Generator().manual_seed(3)
     b = 2
     batch = {"features": torch.randn(b, t, model.trunk_channels, 4, 4, generator=gen),
@@ -471,6 +471,21 @@ def test_the_recipe_weighs_the_intent_loss_by_its_option():
     with pytest.raises(SystemExit):
         recipe_main(["--out", "unused", "--pool", "unused", "--val", "unused",
                      "--intent-weight", "0"])
+
+
+def test_the_recipe_weighs_the_lit_heads_loss_by_its_option():
+    from signal_light_node.training.trunk_recipe import LIT_WEIGHT, main as recipe_main, step_loss
+
+    model, batch = _recipe_model_and_batch(t=8, lit_hidden=16)
+    plain, parts = step_loss(model, batch, {})
+    heavier, heavier_parts = step_loss(model, batch, {}, lit_weight=3 * LIT_WEIGHT)
+    assert parts == heavier_parts  # the parts are unweighted
+    lit = sum(parts[f"lit_{t}"] for t in ("brake", "left", "right"))
+    assert lit > 0
+    assert float((heavier - plain).detach()) == pytest.approx(2 * LIT_WEIGHT * lit, rel=1e-4)
+    with pytest.raises(SystemExit):
+        recipe_main(["--out", "unused", "--pool", "unused", "--val", "unused",
+                     "--lit-weight", "-1"])
 
 
 def _labels(rows):

@@ -138,7 +138,7 @@ EXPERT_WEIGHT = 0.5
 
 def step_loss(model: torch.nn.Module, batch: Dict[str, torch.Tensor],
               weights: Dict[str, torch.Tensor], judged: bool = False, rank_weight: float = 0.0,
-              task_weights: Optional[Dict[str, float]] = None
+              task_weights: Optional[Dict[str, float]] = None, lit_weight: float = LIT_WEIGHT
               ) -> Tuple[torch.Tensor, Dict[str, float]]:
     """The loss of one batch of windows: the task heads (blinkers and intent past each
     window's warm-up) plus, with a lit head, each lamp's per-frame lit state, and with a
@@ -147,7 +147,8 @@ def step_loss(model: torch.nn.Module, batch: Dict[str, torch.Tensor],
     published logits, the judge's included, and the judge has no loss. ``rank_weight``
     > 0 adds that much of :func:`.lamp_rank_loss` over the brake and blinker heads: within
     a window, a frame whose lamp is ON must score above one of the same vehicle where it
-    is OFF. ``task_weights``: each head's loss weight (default :data:`TASK_WEIGHTS`)."""
+    is OFF. ``task_weights``: each head's loss weight (default :data:`TASK_WEIGHTS`);
+    ``lit_weight``: that of each lamp of the lit head (default :data:`LIT_WEIGHT`)."""
     logits, _ = model.sequence_features(batch["features"], batch["maps"])
     warm = warmup_frames(batch["fps"].tolist(), 2, 0.4).to(batch["labels"].device)
     judge = None if judged else logits.get("expert_brake")
@@ -167,7 +168,7 @@ def step_loss(model: torch.nn.Module, batch: Dict[str, torch.Tensor],
     if "lit_left" in logits:
         lit_logits = dict(logits, **{t: logits[f"lit_{t}"] for t in LIT_TASKS})
         lit_loss, lit_parts = multitask_loss(lit_logits, batch["lit_labels"], batch["mask"],
-                                             {t: LIT_WEIGHT for t in LIT_TASKS}, weights)
+                                             {t: lit_weight for t in LIT_TASKS}, weights)
         loss = loss + lit_loss
         parts.update({f"lit_{t}": v for t, v in lit_parts.items()})
     return loss, parts
@@ -228,12 +229,14 @@ def train(model: torch.nn.Module, train_caches: Sequence[FeatureCache], val: Fea
           device: Optional[torch.device] = None, judged: bool = False,
           side_blink_weight: float = 1.0, rank_weight: float = 0.0,
           hazard_weight: float = 1.0, task_weights: Optional[Dict[str, float]] = None,
-          faint: FaintFlashes = FaintFlashes()) -> Dict[str, Any]:
+          faint: FaintFlashes = FaintFlashes(), lit_weight: float = LIT_WEIGHT
+          ) -> Dict[str, Any]:
     """The training loop of the module doc (``judged``, ``rank_weight``, ``task_weights``: see
     :func:`step_loss`;
     ``side_blink_weight``, ``hazard_weight``: :func:`track_draws`; ``faint``:
     :mod:`.faint`, drawn from a generator of its own per step so that the windows drawn
-    are those of a run without it); returns the best validation figures."""
+    are those of a run without it; ``lit_weight``: :func:`step_loss`); returns the best
+    validation figures."""
     device = device or torch.device("cpu")
     rng = np.random.default_rng(seed)
     model.to(device).freeze_encoder()
@@ -257,7 +260,8 @@ def train(model: torch.nn.Module, train_caches: Sequence[FeatureCache], val: Fea
         b = faint_batch(_batch(train_caches, rng, batch, seq_len, draws), faint,
                         np.random.default_rng([seed, progress["step"], FAINT_STREAM]))
         b = {k: v.to(device) for k, v in b.items()}
-        loss, parts = step_loss(model, b, weights, judged, rank_weight, task_weights)
+        loss, parts = step_loss(model, b, weights, judged, rank_weight, task_weights,
+                                lit_weight)
         optim.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, 5.0)
@@ -367,6 +371,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--intent-weight", type=float, default=TASK_WEIGHTS["intent"],
                         help="weight of the intent head's loss (the other heads' stay as "
                         "they are)")
+    parser.add_argument("--lit-weight", type=float, default=LIT_WEIGHT,
+                        help="weight of each lamp's loss in the lit head (a model with "
+                             "lit_hidden: whether the lamp is lit in this very frame)")
     parser.add_argument("--faint-share", type=float, default=0.0,
                         help="share of the windows whose changes over time are shrunk "
                              "towards their mean (training.faint; 0: none)")
@@ -395,6 +402,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                      "--trunk-weights")
     if args.look_white_balance < 0:
         parser.error(f"--look-white-balance must be >= 0, got {args.look_white_balance}")
+    if args.lit_weight < 0:
+        parser.error(f"--lit-weight must be >= 0, got {args.lit_weight}")
     for name in ("side_blink_weight", "hazard_weight", "intent_weight"):
         if getattr(args, name) <= 0:
             parser.error(f"--{name.replace('_', '-')} must be > 0, got {getattr(args, name)}")
@@ -459,7 +468,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                  args.seed, args.val_every, args.resume, meta, device,
                  judged=args.judge_gain is not None, side_blink_weight=args.side_blink_weight,
                  rank_weight=args.rank_weight, hazard_weight=args.hazard_weight,
-                 task_weights=dict(TASK_WEIGHTS, intent=args.intent_weight), faint=faint)
+                 task_weights=dict(TASK_WEIGHTS, intent=args.intent_weight), faint=faint,
+                 lit_weight=args.lit_weight)
     (args.out / "summary.json").write_text(json.dumps(best, indent=1))
     LOG.info("best: %s", best)
     return 0
