@@ -66,10 +66,10 @@ def shrink_window_changes(batch: Dict[str, torch.Tensor], factors: np.ndarray
     out = dict(batch)
     for key in SHRUNK_KEYS:
         x = batch[key]
-        shape = (x.shape[0], x.shape[1]) + (1,) * (x.dim() - 2)
-        m = mask.view(shape)
-        mean = (x * m).sum(1, keepdim=True) / count.view((x.shape[0], 1) + (1,) * (x.dim() - 2))
-        a = torch.from_numpy(factors).to(x).view((x.shape[0], 1) + (1,) * (x.dim() - 2))
+        per_window = (x.shape[0], 1) + (1,) * (x.dim() - 2)  # broadcast over time and cells
+        m = mask.view((x.shape[0], x.shape[1]) + per_window[2:])
+        mean = (x * m).sum(1, keepdim=True) / count.view(per_window)
+        a = torch.from_numpy(factors).to(x).view(per_window)
         out[key] = (mean + a * (x - mean)) * m
     return out
 

@@ -402,15 +402,14 @@ def main(argv: Optional[List[str]] = None) -> int:
                      "--trunk-weights")
     if args.look_white_balance < 0:
         parser.error(f"--look-white-balance must be >= 0, got {args.look_white_balance}")
-    if args.lit_weight < 0:
-        parser.error(f"--lit-weight must be >= 0, got {args.lit_weight}")
     for name in ("side_blink_weight", "hazard_weight", "intent_weight"):
         if getattr(args, name) <= 0:
             parser.error(f"--{name.replace('_', '-')} must be > 0, got {getattr(args, name)}")
     if args.judge_learn != "all" and args.judge_gain is None:
         parser.error("--judge-learn goes with --judge-gain")
-    if args.rank_weight < 0:
-        parser.error(f"--rank-weight must be >= 0, got {args.rank_weight}")
+    for name in ("rank_weight", "lit_weight"):
+        if getattr(args, name) < 0:
+            parser.error(f"--{name.replace('_', '-')} must be >= 0, got {getattr(args, name)}")
     try:
         share, shares = cache_share(args.cache_share, args.cache_only)
         faint = FaintFlashes(args.faint_share, args.faint_low)
