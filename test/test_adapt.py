@@ -22,7 +22,7 @@ from signal_light_node.model.interface import to_input
 from signal_light_node.training.adapt_norms import (REFERENCE_KEY, AdaptSettings,
                                                     adapt_checkpoint, batch_norm_layers,
                                                     check_stats, measure_batch_norms,
-                                                    stepped_crops)
+                                                    cap_frames, stepped_crops)
 from signal_light_node.training.sources import load_unlabelled_bag_tracks
 from cli_refusal import refused
 
@@ -349,3 +349,32 @@ def test_a_bag_without_usable_crops_is_refused(tmp_path: Path, capsys) -> None:
                 header, [TrackBox("7", 500, 500, 520, 520, "car")], make))
     err = _refused(capsys, [bag], tmp_path / "a.pt")
     assert "no usable crop" in err
+
+
+class _CountingTrack:
+    """A track whose crops are numbered frames; counts how often they are cut out."""
+
+    def __init__(self, n: int, stepped: int, first: int) -> None:
+        self.mask = [i < stepped for i in range(n)]
+        self.crops = np.full((n, 2, 2, 3), 0, np.uint8) + np.arange(first, first + n,
+                                                                      dtype=np.uint8)[:, None, None, None]
+        self.cut = 0
+
+    def __len__(self) -> int:
+        return len(self.mask)
+
+    def crop_window(self, start: int, stop: int) -> np.ndarray:
+        self.cut += 1
+        return self.crops[start:stop]
+
+
+def test_a_cap_cuts_out_only_the_tracks_it_keeps() -> None:
+    """The capped crops are those the uncapped ones capped would be; unkept tracks stay
+    uncut (18 pools' crops copied at once did not fit in 24 GB)."""
+    tracks = [_CountingTrack(10, s, 20 * i) for i, s in enumerate((6, 0, 9, 3, 7, 5))]
+    capped = stepped_crops(tracks, max_frames=12, seed=5)
+    cut = [t.cut for t in tracks]
+    expected = cap_frames(stepped_crops(tracks), 12, 5)
+    assert sum(len(c) for c in capped) == 12
+    assert [c.tolist() for c in capped] == [c.tolist() for c in expected]
+    assert cut[1] == 0 and 0 < sum(cut) < len(tracks) - 1

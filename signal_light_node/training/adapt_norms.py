@@ -256,32 +256,39 @@ def load_unlabelled_tracks(paths: Sequence[Path], crop: CropConfig,
         path, crop, reading.image_topic, reading.detection_topic, pairing=reading.pairing))
 
 
-def stepped_crops(tracks: Sequence[TrackSequence]) -> List[np.ndarray]:
+def stepped_crops(tracks: Sequence[TrackSequence], max_frames: Optional[int] = None,
+                  seed: int = 0) -> List[np.ndarray]:
     """Per track, the uint8 crops ``[n, S, S, 3]`` of the frames the engine would step
-    (mask True), in order; tracks without such a frame are left out."""
-    out = []
-    for track in tracks:
-        crops = track.crop_window(0, len(track))[np.asarray(track.mask, bool)]
-        if len(crops):
-            out.append(crops)
-    return out
+    (mask True), in order; tracks without such a frame are left out. With ``max_frames``,
+    only the tracks ``cap_frames`` keeps are cut out (a copy of every pool's crops would
+    not fit in memory)."""
+    stepped = [(track, np.asarray(track.mask, bool)) for track in tracks]
+    stepped = [(track, mask) for track, mask in stepped if mask.any()]
+    plan = cap_plan([int(mask.sum()) for _, mask in stepped], max_frames, seed)
+    return [stepped[i][0].crop_window(0, len(stepped[i][0]))[stepped[i][1]][:take]
+            for i, take in plan]
+
+
+def cap_plan(lengths: Sequence[int], max_frames: Optional[int], seed: int
+             ) -> List[Tuple[int, int]]:
+    """``(index, frames kept)`` of the sequences of ``lengths`` that ``cap_frames`` keeps."""
+    if max_frames is None or sum(lengths) <= max_frames:
+        return [(i, n) for i, n in enumerate(lengths)]
+    plan, left = [], int(max_frames)
+    for index in np.random.default_rng(seed).permutation(len(lengths)):
+        if left <= 0:
+            break
+        plan.append((int(index), min(int(lengths[index]), left)))
+        left -= plan[-1][1]
+    return plan
 
 
 def cap_frames(sequences: List[np.ndarray], max_frames: Optional[int], seed: int
                ) -> List[np.ndarray]:
     """At most ``max_frames`` frames: whole tracks in an order shuffled with ``seed``, the
     last one cut short; all of them, in their order, when under the cap or uncapped."""
-    total = sum(len(s) for s in sequences)
-    if max_frames is None or total <= max_frames:
-        return list(sequences)
-    order = np.random.default_rng(seed).permutation(len(sequences))
-    kept, left = [], int(max_frames)
-    for index in order:
-        if left <= 0:
-            break
-        kept.append(sequences[index][:left])
-        left -= len(kept[-1])
-    return kept
+    plan = cap_plan([len(s) for s in sequences], max_frames, seed)
+    return [sequences[i][:take] for i, take in plan]
 
 
 # -------------------------------------------------------------------------- stepping
@@ -502,7 +509,7 @@ def _stepped(inputs: Sequence[Path], loaded: Any, settings: AdaptSettings,
     """The crop sequences of ``inputs`` the statistics are taken on (capped, refused if
     there is none)."""
     tracks = load_unlabelled_tracks(inputs, loaded.config.crop_config(), reading)
-    sequences = cap_frames(stepped_crops(tracks), settings.max_frames, settings.seed)
+    sequences = stepped_crops(tracks, settings.max_frames, settings.seed)
     if not sequences:
         raise ConfigError(f"no usable crop in {', '.join(map(str, inputs))}: "
                           f"{len(tracks)} tracks, none with a box that can be cropped")
