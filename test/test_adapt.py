@@ -356,8 +356,8 @@ class _CountingTrack:
 
     def __init__(self, n: int, stepped: int, first: int) -> None:
         self.mask = [i < stepped for i in range(n)]
-        self.crops = np.full((n, 2, 2, 3), 0, np.uint8) + np.arange(first, first + n,
-                                                                      dtype=np.uint8)[:, None, None, None]
+        frames = np.arange(first, first + n, dtype=np.uint8)
+        self.crops = np.broadcast_to(frames[:, None, None, None], (n, 2, 2, 3))
         self.cut = 0
 
     def __len__(self) -> int:
