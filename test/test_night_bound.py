@@ -15,8 +15,9 @@ from signal_light_node.evaluation.scoring import EvalSettings, TrackScorer
 from signal_light_node.evaluation.streaming import chunks, predict_track_probs
 from signal_light_node.model import load_checkpoint
 from signal_light_node.model.checkpoint import DEFAULT_WEIGHTS
-from signal_light_node.training.night_bound import (LIGHT_GROUPS, NightBounds, choose_offset,
-                                                    fit_light_offset, light_offsets, meta_key)
+from signal_light_node.training.night_bound import (DEFAULT_OFFSET_GRID, LIGHT_GROUPS, NightBounds,
+                                                    choose_offset, fit_light_offset,
+                                                    light_offsets, meta_key)
 from signal_light_node.training.sources import load_bag_tracks
 from signal_light_node.training.unknown_bias import add_on_offsets, task_heads
 from cli_refusal import refused
@@ -37,6 +38,13 @@ def test_the_offset_nearest_0_within_the_bound_wins() -> None:
     assert choose_offset(shares, 0.15) == (-1.0, True)
     assert choose_offset({0.0: 0.3, -1.0: 0.2}, 0.1) == (-1.0, False)
 
+
+def test_the_default_grid_does_not_overshoot_a_bound_past_minus_1() -> None:
+    # Candidate W's brake: 10.8 % at -1.0, 6.0 % at -1.5; -1.125 already holds 10 %.
+    shares = {-0.125 * i: 0.108 - 0.01 * max(i - 8, 0) for i in range(17)}
+    picked = choose_offset({o: shares[o] for o in DEFAULT_OFFSET_GRID}, 0.10)
+    assert picked == (-1.125, True)
+    assert DEFAULT_OFFSET_GRID[0] == 0.0 and min(DEFAULT_OFFSET_GRID) == -2.0
 
 def _false_on(model, tracks, group: str) -> float:
     scorer = TrackScorer(EvalSettings())
