@@ -42,7 +42,7 @@ logger = logging.getLogger(__name__)
 #: the offset nearest 0 within the bound is kept, and a coarse step overshoots it (a brake
 #: bound of 20 % got 16.9 % between 24.5 % at -0.25 and -0.5; candidate W's bounds of 10 and
 #: 5 % got -1.5 where -1.125 and -1.375 held them, 3 points of brake F1; docs/model.md).
-DEFAULT_OFFSET_GRID: Tuple[float, ...] = tuple(-0.125 * i for i in range(17))
+DEFAULT_OFFSET_GRID: Tuple[float, ...] = (0.0,) + tuple(-0.125 * i for i in range(1, 17))
 #: The light groups a bound is for: name -> the heads whose ON it shifts against OFF.
 LIGHT_GROUPS: Dict[str, Tuple[str, ...]] = {"brake": ("brake",), "blinker": ON_HEADS}
 
