@@ -47,6 +47,7 @@ def test_the_default_grid_does_not_overshoot_a_bound_past_minus_1() -> None:
     # "0.0", not "-0.0": the logs and the checkpoint's metadata print the grid.
     assert str(DEFAULT_OFFSET_GRID[0]) == "0.0" and min(DEFAULT_OFFSET_GRID) == -2.0
 
+
 def _false_on(model, tracks, group: str) -> float:
     scorer = TrackScorer(EvalSettings())
     with torch.no_grad():
